@@ -1,0 +1,40 @@
+"""Test-wide setup shared by every test under test/.
+
+Runs at import time, i.e. before any test module can import rclpy and before the first
+``rclpy.init``; child processes started by tests inherit these variables.
+"""
+
+from __future__ import annotations
+
+import os
+import random
+import tempfile
+from collections.abc import Iterator
+from typing import Any
+
+import pytest
+
+# Keep DDS discovery on this host (Fast DDS multicasts on every interface otherwise) and
+# on a domain of its own, so parallel runs on one machine do not see each other.
+os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+os.environ.setdefault("ROS_DOMAIN_ID", str(random.randint(1, 101)))
+# rclpy.init raises "failed to initialize logging" if ~/.ros/log cannot be created.
+os.environ.setdefault("ROS_LOG_DIR", tempfile.mkdtemp(prefix="mkf_ros-roslog-"))
+
+
+@pytest.fixture
+def ros_context() -> Iterator[Any]:
+    """A fresh, initialised ``rclpy.context.Context``, shut down after the test.
+
+    Pass it on explicitly: ``Node(..., context=ctx)``, ``SingleThreadedExecutor(context=ctx)``.
+    The test is skipped when rclpy is not importable.
+    """
+    rclpy = pytest.importorskip("rclpy")
+    from rclpy.context import Context
+
+    context = Context()
+    rclpy.init(context=context)
+    try:
+        yield context
+    finally:
+        rclpy.try_shutdown(context=context)

@@ -1,0 +1,310 @@
+"""Packaging checks: the ROS install layout, package.xml vs. the code, setup.py hygiene.
+
+The colcon test builds this repository exactly as a ROS workspace would (``colcon build``,
+plain, not ``--symlink-install``) into a temporary directory, so the source tree stays clean.
+"""
+
+from __future__ import annotations
+
+import ast
+import os
+import shutil
+import subprocess
+import sys
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+PKG = "mkf_ros"
+
+# ROS packages the code may import; each one imported must be a dependency in package.xml.
+ROS_PACKAGES = frozenset(
+    {
+        "rclpy",
+        "sensor_msgs",
+        "geometry_msgs",
+        "std_msgs",
+        "std_srvs",
+        "diagnostic_msgs",
+        "rcl_interfaces",
+        "rosgraph_msgs",
+        "builtin_interfaces",
+        "ament_index_python",
+        "tf2_ros",
+    }
+)
+# Imported only behind ``try: ... except ImportError`` (no pip wheel exists): may be missing.
+OPTIONAL_ROS_PACKAGES = frozenset({"tf2_ros"})
+# Any other imported module named like a ROS interface package counts as well (nav_msgs, ...).
+ROS_INTERFACE_SUFFIXES = ("_msgs", "_srvs", "_interfaces")
+
+CONSOLE_SCRIPTS = ("mkf", "estimator", "player")
+
+
+# ---------------------------------------------------------------- helpers
+
+
+def _source_module_exists(dotted: str) -> bool:
+    """True if the repo holds the module's source (what colcon installs)."""
+    base = REPO.joinpath(*dotted.split("."))
+    return base.with_suffix(".py").is_file() or (base / "__init__.py").is_file()
+
+
+def _is_ros_package(module: str) -> bool:
+    """A known ROS package, or any interface package by the ROS naming convention."""
+    return module in ROS_PACKAGES or module.endswith(ROS_INTERFACE_SUFFIXES)
+
+
+def _setup_kwargs() -> dict[str, object]:
+    """Literal keyword arguments of the ``setup(...)`` call in setup.py (without running it)."""
+    tree = ast.parse((REPO / "setup.py").read_text(), filename="setup.py")
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Call) and getattr(node.func, "id", None) == "setup":
+            kwargs = {}
+            for kw in node.keywords:
+                try:
+                    kwargs[kw.arg] = ast.literal_eval(kw.value)
+                except ValueError:
+                    kwargs[kw.arg] = None  # computed (e.g. data_files with glob)
+            return kwargs
+    raise AssertionError("setup.py has no setup(...) call")
+
+
+def _package_xml() -> ET.Element:
+    return ET.parse(REPO / "package.xml").getroot()
+
+
+def _dependencies(root: ET.Element, *tags: str) -> set[str]:
+    return {(el.text or "").strip() for tag in tags for el in root.findall(tag)}
+
+
+def _imported_top_level_modules() -> dict[str, set[str]]:
+    """Top-level module name -> files (relative) of mkf_ros/ that import it."""
+    found: dict[str, set[str]] = {}
+    for path in sorted((REPO / PKG).rglob("*.py")):
+        rel = str(path.relative_to(REPO))
+        try:
+            tree = ast.parse(path.read_text(encoding="utf-8"), filename=rel)
+        except SyntaxError as exc:
+            pytest.fail(f"{rel}: cannot parse: {exc}")
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Import):
+                names = [alias.name for alias in node.names]
+            elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+                names = [node.module]
+            else:
+                continue
+            for name in names:
+                found.setdefault(name.split(".")[0], set()).add(rel)
+    return found
+
+
+def _colcon() -> str:
+    """The colcon of the running environment (installed by requirements/dev.txt)."""
+    beside = Path(sys.executable).parent / "colcon"
+    if beside.is_file() and os.access(beside, os.X_OK):
+        return str(beside)
+    found = shutil.which("colcon")
+    if found:
+        return found
+    msg = f"colcon not installed next to {sys.executable} (pip install -r requirements/dev.txt)"
+    if os.environ.get("CI"):
+        pytest.fail(msg)
+    pytest.skip(msg)
+
+
+# ---------------------------------------------------------------- (a) colcon build
+
+
+@pytest.fixture(scope="module")
+def colcon_install(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """``colcon build`` of the repo in a temp workspace; returns ``<ws>/install/mkf_ros``."""
+    colcon = _colcon()
+    ws = tmp_path_factory.mktemp("colcon_ws")
+    env = dict(os.environ)  # keep the ROS wheels' bootstrap variables intact
+    env["COLCON_HOME"] = str(ws / "colcon_home")  # ignore a user's ~/.colcon defaults
+    cmd = [
+        colcon,
+        "--log-base",
+        str(ws / "log"),
+        "build",
+        "--base-paths",
+        str(REPO),
+        "--build-base",
+        str(ws / "build"),
+        "--install-base",
+        str(ws / "install"),
+        "--event-handlers",
+        "console_direct+",
+    ]
+    proc = subprocess.run(
+        cmd,
+        cwd=ws,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=240,
+        check=False,
+    )
+    assert proc.returncode == 0, (
+        f"colcon build failed (rc {proc.returncode}):\n{proc.stdout[-6000:]}\n{proc.stderr[-6000:]}"
+    )
+    prefix = ws / "install" / PKG
+    assert prefix.is_dir(), f"no {prefix} after colcon build:\n{proc.stdout[-3000:]}"
+    return prefix
+
+
+def _site_packages(prefix: Path) -> Path:
+    hits = sorted(prefix.glob("lib/python3*/site-packages")) + sorted(
+        prefix.glob("local/lib/python3*/dist-packages")
+    )
+    assert hits, f"no site-packages under {prefix}"
+    return hits[0]
+
+
+def test_colcon_build_produces_ros_layout(colcon_install: Path) -> None:
+    prefix = colcon_install
+    marker = prefix / "share/ament_index/resource_index/packages" / PKG
+    assert marker.is_file(), "ament index marker missing (ros2 run / get_package_share_directory)"
+    assert (prefix / "share" / PKG / "package.xml").is_file()
+    for name in CONSOLE_SCRIPTS:
+        exe = prefix / "lib" / PKG / name
+        assert exe.is_file(), f"{exe} missing (setup.cfg install_scripts / console_scripts)"
+        assert os.access(exe, os.X_OK), f"{exe} not executable"
+    # config/*.yaml and launch/*.launch.py are installed to share/mkf_ros/...
+    for sub, pattern in (("config", "*.yaml"), ("launch", "*.launch.py")):
+        want = {p.name for p in (REPO / sub).glob(pattern)}
+        have = {p.name for p in (prefix / "share" / PKG / sub).glob(pattern)}
+        assert want == have, f"share/{PKG}/{sub}: expected {sorted(want)}, installed {sorted(have)}"
+    site = _site_packages(prefix)
+    if (REPO / PKG / "__init__.py").is_file():
+        assert (site / PKG / "__init__.py").is_file()
+    for excluded in ("test", "bench"):
+        assert not (site / excluded).exists(), f"{excluded}/ must not be installed as a package"
+
+
+def test_installed_mkf_runs_help(colcon_install: Path) -> None:
+    if not _source_module_exists(f"{PKG}.cli.main"):
+        pytest.skip(f"{PKG}/cli/main.py does not exist yet")
+    prefix = colcon_install
+    site = _site_packages(prefix)
+    # What `. install/setup.sh` would set.
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(site), env.get("PYTHONPATH")]))
+    env["AMENT_PREFIX_PATH"] = os.pathsep.join(
+        filter(None, [str(prefix), env.get("AMENT_PREFIX_PATH")])
+    )
+
+    where = subprocess.run(
+        [sys.executable, "-c", f"import {PKG}; print({PKG}.__file__)"],
+        # cwd: not the repo, `-c` puts the cwd first on sys.path
+        cwd=prefix,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+    )
+    assert where.returncode == 0, where.stderr
+    assert Path(where.stdout.strip()).resolve().is_relative_to(site.resolve()), (
+        f"{PKG} imported from {where.stdout.strip()}, not from the colcon install {site}"
+    )
+
+    proc = subprocess.run(
+        [str(prefix / "lib" / PKG / "mkf"), "--help"],
+        cwd=prefix,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+    )
+    assert proc.returncode == 0, f"mkf --help: rc {proc.returncode}\n{proc.stdout}\n{proc.stderr}"
+    assert proc.stdout.strip(), "mkf --help printed nothing"
+
+
+# ---------------------------------------------------------------- (b) package.xml
+
+
+def test_package_xml_metadata_matches_setup_py() -> None:
+    root = _package_xml()
+    assert root.tag == "package" and root.get("format") == "3"
+    assert root.findtext("name") == PKG
+    assert root.findtext("export/build_type") == "ament_python"
+    kwargs = _setup_kwargs()
+    assert kwargs.get("name", PKG) in (PKG, None)
+    assert root.findtext("version") == kwargs["version"], "version differs: package.xml vs setup.py"
+    assert root.findtext("license") == kwargs.get("license", "Apache-2.0") == "Apache-2.0"
+
+
+def test_package_xml_is_valid_for_catkin_pkg() -> None:
+    catkin_pkg_package = pytest.importorskip("catkin_pkg.package")  # comes with colcon-ros
+    pkg = catkin_pkg_package.parse_package(str(REPO / "package.xml"))
+    pkg.validate()
+    assert pkg.get_build_type() == "ament_python"
+
+
+def test_package_xml_lists_every_imported_ros_package() -> None:
+    deps = _dependencies(_package_xml(), "depend", "exec_depend")
+    imported = _imported_top_level_modules()
+    missing = {
+        mod: sorted(files)
+        for mod, files in imported.items()
+        if _is_ros_package(mod) and mod not in OPTIONAL_ROS_PACKAGES and mod not in deps
+    }
+    assert not missing, f"imported ROS packages missing from package.xml <exec_depend>: {missing}"
+
+
+# ---------------------------------------------------------------- (c) setup.py
+
+
+def test_install_requires_has_no_ros_wheels() -> None:
+    reqs = _setup_kwargs().get("install_requires")
+    assert isinstance(reqs, list) and reqs, "install_requires must be a literal list"
+    ros_wheels = [r for r in reqs if r.lower().replace("_", "-").startswith("ros-")]
+    assert not ros_wheels, (
+        f"ros-* wheels belong in requirements/ros-jazzy.txt (dev/CI), not install_requires: "
+        f"{ros_wheels}"
+    )
+    assert "tests_require" not in _setup_kwargs(), "drop tests_require (setuptools warns, colcon)"
+
+
+# ---------------------------------------------------------------- environment
+
+
+def test_ros_discovery_is_local() -> None:
+    assert os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] == "LOCALHOST"
+    assert 1 <= int(os.environ["ROS_DOMAIN_ID"]) <= 101
+    assert os.environ.get("ROS_LOG_DIR")
+
+
+@pytest.mark.ros
+def test_rclpy_pub_sub_in_one_process(ros_context) -> None:
+    """The pinned ROS wheels work: two nodes exchange a std_msgs/String."""
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.node import Node
+    from std_msgs.msg import String
+
+    assert ros_context.get_domain_id() == int(os.environ["ROS_DOMAIN_ID"])
+    talker = Node("packaging_talker", context=ros_context)
+    listener = Node("packaging_listener", context=ros_context)
+    got: list[str] = []
+    listener.create_subscription(String, "packaging_chatter", lambda m: got.append(m.data), 10)
+    pub = talker.create_publisher(String, "packaging_chatter", 10)
+    executor = SingleThreadedExecutor(context=ros_context)
+    executor.add_node(talker)
+    executor.add_node(listener)
+    try:
+        for _ in range(200):  # <= ~20 s, normally a few iterations
+            if got:
+                break
+            if pub.get_subscription_count() > 0:
+                pub.publish(String(data="hello"))
+            executor.spin_once(timeout_sec=0.1)
+        assert got and got[0] == "hello"
+    finally:
+        executor.shutdown()
+        talker.destroy_node()
+        listener.destroy_node()
