@@ -1,0 +1,164 @@
+"""The offline API: :func:`estimate` runs a filter over whole arrays."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from mkf_ros.core.filter import (
+    COUNTER_NAMES,
+    F_SIZE,
+    K_SIZE,
+    NX_MAX,
+    S_QC,
+    S_SIZE,
+    build_cfg,
+    run_batch,
+)
+from mkf_ros.core.frames import FROM_ENU
+from mkf_ros.core.params import FilterParams
+
+
+@dataclass
+class EstimateResult:
+    """Output of :func:`estimate`, one row per input sample."""
+
+    quat: np.ndarray  #: (N, 4) [w, x, y, z], sensor → world, w ≥ 0
+    cov: np.ndarray  #: (N, 3, 3) orientation covariance about world axes, rad²
+    omega: np.ndarray  #: (N, 3) estimated angular velocity, body frame, rad/s
+    bias: np.ndarray  #: (N, 3) estimated gyro bias, rad/s (zeros unless estimated)
+    bias_std: np.ndarray  #: (N, 3) its standard deviation, rad/s
+    initialized: np.ndarray  #: (N,) bool: False before the first usable accelerometer sample
+    counters: dict[str, int] = field(default_factory=dict)  #: skipped/invalid samples etc.
+    params: FilterParams = field(default_factory=FilterParams)
+
+
+def _as_samples(name: str, a: object, n: int | None) -> np.ndarray:
+    try:
+        arr = np.asarray(a, dtype=float)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a numeric array of shape (N, 3)") from None
+    if arr.ndim != 2 or arr.shape[1] != 3:
+        raise ValueError(f"{name} must have shape (N, 3), got {arr.shape}")
+    if n is not None and arr.shape[0] != n:
+        raise ValueError(f"{name} has {arr.shape[0]} samples, expected {n} (as gyr/acc)")
+    inf = np.isinf(arr)
+    if inf.any():
+        i = int(np.argwhere(inf)[0, 0])
+        raise ValueError(f"{name}[{i}] contains an infinite value: {arr[i].tolist()} "
+                         "(use NaN to mark a missing sample)")
+    return np.ascontiguousarray(arr)
+
+
+def _time_steps(n: int, dt: object, timestamps: object) -> np.ndarray:
+    if (dt is None) == (timestamps is None):
+        raise ValueError("give exactly one of dt (seconds per sample) or timestamps (N,)")
+    dts = np.zeros(n)
+    if dt is not None:
+        try:
+            d = float(dt)  # type: ignore[arg-type]
+        except (TypeError, ValueError):
+            raise ValueError(f"dt must be a positive number of seconds, got {dt!r}") from None
+        if not (np.isfinite(d) and d > 0):
+            raise ValueError(f"dt must be a positive finite number of seconds, got {dt!r}")
+        dts[1:] = d
+        return dts
+    t = np.asarray(timestamps, dtype=float)
+    if t.shape != (n,):
+        raise ValueError(f"timestamps must have shape ({n},), got {t.shape}")
+    bad = ~np.isfinite(t)
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise ValueError(f"timestamps[{i}] is not finite: {t[i]}")
+    d = np.diff(t)
+    if (d <= 0).any():
+        i = int(np.argmax(d <= 0)) + 1
+        raise ValueError(f"timestamps must increase: timestamps[{i}] = {t[i]!r} is not after "
+                         f"timestamps[{i - 1}] = {t[i - 1]!r}")
+    dts[1:] = d
+    return dts
+
+
+def estimate(
+    gyr: object,
+    acc: object,
+    mag: object = None,
+    *,
+    dt: float | None = None,
+    timestamps: object = None,
+    **params: object,
+) -> EstimateResult:
+    """Estimate the orientation of a rigid body from IMU samples (offline, causal).
+
+    Args:
+        gyr: (N, 3) angular velocity in rad/s, body frame, or None (no gyroscope).
+        acc: (N, 3) specific force (+g up at rest), any unit (m/s² by convention).
+        mag: (N, 3) magnetic field, any unit, or None. Giving it implies ``use_mag=True``
+            unless ``use_mag`` is passed.
+        dt: sample period in seconds, or
+        timestamps: (N,) strictly increasing sample times in seconds.
+        **params: filter parameters (see :data:`mkf_ros.core.params.PARAMS`), e.g.
+            ``algorithm="mukf", chart="rv", chart_update=False, world_frame="ned"``.
+
+    A row that is all NaN means "no reading at this sample" (e.g. a slower magnetometer); a
+    partly-NaN or zero row is invalid. Either skips only that sensor's update and is counted in
+    ``counters``. Infinite values, wrong shapes and non-increasing timestamps raise ValueError
+    naming the argument and the sample index.
+    """
+    if gyr is None and acc is None:
+        raise ValueError("give at least one of gyr or acc")
+    ref = gyr if gyr is not None else acc
+    n = int(np.shape(ref)[0]) if np.ndim(ref) >= 1 else -1
+    g = _as_samples("gyr", gyr, None) if gyr is not None else None
+    n = g.shape[0] if g is not None else n
+    a = _as_samples("acc", acc, n) if acc is not None else np.full((n, 3), np.nan)
+    n = a.shape[0]
+    if g is None:
+        g = np.full((n, 3), np.nan)
+    if mag is not None:
+        params.setdefault("use_mag", True)
+        m = _as_samples("mag", mag, n)
+    else:
+        if params.get("use_mag"):
+            raise ValueError("use_mag=True needs mag, an (N, 3) array")
+        m = np.full((n, 3), np.nan)
+    p = FilterParams(params)
+    dts = _time_steps(n, dt, timestamps)
+    cfg = build_cfg(p)
+    st = np.zeros(S_SIZE)
+    st[S_QC] = 1.0
+    P = np.zeros((NX_MAX, NX_MAX))
+    fl = np.zeros(F_SIZE, dtype=np.int64)
+    cnt = np.zeros(K_SIZE, dtype=np.int64)
+    out_q = np.empty((n, 4))
+    out_cov = np.empty((n, 3, 3))
+    out_w = np.empty((n, 3))
+    out_b = np.empty((n, 3))
+    out_bvar = np.empty((n, 3))
+    out_init = np.empty(n, dtype=np.bool_)
+    run_batch(cfg, st, P, fl, cnt, dts, g, a, m, FROM_ENU[p.world_frame].copy(), out_q, out_cov,
+              out_w, out_b, out_bvar, out_init)
+    return EstimateResult(
+        quat=out_q, cov=out_cov, omega=out_w, bias=out_b, bias_std=np.sqrt(out_bvar),
+        initialized=out_init, counters=dict(zip(COUNTER_NAMES, map(int, cnt), strict=True)),
+        params=p,
+    )
+
+
+def warmup() -> None:
+    """Compile (or load from numba's on-disk cache) every kernel the filters use, so that the
+    first real sample is not delayed. The first call on a new installation takes about a minute;
+    later calls load the cache in well under a second."""
+    from mkf_ros.core.filter import AttitudeFilter
+
+    n = 4
+    gyr = np.zeros((n, 3))
+    acc = np.tile([0.0, 0.0, 9.81], (n, 1))
+    mag = np.tile([0.0, 20.0, -40.0], (n, 1))
+    for algo in ("mekf", "mukf"):
+        estimate(gyr, acc, mag, dt=0.01, algorithm=algo, estimate_gyro_bias=True)
+        f = AttitudeFilter(algorithm=algo, use_mag=True)
+        for k in range(n):
+            f.step(0.01, gyr[k], acc[k], mag[k])
+        _ = f.quaternion

@@ -1,0 +1,1 @@
+"""The ``mkf`` command line: one console script, one module per subcommand."""

@@ -1,0 +1,256 @@
+"""The four charts of the unit-quaternion manifold (spec §2) and their transition maps and
+T-matrices (§3).
+
+A chart maps a unit quaternion ``δ`` near the identity to ``e = φ(δ) ∈ R³`` and back. Every chart
+is a small set of kernels (``to_chart``, ``from_chart``, ``T``) plus a saturation radius; the
+filters call the dispatchers :func:`to_chart`, :func:`from_chart`, :func:`saturate`,
+:func:`t_matrix` and :func:`transition` with a chart id and never look at which chart it is.
+:class:`Chart` is the Python face of the same kernels.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from mkf_ros.core._jit import jit
+from mkf_ros.core.quaternion import q_omega, qconj_mul, qmul
+
+O, RP, MRP, RV = 0, 1, 2, 3  # noqa: E741 (the paper's name of the orthographic chart)
+CHART_NAMES = ("o", "rp", "mrp", "rv")
+
+#: Saturation radius of each chart's image (§2.2, §8 item 5). O uses 2 − 10⁻³ so that δ0 > 0
+#: and the O-chart T-matrix (which divides by δ0) stays finite.
+RADIUS = np.array((2.0 - 1e-3, np.inf, 4.0, np.pi))
+
+_TINY = 1e-12
+
+
+@jit
+def _canonical(d: np.ndarray) -> np.ndarray:
+    """Sign fix ``δ ← −δ`` if ``δ0 < 0`` (§2.1): q and −q are the same rotation."""
+    if d[0] < 0.0:
+        return -d
+    return d
+
+
+@jit
+def _t_form(alpha: float, beta: float, gamma: float, v: np.ndarray) -> np.ndarray:
+    """``α I + β v vᵀ − γ [v]×``: every T-matrix of Table 4 has this form."""
+    r = np.empty((3, 3))
+    for i in range(3):
+        for j in range(3):
+            r[i, j] = beta * v[i] * v[j]
+        r[i, i] += alpha
+    r[0, 1] += gamma * v[2]
+    r[0, 2] -= gamma * v[1]
+    r[1, 0] -= gamma * v[2]
+    r[1, 2] += gamma * v[0]
+    r[2, 0] += gamma * v[1]
+    r[2, 1] -= gamma * v[0]
+    return r
+
+
+# --- O: orthographic -------------------------------------------------------------------------
+@jit
+def _o_to(d: np.ndarray) -> np.ndarray:
+    d = _canonical(d)
+    return 2.0 * d[1:]
+
+
+@jit
+def _o_from(e: np.ndarray) -> np.ndarray:
+    n2 = e[0] * e[0] + e[1] * e[1] + e[2] * e[2]
+    return np.array((np.sqrt(max(1.0 - 0.25 * n2, 0.0)), 0.5 * e[0], 0.5 * e[1], 0.5 * e[2]))
+
+
+@jit
+def _o_t(d: np.ndarray) -> np.ndarray:
+    # T = δ0 I − [δv]× + δv δvᵀ / δ0   (Table 4)
+    d = _canonical(d)
+    v = d[1:]
+    return _t_form(d[0], 1.0 / max(d[0], _TINY), 1.0, v)
+
+
+# --- RP: Rodrigues parameters / gnomonic -------------------------------------------------------
+@jit
+def _rp_to(d: np.ndarray) -> np.ndarray:
+    d = _canonical(d)  # φ(−δ) = φ(δ); the fix only makes the δ0 guard below one-sided
+    return 2.0 * d[1:] / max(d[0], _TINY)
+
+
+@jit
+def _rp_from(e: np.ndarray) -> np.ndarray:
+    s = 1.0 / np.sqrt(4.0 + e[0] * e[0] + e[1] * e[1] + e[2] * e[2])
+    return np.array((2.0 * s, e[0] * s, e[1] * s, e[2] * s))
+
+
+@jit
+def _rp_t(d: np.ndarray) -> np.ndarray:
+    # T = δ0 (δ0 I − [δv]×)   (Table 4); sign-invariant
+    return _t_form(d[0] * d[0], 0.0, d[0], d[1:])
+
+
+# --- MRP: modified Rodrigues parameters / stereographic ---------------------------------------
+@jit
+def _mrp_to(d: np.ndarray) -> np.ndarray:
+    d = _canonical(d)
+    return 4.0 * d[1:] / (1.0 + d[0])
+
+
+@jit
+def _mrp_from(e: np.ndarray) -> np.ndarray:
+    n2 = e[0] * e[0] + e[1] * e[1] + e[2] * e[2]
+    s = 1.0 / (16.0 + n2)
+    return np.array(((16.0 - n2) * s, 8.0 * e[0] * s, 8.0 * e[1] * s, 8.0 * e[2] * s))
+
+
+@jit
+def _mrp_t(d: np.ndarray) -> np.ndarray:
+    # T = ½ [ (1 + δ0)(δ0 I − [δv]×) + δv δvᵀ ]   (Table 4)
+    d = _canonical(d)
+    v = d[1:]
+    return _t_form(0.5 * (1.0 + d[0]) * d[0], 0.5, 0.5 * (1.0 + d[0]), v)
+
+
+# --- RV: rotation vector / equidistant ---------------------------------------------------------
+@jit
+def _rv_to(d: np.ndarray) -> np.ndarray:
+    # robust form 2 atan2(‖δv‖, δ0) δv/‖δv‖ (§2.1 recommendation)
+    d = _canonical(d)
+    n = np.sqrt(d[1] * d[1] + d[2] * d[2] + d[3] * d[3])
+    if n < _TINY:
+        return 2.0 * d[1:] / max(d[0], _TINY)
+    return (2.0 * np.arctan2(n, d[0]) / n) * d[1:]
+
+
+@jit
+def _rv_from(e: np.ndarray) -> np.ndarray:
+    return q_omega(e, 1.0)
+
+
+@jit
+def _rv_t(d: np.ndarray) -> np.ndarray:
+    # T = k (δ0 (I − uuᵀ) − [δv]×) + uuᵀ,  k = x/arcsin x, x = ‖δv‖, u = δv/x   (Table 4)
+    # rewritten as k δ0 I + c δv δvᵀ − k [δv]×,  c = (1 − k δ0)/x², which has the limit 2/3 at
+    # x → 0 (so T → I there, §3.2).
+    d = _canonical(d)
+    v = d[1:]
+    x2 = v[0] * v[0] + v[1] * v[1] + v[2] * v[2]
+    if x2 < 1e-8:
+        k = 1.0 - x2 / 6.0
+        c = 2.0 / 3.0
+    else:
+        x = np.sqrt(x2)
+        k = x / np.arcsin(min(x, 1.0))
+        c = (1.0 - k * d[0]) / x2
+    return _t_form(k * d[0], c, k, v)
+
+
+# --- dispatchers -------------------------------------------------------------------------------
+@jit
+def to_chart(chart: int, d: np.ndarray) -> np.ndarray:
+    """``e = φ(δ)`` for a deviation ``δ`` from the chart centre (§2.1, Table 2)."""
+    if chart == O:
+        return _o_to(d)
+    if chart == RP:
+        return _rp_to(d)
+    if chart == MRP:
+        return _mrp_to(d)
+    return _rv_to(d)
+
+
+@jit
+def from_chart(chart: int, e: np.ndarray) -> np.ndarray:
+    """``δ = φ⁻¹(e)`` (§2.1); ``e`` must lie in the image (see :func:`saturate`)."""
+    if chart == O:
+        return _o_from(e)
+    if chart == RP:
+        return _rp_from(e)
+    if chart == MRP:
+        return _mrp_from(e)
+    return _rv_from(e)
+
+
+@jit
+def saturate(chart: int, e: np.ndarray) -> np.ndarray:
+    """Radially clip ``e`` to the chart's image (§2.2)."""
+    r = RADIUS[chart]
+    n = np.sqrt(e[0] * e[0] + e[1] * e[1] + e[2] * e[2])
+    if n > r:
+        return e * (r / n)
+    return e
+
+
+@jit
+def t_matrix(chart: int, d: np.ndarray) -> np.ndarray:
+    """``T(δ̄) = ∂e_p̄/∂e_q̄`` at ``e_q̄ = φ(δ̄)`` (§3.2, Table 4)."""
+    if chart == O:
+        return _o_t(d)
+    if chart == RP:
+        return _rp_t(d)
+    if chart == MRP:
+        return _mrp_t(d)
+    return _rv_t(d)
+
+
+@jit
+def transition(chart: int, dbar: np.ndarray, e: np.ndarray) -> np.ndarray:
+    """Transition map ``ψ(e) = φ(δ̄* * φ⁻¹(e))`` from the q̄- to the (q̄ * δ̄)-chart (§3.1)."""
+    return to_chart(chart, qconj_mul(dbar, from_chart(chart, e)))
+
+
+@jit
+def to_chart_at(chart: int, qbar: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """``φ_q̄(q) = φ(q̄* * q)``: chart centred at ``q̄`` (§2.3, eq. 11)."""
+    return to_chart(chart, qconj_mul(qbar, q))
+
+
+@jit
+def from_chart_at(chart: int, qbar: np.ndarray, e: np.ndarray) -> np.ndarray:
+    """``φ_q̄⁻¹(e) = q̄ * φ⁻¹(e)`` (§2.3, eq. 12), normalised."""
+    q = qmul(qbar, from_chart(chart, e))
+    return q / np.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
+
+
+def chart_id(name: str) -> int:
+    """Chart id for a name in :data:`CHART_NAMES`; ``ValueError`` naming the choices otherwise."""
+    key = str(name).lower()
+    if key not in CHART_NAMES:
+        raise ValueError(f"chart must be one of {', '.join(CHART_NAMES)}, got {name!r}")
+    return CHART_NAMES.index(key)
+
+
+@dataclass(frozen=True)
+class Chart:
+    """A chart of S³ (§2): the Python face of the kernels above."""
+
+    name: str
+
+    @property
+    def id(self) -> int:
+        return chart_id(self.name)
+
+    @property
+    def radius(self) -> float:
+        """Saturation radius of the image (§2.2)."""
+        return float(RADIUS[self.id])
+
+    def to_chart(self, d: np.ndarray) -> np.ndarray:
+        return to_chart(self.id, np.asarray(d, dtype=float))
+
+    def from_chart(self, e: np.ndarray) -> np.ndarray:
+        return from_chart(self.id, np.asarray(e, dtype=float))
+
+    def saturate(self, e: np.ndarray) -> np.ndarray:
+        return saturate(self.id, np.asarray(e, dtype=float))
+
+    def t_matrix(self, dbar: np.ndarray) -> np.ndarray:
+        return t_matrix(self.id, np.asarray(dbar, dtype=float))
+
+    def transition(self, dbar: np.ndarray, e: np.ndarray) -> np.ndarray:
+        return transition(self.id, np.asarray(dbar, dtype=float), np.asarray(e, dtype=float))
+
+
+CHARTS = {name: Chart(name) for name in CHART_NAMES}

@@ -1,0 +1,501 @@
+"""The attitude filter for real sensors: the MEKF/MUKF of the paper behind a sensor layer.
+
+The paper's filters (:mod:`~mkf_ros.core.mekf`, :mod:`~mkf_ros.core.mukf`) take abstract vector
+measurements. This layer adds what a real IMU needs (spec §8 item 15):
+
+* validation: a vector that is all NaN is *missing* (an asynchronous magnetometer, a dropped
+  field); one that is partly non-finite or zero is *invalid*; either way only that sensor's
+  update is skipped, and counted;
+* references: the accelerometer reads +g "up" at rest, so its normalised reading measures the
+  world up axis (0, 0, 1) in ENU; the magnetometer reference is given or learned (dip angle) from
+  the first samples, horizontal part pointing north;
+* initialisation: closed-form alignment (tilt from the accelerometer, heading from the first
+  magnetometer sample), or the paper's identity with ``P0 = 100 I``;
+* gaps: a step longer than ``max_dt`` re-aligns instead of integrating a stale rate;
+* output in the chosen world frame with the orientation covariance about world axes.
+
+Everything per sample runs in compiled kernels; :class:`AttitudeFilter` is the stateful Python
+face used by the ROS node, and :func:`run_batch` the loop used by :func:`mkf_ros.estimate`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from mkf_ros.core._jit import jit
+from mkf_ros.core.charts import chart_id, from_chart, t_matrix
+from mkf_ros.core.frames import FROM_ENU, align_tilt, heading_correction, keep_yaw
+from mkf_ros.core.linalg import congruence, eye, mm, mmt
+from mkf_ros.core.mekf import mekf_predict, mekf_update, transport_covariance
+from mkf_ros.core.mukf import mukf_step
+from mkf_ros.core.params import ALGORITHMS, FilterParams
+from mkf_ros.core.quaternion import qmul, qnormalize, rotate, rotmat
+
+# --- layout of the configuration vector --------------------------------------------------------
+C_ALGO, C_CHART, C_CU, C_USE_MAG, C_NX = 0, 1, 2, 3, 4
+C_RW, C_RA, C_QA, C_RM, C_QM, C_QW, C_QB, C_B0 = 5, 6, 7, 8, 9, 10, 11, 12
+C_W0, C_PUBLISHED, C_PAPER, C_MAXDT, C_MREF_GIVEN = 13, 14, 15, 16, 17
+C_MREF = 18  # 3 values: given magnetic reference, ENU, unit
+C_SIZE = 21
+
+# --- layout of the state vector ----------------------------------------------------------------
+S_QC, S_E, S_W, S_B, S_MREF, S_MSUM = 0, 4, 7, 10, 13, 16  # q̄_c(4) ē(3) ω̄(3) b̄(3) m_ref m_sum
+S_SIZE = 19
+NX_MAX = 9
+
+# --- flags and counters ------------------------------------------------------------------------
+F_INIT, F_HEADING, F_EVER, F_MCOUNT = 0, 1, 2, 3
+F_SIZE = 4
+COUNTER_NAMES = (
+    "samples",
+    "gyr_missing", "gyr_invalid",
+    "acc_missing", "acc_invalid",
+    "mag_missing", "mag_invalid",
+    "gaps", "update_failed", "before_init",
+)
+K_SAMPLES, K_GYR_MISSING, K_GYR_INVALID, K_ACC_MISSING, K_ACC_INVALID = 0, 1, 2, 3, 4
+K_MAG_MISSING, K_MAG_INVALID, K_GAPS, K_UPDATE_FAILED, K_BEFORE_INIT = 5, 6, 7, 8, 9
+K_SIZE = len(COUNTER_NAMES)
+
+MAG_REF_SAMPLES = 100  # magnetometer samples averaged into a learned reference
+P0_PAPER = 100.0  # §8 item 9
+YAW0_STDDEV = 1e-3  # rad: heading is defined by the start-up heading when no magnetometer
+
+
+@jit
+def _classify(v: np.ndarray, is_vector: bool) -> int:
+    """0 valid, 1 missing (all NaN), 2 invalid (partly non-finite, or a zero vector)."""
+    nan = 0
+    bad = False
+    for i in range(3):
+        if np.isnan(v[i]):
+            nan += 1
+        elif not np.isfinite(v[i]):
+            bad = True
+    if nan == 3:
+        return 1
+    if nan > 0 or bad:
+        return 2
+    if is_vector and v[0] * v[0] + v[1] * v[1] + v[2] * v[2] < 1e-300:
+        return 2
+    return 0
+
+
+@jit
+def _unit(v: np.ndarray) -> np.ndarray:
+    return v / np.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
+
+
+@jit
+def recentre(cfg: np.ndarray, st: np.ndarray, P: np.ndarray) -> None:
+    """Move the chart centre onto the estimate: ``q̄_c ← q̄_c * φ⁻¹(ē)``, ``ē ← 0``, and carry
+    ``P`` with the T-matrix (§3.2). A no-op for the MEKF, whose ``ē`` is always zero."""
+    chart = int(cfg[C_CHART])
+    nx = int(cfg[C_NX])
+    e = st[S_E:S_E + 3]
+    if e[0] == 0.0 and e[1] == 0.0 and e[2] == 0.0:
+        return
+    d = from_chart(chart, e)
+    st[S_QC:S_QC + 4] = qnormalize(qmul(st[S_QC:S_QC + 4], d))
+    st[S_E:S_E + 3] = 0.0
+    Pn = P[:nx, :nx].copy()
+    transport_covariance(Pn, t_matrix(chart, d))
+    P[:nx, :nx] = Pn
+
+
+@jit
+def estimate_enu(cfg: np.ndarray, st: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Point estimate ``q̂`` (ENU) and the attitude covariance about **body** axes, transported
+    from the ``q̄_c``-chart to ``q̂`` with the T-matrix (§3.2; first order, every chart agrees
+    with the rotation vector at the origin, eq. 10)."""
+    chart = int(cfg[C_CHART])
+    e = st[S_E:S_E + 3]
+    if e[0] == 0.0 and e[1] == 0.0 and e[2] == 0.0:
+        return st[S_QC:S_QC + 4].copy(), P[0:3, 0:3].copy()
+    d = from_chart(chart, e)
+    T = t_matrix(chart, d)
+    return qnormalize(qmul(st[S_QC:S_QC + 4], d)), congruence(T, P[0:3, 0:3])
+
+
+@jit
+def _set_world_attitude_cov(st: np.ndarray, P: np.ndarray, nx: int, var_tilt: float,
+                            var_yaw: float, keep_tilt: bool) -> None:
+    """Set the attitude block of ``P`` from world-axis variances (tilt about x/y, yaw about z);
+    with ``keep_tilt`` only the yaw row/column is replaced. Cross terms with yaw are cleared."""
+    R = rotmat(st[S_QC:S_QC + 4])
+    Sw = congruence(R, P[0:3, 0:3])  # body → world axes
+    C = mm(R, P[0:3, 3:nx])
+    if not keep_tilt:
+        Sw[:, :] = 0.0
+        Sw[0, 0] = var_tilt
+        Sw[1, 1] = var_tilt
+        C[:, :] = 0.0
+    for i in range(3):
+        Sw[2, i] = 0.0
+        Sw[i, 2] = 0.0
+    Sw[2, 2] = var_yaw
+    C[2, :] = 0.0
+    P[0:3, 0:3] = mm(R.T.copy(), mm(Sw, R))
+    Ct = mm(R.T.copy(), C)
+    P[0:3, 3:nx] = Ct
+    P[3:nx, 0:3] = Ct.T
+
+
+@jit
+def _mag_yaw_var(cfg: np.ndarray, ref: np.ndarray) -> float:
+    h = max(np.sqrt(ref[0] * ref[0] + ref[1] * ref[1]), 0.05)  # horizontal share of the field
+    return (cfg[C_RM] + cfg[C_QM]) / (h * h)
+
+
+@jit
+def _learn_mag_ref(cfg: np.ndarray, st: np.ndarray, fl: np.ndarray, m_body: np.ndarray) -> None:
+    """Learn the dip of the Earth field: average ``R(q̂) m`` over the first samples and keep its
+    (north, up) components, since north is *defined* by the field's horizontal part."""
+    if cfg[C_MREF_GIVEN] > 0:
+        st[S_MREF:S_MREF + 3] = cfg[C_MREF:C_MREF + 3]
+        return
+    if fl[F_MCOUNT] >= MAG_REF_SAMPLES:
+        return
+    m = rotate(st[S_QC:S_QC + 4], m_body)
+    st[S_MSUM:S_MSUM + 3] += m
+    fl[F_MCOUNT] += 1
+    s = st[S_MSUM:S_MSUM + 3]
+    ref = np.array((0.0, np.sqrt(s[0] * s[0] + s[1] * s[1]), s[2]))
+    st[S_MREF:S_MREF + 3] = _unit(ref)
+
+
+@jit
+def _heading_init(cfg: np.ndarray, st: np.ndarray, P: np.ndarray, fl: np.ndarray,
+                  m_body: np.ndarray) -> None:
+    """Closed-form heading from a magnetometer sample; the yaw variance then reflects it."""
+    recentre(cfg, st, P)
+    nx = int(cfg[C_NX])
+    if cfg[C_MREF_GIVEN] > 0:
+        ref = cfg[C_MREF:C_MREF + 3].copy()
+    else:
+        m = rotate(st[S_QC:S_QC + 4], m_body)
+        ref = _unit(np.array((0.0, np.sqrt(m[0] * m[0] + m[1] * m[1]), m[2])))
+        st[S_MSUM:S_MSUM + 3] = 0.0
+        fl[F_MCOUNT] = 0
+    rot = heading_correction(st[S_QC:S_QC + 4], m_body, ref)
+    st[S_QC:S_QC + 4] = qnormalize(qmul(rot, st[S_QC:S_QC + 4]))
+    st[S_MREF:S_MREF + 3] = ref
+    _set_world_attitude_cov(st, P, nx, 0.0, _mag_yaw_var(cfg, ref), True)
+    fl[F_HEADING] = 1
+    _learn_mag_ref(cfg, st, fl, m_body)
+
+
+@jit
+def _align(cfg: np.ndarray, st: np.ndarray, P: np.ndarray, fl: np.ndarray,
+           gyr: np.ndarray, has_g: bool, acc: np.ndarray, m_body: np.ndarray,
+           has_m: bool) -> None:
+    """Closed-form initialisation (or re-alignment after a gap) from one sample."""
+    nx = int(cfg[C_NX])
+    q = align_tilt(acc)
+    if fl[F_EVER] > 0:  # re-alignment: keep the heading we had
+        q = keep_yaw(q, st[S_QC:S_QC + 4])
+    st[S_QC:S_QC + 4] = q
+    st[S_E:S_E + 3] = 0.0
+    st[S_W:S_W + 3] = gyr - st[S_B:S_B + 3] if has_g else np.zeros(3)
+    Pb = P[6:9, 6:9].copy()
+    P[:, :] = 0.0
+    for i in range(3):
+        P[3 + i, 3 + i] = cfg[C_RW] if has_g else 1.0
+    if nx == 9:
+        P[6:9, 6:9] = Pb if fl[F_EVER] > 0 else eye(3, cfg[C_B0])
+    _set_world_attitude_cov(st, P, nx, cfg[C_RA] + cfg[C_QA], YAW0_STDDEV ** 2, False)
+    fl[F_INIT] = 1
+    fl[F_EVER] = 1
+    fl[F_HEADING] = 0
+    if has_m:
+        _heading_init(cfg, st, P, fl, m_body)
+
+
+@jit
+def _paper_init(cfg: np.ndarray, st: np.ndarray, P: np.ndarray, fl: np.ndarray) -> None:
+    """The paper's start: ``q̄ = (1,0,0,0)``, ``P = 10² I₆``, ``ω̄ = 0`` (MEKF) or
+    ``10⁻¹⁰(1,1,1)`` (MUKF, "breaks the symmetry") (§5, §6, §8 item 9)."""
+    nx = int(cfg[C_NX])
+    st[S_QC:S_QC + 4] = np.array((1.0, 0.0, 0.0, 0.0))
+    st[S_E:S_E + 3] = 0.0
+    st[S_W:S_W + 3] = 1e-10 if int(cfg[C_ALGO]) == 1 else 0.0
+    P[:, :] = 0.0
+    for i in range(6):
+        P[i, i] = P0_PAPER
+    if nx == 9:
+        for i in range(6, 9):
+            P[i, i] = cfg[C_B0]
+    st[S_MREF:S_MREF + 3] = cfg[C_MREF:C_MREF + 3]
+    fl[F_INIT] = 1
+    fl[F_EVER] = 1
+    fl[F_HEADING] = 1
+
+
+@jit
+def sensor_step(cfg: np.ndarray, st: np.ndarray, P: np.ndarray, fl: np.ndarray,
+                cnt: np.ndarray, dt: float, gyr: np.ndarray, acc: np.ndarray,
+                mag: np.ndarray) -> None:
+    """Process one sample: any of ``gyr`` (rad/s), ``acc`` (any unit, +g up at rest) and
+    ``mag`` (any unit) may be NaN (missing). ``dt`` is the time since the previous sample."""
+    cnt[K_SAMPLES] += 1
+    gs = _classify(gyr, False)
+    as_ = _classify(acc, True)
+    ms = _classify(mag, True) if cfg[C_USE_MAG] > 0 else 1
+    if gs > 0:
+        cnt[K_GYR_MISSING if gs == 1 else K_GYR_INVALID] += 1
+    if as_ > 0:
+        cnt[K_ACC_MISSING if as_ == 1 else K_ACC_INVALID] += 1
+    if cfg[C_USE_MAG] > 0 and ms > 0:
+        cnt[K_MAG_MISSING if ms == 1 else K_MAG_INVALID] += 1
+    has_g, has_a, has_m = gs == 0, as_ == 0, ms == 0
+    g = gyr if has_g else np.zeros(3)
+    m_body = _unit(mag) if has_m else np.zeros(3)
+
+    if fl[F_INIT] > 0 and dt > cfg[C_MAXDT]:
+        cnt[K_GAPS] += 1
+        fl[F_INIT] = 0  # re-align from this (or the next) accelerometer sample, keeping yaw
+    if fl[F_INIT] == 0:
+        if cfg[C_PAPER] > 0:
+            _paper_init(cfg, st, P, fl)
+        elif has_a:
+            _align(cfg, st, P, fl, g, has_g, acc, m_body, has_m)
+            return
+        else:
+            cnt[K_BEFORE_INIT] += 1
+            return
+
+    nx = int(cfg[C_NX])
+    chart = int(cfg[C_CHART])
+    if has_m and fl[F_HEADING] == 0:
+        _heading_init(cfg, st, P, fl, m_body)
+        has_m = False  # this sample set the heading; do not count it twice
+    vm = np.zeros((2, 3))
+    vref = np.zeros((2, 3))
+    Rv = np.zeros((2, 3, 3))
+    Qv = np.zeros((2, 3, 3))
+    use_v = np.zeros(2, dtype=np.bool_)
+    if has_a:
+        use_v[0] = True
+        vm[0] = _unit(acc)
+        vref[0, 2] = 1.0  # world up, ENU
+        for i in range(3):
+            Rv[0, i, i] = cfg[C_RA]
+            Qv[0, i, i] = cfg[C_QA]
+    if has_m:
+        use_v[1] = True
+        vm[1] = m_body
+        vref[1] = st[S_MREF:S_MREF + 3]
+        for i in range(3):
+            Rv[1, i, i] = cfg[C_RM]
+            Qv[1, i, i] = cfg[C_QM]
+    Qw = eye(3, cfg[C_QW])
+    Qb = eye(3, cfg[C_QB])
+    Rw = eye(3, cfg[C_RW])
+    qc = st[S_QC:S_QC + 4]
+    w = st[S_W:S_W + 3]
+    b = st[S_B:S_B + 3]
+    if int(cfg[C_ALGO]) == 0:
+        mekf_predict(qc, w, P, nx, dt, Qw, Qb)
+        ok = mekf_update(chart, cfg[C_CU] > 0, qc, w, b, P, nx, vm, vref, Rv, Qv, use_v, g,
+                         has_g, Rw)
+    else:
+        ok = mukf_step(chart, cfg[C_CU] > 0, cfg[C_PUBLISHED] > 0, cfg[C_W0], qc,
+                       st[S_E:S_E + 3], w, b, P, nx, dt, Qw, Qb, vm, vref, Rv, Qv, use_v, g,
+                       has_g, Rw)
+    if not ok:
+        cnt[K_UPDATE_FAILED] += 1
+        for i in range(nx):  # regularise so that the next step can factorise again
+            P[i, i] += 1e-9
+    elif has_m:
+        _learn_mag_ref(cfg, st, fl, m_body)
+
+
+@jit
+def world_output(cfg: np.ndarray, st: np.ndarray, P: np.ndarray, q_from_enu: np.ndarray,
+                 q_out: np.ndarray, cov_out: np.ndarray) -> None:
+    """Orientation in the world frame (``q0 ≥ 0``) and its 3×3 covariance about world axes:
+    ``Σ_W = R(q_W) Σ_body R(q_W)ᵀ`` (the error is body-side, ``q = q̂ * δ(e)``)."""
+    q, Pb = estimate_enu(cfg, st, P)
+    q = qnormalize(qmul(q_from_enu, q))
+    if q[0] < 0.0:
+        q = -q
+    q_out[:] = q
+    R = rotmat(q)
+    cov_out[:, :] = mmt(mm(R, Pb), R)
+
+
+@jit
+def run_batch(cfg: np.ndarray, st: np.ndarray, P: np.ndarray, fl: np.ndarray, cnt: np.ndarray,
+              dts: np.ndarray, gyr: np.ndarray, acc: np.ndarray, mag: np.ndarray,
+              q_from_enu: np.ndarray, out_q: np.ndarray, out_cov: np.ndarray,
+              out_w: np.ndarray, out_b: np.ndarray, out_bvar: np.ndarray,
+              out_init: np.ndarray) -> None:
+    """:func:`sensor_step` over a whole recording, writing the outputs of every sample."""
+    nx = int(cfg[C_NX])
+    for n in range(dts.shape[0]):
+        sensor_step(cfg, st, P, fl, cnt, dts[n], gyr[n], acc[n], mag[n])
+        world_output(cfg, st, P, q_from_enu, out_q[n], out_cov[n])
+        out_init[n] = fl[F_INIT] > 0
+        out_w[n] = st[S_W:S_W + 3]
+        out_b[n] = st[S_B:S_B + 3]
+        for i in range(3):
+            out_bvar[n, i] = P[6 + i, 6 + i] if nx == 9 else 0.0
+        if fl[F_INIT] == 0:
+            for i in range(3):
+                out_cov[n, i, i] = np.pi ** 2  # not initialised: attitude unknown
+
+
+def build_cfg(p: FilterParams) -> np.ndarray:
+    """Kernel configuration vector from validated parameters (units converted here)."""
+    cfg = np.zeros(C_SIZE)
+    cfg[C_ALGO] = ALGORITHMS.index(p.algorithm)
+    cfg[C_CHART] = chart_id(p.chart)
+    cfg[C_CU] = float(p.chart_update)
+    cfg[C_USE_MAG] = float(p.use_mag)
+    cfg[C_NX] = 9 if p.estimate_gyro_bias else 6
+    g = p.gravity
+    cfg[C_RW] = p.gyro_noise**2
+    cfg[C_RA] = (p.acc_noise / g) ** 2  # normalised reading: unit "g" (§8 item 15)
+    cfg[C_QA] = (p.acc_disturbance / g) ** 2
+    cfg[C_RM] = p.mag_noise**2
+    cfg[C_QM] = p.mag_disturbance**2
+    cfg[C_QW] = p.rate_process_noise
+    cfg[C_QB] = p.gyro_bias_noise**2
+    cfg[C_B0] = p.gyro_bias_stddev**2
+    cfg[C_W0] = p.mukf_w0
+    cfg[C_PUBLISHED] = float(p.mukf_noise_scaling == "published")
+    cfg[C_PAPER] = float(p.init_mode == "paper")
+    cfg[C_MAXDT] = p.max_dt
+    ref = np.asarray(p.mag_reference, dtype=float)
+    n = float(np.linalg.norm(ref))
+    if n > 0.0:
+        q = FROM_ENU[p.world_frame]  # given in the world frame → ENU: R(q_{W←ENU})ᵀ ref
+        cfg[C_MREF_GIVEN] = 1.0
+        cfg[C_MREF:C_MREF + 3] = rotmat(q).T @ (ref / n)
+    elif p.use_mag and p.init_mode == "paper":
+        raise ValueError("init_mode 'paper' with use_mag needs mag_reference (the paper's "
+                         "filter has no alignment step to learn it)")
+    return cfg
+
+
+class AttitudeFilter:
+    """Stateful single-step attitude filter (MEKF or MUKF, any chart) for streaming use.
+
+    >>> f = AttitudeFilter(algorithm="mekf", chart="rp")
+    >>> f.step(0.01, gyr=[0, 0, 0], acc=[0, 0, 9.81])
+    >>> f.quaternion  # [w, x, y, z], sensor → world
+    array([1., 0., 0., 0.])
+    """
+
+    def __init__(self, params: FilterParams | None = None, **overrides: object) -> None:
+        self._params = (params or FilterParams()).replace(**overrides)
+        self._cfg = build_cfg(self._params)
+        self._q_from_enu = FROM_ENU[self._params.world_frame].copy()
+        self.counters = np.zeros(K_SIZE, dtype=np.int64)
+        self.reset()
+
+    # --- state ---------------------------------------------------------------------------
+    def reset(self) -> None:
+        """Forget the estimate: the next accelerometer sample re-initialises (bias kept at 0)."""
+        self._st = np.zeros(S_SIZE)
+        self._st[S_QC] = 1.0
+        self._P = np.zeros((NX_MAX, NX_MAX))
+        self._fl = np.zeros(F_SIZE, dtype=np.int64)
+
+    @property
+    def params(self) -> FilterParams:
+        return self._params
+
+    def set_params(self, **changes: object) -> FilterParams:
+        """Validate and apply parameter changes atomically (ValueError: nothing changes).
+
+        Switching ``algorithm``, ``chart`` or ``chart_update`` keeps the estimate: a MUKF mean
+        ``ē ≠ 0`` is first moved onto the chart origin with the T-matrix (§3.2); at the origin
+        every chart agrees with the rotation vector to first order (eq. 10), so ``P`` carries
+        over unchanged. Enabling bias estimation starts the bias at 0 with
+        ``gyro_bias_stddev``; disabling it freezes the current bias.
+        """
+        new = self._params.replace(**changes)
+        cfg = build_cfg(new)
+        recentre(self._cfg, self._st, self._P)
+        old_nx, new_nx = int(self._cfg[C_NX]), int(cfg[C_NX])
+        if new_nx > old_nx and self._fl[F_INIT]:
+            self._P[6:9, :] = 0.0
+            self._P[:, 6:9] = 0.0
+            self._P[6:9, 6:9] = cfg[C_B0] * np.eye(3)
+        if new.mag_reference != self._params.mag_reference or (
+            new.use_mag and not self._params.use_mag
+        ):
+            self._fl[F_HEADING] = 0  # re-establish heading from the next magnetometer sample
+        self._params, self._cfg = new, cfg
+        self._q_from_enu = FROM_ENU[new.world_frame].copy()
+        return new
+
+    def step(self, dt: float, gyr: object = None, acc: object = None, mag: object = None) -> None:
+        """Process one sample; ``None`` means the sensor has no reading at this time."""
+        sensor_step(self._cfg, self._st, self._P, self._fl, self.counters, float(dt),
+                    _vec(gyr), _vec(acc), _vec(mag))
+
+    @property
+    def initialized(self) -> bool:
+        return bool(self._fl[F_INIT])
+
+    @property
+    def heading_initialized(self) -> bool:
+        """True once the magnetometer has fixed the heading (always False without it)."""
+        return bool(self._fl[F_HEADING]) and self._params.use_mag
+
+    @property
+    def quaternion(self) -> np.ndarray:
+        """Orientation ``[w, x, y, z]`` of the sensor in the world frame."""
+        q, _ = self._output()
+        return q
+
+    @property
+    def covariance(self) -> np.ndarray:
+        """3×3 orientation covariance about the world frame's x, y, z axes (rad²)."""
+        _, c = self._output()
+        return c
+
+    @property
+    def omega(self) -> np.ndarray:
+        """Estimated angular velocity, body frame (rad/s)."""
+        return self._st[S_W:S_W + 3].copy()
+
+    @property
+    def bias(self) -> np.ndarray:
+        """Estimated gyro bias (rad/s); zero unless ``estimate_gyro_bias``."""
+        return self._st[S_B:S_B + 3].copy()
+
+    @property
+    def bias_stddev(self) -> np.ndarray:
+        return np.sqrt(np.diag(self._P)[6:9]) if self._cfg[C_NX] == 9 else np.zeros(3)
+
+    @property
+    def state_covariance(self) -> np.ndarray:
+        """The filter's covariance of ``(e, ω[, b])`` in its current chart."""
+        n = int(self._cfg[C_NX])
+        return self._P[:n, :n].copy()
+
+    def counter_dict(self) -> dict[str, int]:
+        return dict(zip(COUNTER_NAMES, (int(c) for c in self.counters), strict=True))
+
+    def _output(self) -> tuple[np.ndarray, np.ndarray]:
+        q = np.empty(4)
+        c = np.empty((3, 3))
+        world_output(self._cfg, self._st, self._P, self._q_from_enu, q, c)
+        if not self._fl[F_INIT]:
+            c = np.pi**2 * np.eye(3)
+        return q, c
+
+
+_NAN3 = np.full(3, np.nan)
+
+
+def _vec(v: object) -> np.ndarray:
+    if v is None:
+        return _NAN3
+    a = np.asarray(v, dtype=float).reshape(-1)
+    if a.shape != (3,):
+        raise ValueError(f"sensor sample must have 3 components, got shape {np.shape(v)}")
+    return a

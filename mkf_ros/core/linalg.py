@@ -1,0 +1,156 @@
+"""Small dense linear algebra for the kernels: Cholesky factor and solve (§8 item 16).
+
+Written out because numba's ``np.linalg`` needs SciPy's LAPACK and these matrices are ≤ 21×21.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from mkf_ros.core._jit import jit
+
+
+@jit
+def cholesky(a: np.ndarray) -> tuple[np.ndarray, bool]:
+    """Lower Cholesky factor ``L`` with ``a = L Lᵀ``; ``ok`` is False if ``a`` is not PD."""
+    n = a.shape[0]
+    L = np.zeros((n, n))
+    for j in range(n):
+        s = a[j, j]
+        for k in range(j):
+            s -= L[j, k] * L[j, k]
+        if not s > 0.0:  # also catches NaN
+            return L, False
+        d = np.sqrt(s)
+        L[j, j] = d
+        for i in range(j + 1, n):
+            s = a[i, j]
+            for k in range(j):
+                s -= L[i, k] * L[j, k]
+            L[i, j] = s / d
+    return L, True
+
+
+@jit
+def cho_solve(L: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Solve ``(L Lᵀ) X = B`` for a matrix ``B`` (columns are right-hand sides)."""
+    n, m = b.shape
+    x = b.copy()
+    inv = np.empty(n)
+    for i in range(n):
+        inv[i] = 1.0 / L[i, i]
+    for i in range(n):  # forward: L Z = B, all columns at once (row-major friendly)
+        for k in range(i):
+            lik = L[i, k]
+            for c in range(m):
+                x[i, c] -= lik * x[k, c]
+        for c in range(m):
+            x[i, c] *= inv[i]
+    for i in range(n - 1, -1, -1):  # backward: Lᵀ X = Z
+        for k in range(i + 1, n):
+            lki = L[k, i]
+            for c in range(m):
+                x[i, c] -= lki * x[k, c]
+        for c in range(m):
+            x[i, c] *= inv[i]
+    return x
+
+
+@jit
+def symmetrize(p: np.ndarray) -> None:
+    """``P ← ½(P + Pᵀ)`` in place."""
+    n = p.shape[0]
+    for i in range(n):
+        for j in range(i + 1, n):
+            s = 0.5 * (p[i, j] + p[j, i])
+            p[i, j] = s
+            p[j, i] = s
+
+
+@jit
+def mm(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``a @ b`` for small dense matrices."""
+    n, k = a.shape
+    m = b.shape[1]
+    c = np.zeros((n, m))
+    for i in range(n):
+        for p in range(k):
+            aip = a[i, p]
+            if aip != 0.0:
+                for j in range(m):
+                    c[i, j] += aip * b[p, j]
+    return c
+
+
+@jit
+def mmt(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``a @ bᵀ`` for small dense matrices."""
+    n, k = a.shape
+    m = b.shape[0]
+    c = np.zeros((n, m))
+    for i in range(n):
+        for j in range(m):
+            s = 0.0
+            for p in range(k):
+                s += a[i, p] * b[j, p]
+            c[i, j] = s
+    return c
+
+
+@jit
+def mv(a: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """``a @ v`` for a small matrix and vector."""
+    n, k = a.shape
+    r = np.zeros(n)
+    for i in range(n):
+        s = 0.0
+        for p in range(k):
+            s += a[i, p] * v[p]
+        r[i] = s
+    return r
+
+
+@jit
+def mtv(a: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """``aᵀ @ v`` for a small matrix and vector."""
+    k, n = a.shape
+    r = np.zeros(n)
+    for p in range(k):
+        vp = v[p]
+        for i in range(n):
+            r[i] += a[p, i] * vp
+    return r
+
+
+@jit
+def congruence(a: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """``a p aᵀ``."""
+    return mmt(mm(a, p), a)
+
+
+# Loop versions of np.eye / np.outer / np.cross: numba compiles those NumPy functions slowly
+# (seconds each, measured), which would make the first start of every program slow.
+@jit
+def eye(n: int, s: float = 1.0) -> np.ndarray:
+    """``s`` times the identity matrix."""
+    r = np.zeros((n, n))
+    for i in range(n):
+        r[i, i] = s
+    return r
+
+
+@jit
+def outer3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``a bᵀ`` for 3-vectors."""
+    r = np.empty((3, 3))
+    for i in range(3):
+        for j in range(3):
+            r[i, j] = a[i] * b[j]
+    return r
+
+
+@jit
+def cross3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``a × b``."""
+    return np.array((a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2],
+                     a[0] * b[1] - a[1] * b[0]))

@@ -1,0 +1,204 @@
+"""The one definition of every parameter (name, type, default, unit, range, description).
+
+The offline API keywords (:func:`mkf_ros.estimate`), the ROS parameter declarations of the
+nodes, the commented YAML in ``config/`` and the ``mkf`` CLI flags are all generated from
+:data:`PARAMS`, so they cannot drift apart. ``scope`` says who uses a parameter: ``filter``
+parameters reach the core filter (and therefore every front end); ``node`` parameters only
+concern the ROS node.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+
+@dataclass(frozen=True)
+class Param:
+    """Definition of one parameter."""
+
+    name: str
+    type: type  # bool, int, float, str or list (of floats)
+    default: Any
+    description: str
+    unit: str = ""
+    choices: tuple[str, ...] | None = None
+    range: tuple[float, float] | None = None  # inclusive
+    scope: str = "filter"  # "filter" or "node"
+    group: str = "filter"
+    length: int | None = None  # for lists
+    read_only: bool = False
+
+    def doc(self) -> str:
+        """One line: description, unit, range or choices (used by YAML, ROS and CLI help)."""
+        parts = [self.description]
+        if self.unit:
+            parts.append(f"[{self.unit}]")
+        if self.choices:
+            parts.append("one of: " + ", ".join(self.choices))
+        if self.range:
+            parts.append(f"range {_fmt(self.range[0])} .. {_fmt(self.range[1])}")
+        return " ".join(parts)
+
+    def validate(self, value: Any) -> Any:
+        """Return ``value`` coerced to the parameter's type, or raise a one-line ValueError."""
+        n = self.name
+        if self.type is bool:
+            if isinstance(value, bool):
+                return value
+            if isinstance(value, str) and value.lower() in ("true", "false"):
+                return value.lower() == "true"
+            raise ValueError(f"{n} must be true or false, got {value!r}")
+        if self.type is str:
+            if not isinstance(value, str):
+                raise ValueError(f"{n} must be a string, got {value!r}")
+            v = value.strip().lower()
+            if self.choices and v not in self.choices:
+                raise ValueError(f"{n} must be one of {', '.join(self.choices)}, got {value!r}")
+            return v
+        if self.type in (int, float):
+            if isinstance(value, bool) or not isinstance(value, (int, float)):
+                try:
+                    value = float(value) if self.type is float else int(value)
+                except (TypeError, ValueError):
+                    raise ValueError(f"{n} must be a number, got {value!r}") from None
+            v = self.type(value)
+            if not math.isfinite(v):
+                raise ValueError(f"{n} must be finite, got {value!r}")
+            if self.range and not (self.range[0] <= v <= self.range[1]):
+                raise ValueError(
+                    f"{n} must be in [{_fmt(self.range[0])}, {_fmt(self.range[1])}]"
+                    f"{' ' + self.unit if self.unit else ''}, got {value!r}"
+                )
+            return v
+        if self.type is list:
+            try:
+                v = [float(x) for x in value]
+            except (TypeError, ValueError):
+                raise ValueError(f"{n} must be a list of numbers, got {value!r}") from None
+            if self.length is not None and len(v) != self.length:
+                raise ValueError(f"{n} must have {self.length} elements, got {len(v)}")
+            if not all(math.isfinite(x) for x in v):
+                raise ValueError(f"{n} must contain finite numbers, got {value!r}")
+            if self.range and not all(self.range[0] <= x <= self.range[1] for x in v):
+                raise ValueError(
+                    f"{n} elements must be in [{_fmt(self.range[0])}, {_fmt(self.range[1])}], "
+                    f"got {value!r}"
+                )
+            return v
+        raise TypeError(f"unsupported parameter type {self.type}")  # pragma: no cover
+
+
+def _fmt(x: float) -> str:
+    return f"{x:g}"
+
+
+ALGORITHMS = ("mekf", "mukf")
+WORLD_FRAMES = ("enu", "ned", "nwu")
+
+_P = Param
+PARAMS: tuple[Param, ...] = (
+    # --- filter and chart (spec §5, §6, §2) -------------------------------------------------
+    _P("algorithm", str, "mekf", "Filter: Manifold EKF (§5) or Manifold UKF (§6)",
+       choices=ALGORITHMS),
+    _P("chart", str, "rp", "Chart of the error state: orthographic, Rodrigues parameters, "
+       "modified Rodrigues parameters, rotation vector (§2)", choices=("o", "rp", "mrp", "rv")),
+    _P("chart_update", bool, True, "Move the covariance to the chart of the updated estimate "
+       "(paper eq. 47b); false = the classic reset"),
+    _P("mukf_w0", float, 1.0 / 25.0, "MUKF weight of the central sigma point W_0 (§6)",
+       range=(1e-3, 0.99)),
+    _P("mukf_noise_scaling", str, "consistent", "MUKF angular-velocity noise: 'consistent' "
+       "grows the rate variance by Q_w*dt, 'published' by Q_w*dt^2 as in the paper's figures "
+       "(§8 item 3)", choices=("consistent", "published")),
+    # --- frames and sensors -----------------------------------------------------------------
+    _P("world_frame", str, "enu", "World frame of the published orientation (REP-103/145)",
+       choices=WORLD_FRAMES, group="frames"),
+    _P("use_mag", bool, False, "Fuse the magnetometer for heading; without it yaw is relative "
+       "to the start-up heading", group="frames"),
+    _P("mag_reference", list, [0.0, 0.0, 0.0], "Earth field direction in the world frame "
+       "(any unit); all zeros = learn it from the first magnetometer samples", length=3,
+       range=(-1e6, 1e6), group="frames"),
+    _P("gravity", float, 9.80665, "Magnitude of gravity, to express accelerometer noise "
+       "relative to it", unit="m/s^2", range=(1.0, 100.0), group="frames"),
+    # --- noise model (spec §4) --------------------------------------------------------------
+    _P("gyro_noise", float, 0.01, "Gyroscope white noise per sample (sqrt of R_w)",
+       unit="rad/s", range=(1e-6, 10.0), group="noise"),
+    _P("acc_noise", float, 0.05, "Accelerometer white noise per sample (sqrt of R_v)",
+       unit="m/s^2", range=(1e-6, 100.0), group="noise"),
+    _P("acc_disturbance", float, 1.0, "Non-gravitational acceleration expected "
+       "(sqrt of Q_v, external disturbance)", unit="m/s^2", range=(0.0, 100.0), group="noise"),
+    _P("mag_noise", float, 0.02, "Magnetometer white noise per sample, relative to the field "
+       "magnitude", unit="1", range=(1e-6, 10.0), group="noise"),
+    _P("mag_disturbance", float, 0.05, "Magnetic disturbance expected, relative to the field "
+       "magnitude", unit="1", range=(0.0, 10.0), group="noise"),
+    _P("rate_process_noise", float, 10.0, "Power spectral density Q_w of the angular "
+       "acceleration driving the constant-rate model (§4.2)", unit="rad^2/s^3",
+       range=(1e-9, 1e9), group="noise"),
+    _P("estimate_gyro_bias", bool, False, "Estimate a gyro bias in the state (extension)",
+       group="noise"),
+    _P("gyro_bias_noise", float, 1e-4, "Random walk of the gyro bias (sqrt of its PSD)",
+       unit="rad/s/sqrt(s)", range=(0.0, 1.0), group="noise"),
+    _P("gyro_bias_stddev", float, 0.02, "Initial uncertainty of the gyro bias", unit="rad/s",
+       range=(1e-9, 1.0), group="noise"),
+    # --- initialisation and time -------------------------------------------------------------
+    _P("init_mode", str, "align", "'align': closed-form attitude from the first accelerometer "
+       "(+ magnetometer) sample; 'paper': identity with P0 = 100 I as in the paper's study",
+       choices=("align", "paper"), group="time"),
+    _P("max_dt", float, 0.5, "A gap between samples longer than this re-aligns roll and pitch "
+       "(and heading with a magnetometer) instead of integrating the rate across it",
+       unit="s", range=(1e-4, 3600.0), group="time"),
+)
+
+BY_NAME: dict[str, Param] = {p.name: p for p in PARAMS}
+
+
+def register(*params: Param) -> None:
+    """Add parameter definitions (for front ends with scope ``node``); names must be new."""
+    global PARAMS
+    for p in params:
+        if p.name in BY_NAME:
+            raise ValueError(f"parameter {p.name!r} is defined twice")
+        BY_NAME[p.name] = p
+    PARAMS = tuple(BY_NAME.values())
+
+
+def filter_params() -> list[Param]:
+    """Definitions with scope ``filter`` (the keywords of :func:`mkf_ros.estimate`)."""
+    return [p for p in BY_NAME.values() if p.scope == "filter"]
+
+
+@dataclass
+class FilterParams(Mapping[str, Any]):
+    """Validated values of the filter parameters; attribute and mapping access."""
+
+    values: dict[str, Any] = field(default_factory=dict)
+
+    def __init__(self, overrides: Mapping[str, Any] | None = None, **kwargs: Any) -> None:
+        merged = dict(overrides or {}, **kwargs)
+        vals = {p.name: p.validate(p.default) for p in filter_params()}
+        for k, v in merged.items():
+            if k not in vals:
+                raise ValueError(f"unknown filter parameter {k!r}; known: {', '.join(vals)}")
+            vals[k] = BY_NAME[k].validate(v)
+        object.__setattr__(self, "values", vals)
+
+    def __getattr__(self, name: str) -> Any:
+        try:
+            return self.__dict__["values"][name]
+        except KeyError:
+            raise AttributeError(name) from None
+
+    def __getitem__(self, key: str) -> Any:
+        return self.values[key]
+
+    def __iter__(self) -> Iterable[str]:  # type: ignore[override]
+        return iter(self.values)
+
+    def __len__(self) -> int:
+        return len(self.values)
+
+    def replace(self, **changes: Any) -> FilterParams:
+        """A copy with ``changes`` validated and applied."""
+        return FilterParams(self.values, **changes)

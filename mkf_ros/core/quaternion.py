@@ -1,0 +1,168 @@
+"""Quaternion algebra (spec `mkf-math.md` §1).
+
+Quaternions are NumPy arrays ``(q0, q1, q2, q3)``, **scalar first**, Hamilton product. A unit
+quaternion ``q`` maps body (sensor) coordinates to external (world) coordinates:
+``v_E = R(q) v_B`` (§1.2). All functions are numba kernels and also run as plain Python.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from mkf_ros.core._jit import jit
+from mkf_ros.core.linalg import mtv, mv
+
+
+@jit
+def qmul(p: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """Hamilton product ``p * q`` (§1.1)."""
+    r = np.empty(4)
+    r[0] = p[0] * q[0] - p[1] * q[1] - p[2] * q[2] - p[3] * q[3]
+    r[1] = p[0] * q[1] + p[1] * q[0] + p[2] * q[3] - p[3] * q[2]
+    r[2] = p[0] * q[2] + p[2] * q[0] + p[3] * q[1] - p[1] * q[3]
+    r[3] = p[0] * q[3] + p[3] * q[0] + p[1] * q[2] - p[2] * q[1]
+    return r
+
+
+@jit
+def qconj(q: np.ndarray) -> np.ndarray:
+    """Conjugate ``q* = (q0, -q_v)``; the inverse of a unit quaternion (§1.1)."""
+    return np.array((q[0], -q[1], -q[2], -q[3]))
+
+
+@jit
+def qconj_mul(p: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """``p* * q`` without forming ``p*``: the deviation of q from p (§2.3)."""
+    r = np.empty(4)
+    r[0] = p[0] * q[0] + p[1] * q[1] + p[2] * q[2] + p[3] * q[3]
+    r[1] = p[0] * q[1] - p[1] * q[0] - p[2] * q[3] + p[3] * q[2]
+    r[2] = p[0] * q[2] - p[2] * q[0] - p[3] * q[1] + p[1] * q[3]
+    r[3] = p[0] * q[3] - p[3] * q[0] - p[1] * q[2] + p[2] * q[1]
+    return r
+
+
+@jit
+def qnormalize(q: np.ndarray) -> np.ndarray:
+    """Return ``q / ‖q‖`` (§8 item 16: renormalise after every product)."""
+    n = np.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
+    return q / n
+
+
+@jit
+def rotmat(q: np.ndarray) -> np.ndarray:
+    """Rotation matrix ``R(q)`` with ``v_E = R(q) v_B`` (§1.2)."""
+    q0, q1, q2, q3 = q[0], q[1], q[2], q[3]
+    r = np.empty((3, 3))
+    r[0, 0] = 1.0 - 2.0 * (q2 * q2 + q3 * q3)
+    r[0, 1] = 2.0 * (q1 * q2 - q0 * q3)
+    r[0, 2] = 2.0 * (q1 * q3 + q0 * q2)
+    r[1, 0] = 2.0 * (q1 * q2 + q0 * q3)
+    r[1, 1] = 1.0 - 2.0 * (q1 * q1 + q3 * q3)
+    r[1, 2] = 2.0 * (q2 * q3 - q0 * q1)
+    r[2, 0] = 2.0 * (q1 * q3 - q0 * q2)
+    r[2, 1] = 2.0 * (q2 * q3 + q0 * q1)
+    r[2, 2] = 1.0 - 2.0 * (q1 * q1 + q2 * q2)
+    return r
+
+
+@jit
+def rotate(q: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """``R(q) v``: body vector to world coordinates (§1.2)."""
+    return mv(rotmat(q), v)
+
+
+@jit
+def rotate_inv(q: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """``R(q)ᵀ v``: world vector to body coordinates (§1.2)."""
+    return mtv(rotmat(q), v)
+
+
+@jit
+def q_omega(w: np.ndarray, dt: float) -> np.ndarray:
+    """Increment for a constant body rate ``w`` over ``dt`` (§1.3, paper eq. A20).
+
+    ``(cos(‖w‖dt/2), w · sin(‖w‖dt/2)/‖w‖)``, the bracket evaluated as a sinc so that it stays
+    finite for ``w → 0``.
+    """
+    n = np.sqrt(w[0] * w[0] + w[1] * w[1] + w[2] * w[2])
+    half = 0.5 * n * dt
+    # sin(x)/‖w‖ with x = ‖w‖dt/2; Taylor series near 0
+    s = 0.5 * dt * (1.0 - half * half / 6.0) if half < 1e-4 else np.sin(half) / n
+    return np.array((np.cos(half), w[0] * s, w[1] * s, w[2] * s))
+
+
+@jit
+def q_from_rotvec(r: np.ndarray) -> np.ndarray:
+    """Unit quaternion of the rotation vector ``r`` (angle × axis, rad)."""
+    return q_omega(r, 1.0)
+
+
+@jit
+def skew(a: np.ndarray) -> np.ndarray:
+    """``[a]×`` with ``[a]× b = a × b`` (§1.1)."""
+    s = np.zeros((3, 3))
+    s[0, 1] = -a[2]
+    s[0, 2] = a[1]
+    s[1, 0] = a[2]
+    s[1, 2] = -a[0]
+    s[2, 0] = -a[1]
+    s[2, 1] = a[0]
+    return s
+
+
+@jit
+def angle_between(p: np.ndarray, q: np.ndarray) -> float:
+    """Rotation angle of ``p* * q`` in rad, in [0, π]: ``2 arccos|p·q|`` (§7.3, eq. 72)."""
+    d = abs(p[0] * q[0] + p[1] * q[1] + p[2] * q[2] + p[3] * q[3])
+    if d > 1.0:
+        d = 1.0
+    return 2.0 * np.arccos(d)
+
+
+def as_unit_quaternion(q: np.ndarray) -> np.ndarray:
+    """Normalise quaternions along the last axis and make ``q0 ≥ 0`` (canonical sign)."""
+    q = np.asarray(q, dtype=float)
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    return np.where(q[..., :1] < 0.0, -q, q)
+
+
+def rotmat_np(q: np.ndarray) -> np.ndarray:
+    """Vectorised ``R(q)`` for an array of quaternions of shape (..., 4)."""
+    q = np.asarray(q, dtype=float)
+    q0, q1, q2, q3 = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    rows = [
+        [1 - 2 * (q2**2 + q3**2), 2 * (q1 * q2 - q0 * q3), 2 * (q1 * q3 + q0 * q2)],
+        [2 * (q1 * q2 + q0 * q3), 1 - 2 * (q1**2 + q3**2), 2 * (q2 * q3 - q0 * q1)],
+        [2 * (q1 * q3 - q0 * q2), 2 * (q2 * q3 + q0 * q1), 1 - 2 * (q1**2 + q2**2)],
+    ]
+    return np.stack([np.stack(r, -1) for r in rows], -2)
+
+
+def qmul_np(p: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """Vectorised Hamilton product over leading axes (broadcasting)."""
+    p = np.asarray(p, dtype=float)
+    q = np.asarray(q, dtype=float)
+    p0, p1, p2, p3 = p[..., 0], p[..., 1], p[..., 2], p[..., 3]
+    q0, q1, q2, q3 = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    return np.stack(
+        [
+            p0 * q0 - p1 * q1 - p2 * q2 - p3 * q3,
+            p0 * q1 + p1 * q0 + p2 * q3 - p3 * q2,
+            p0 * q2 + p2 * q0 + p3 * q1 - p1 * q3,
+            p0 * q3 + p3 * q0 + p1 * q2 - p2 * q1,
+        ],
+        -1,
+    )
+
+
+def qconj_np(q: np.ndarray) -> np.ndarray:
+    """Vectorised conjugate."""
+    q = np.array(q, dtype=float)
+    q[..., 1:] *= -1.0
+    return q
+
+
+def angle_between_np(p: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """Vectorised :func:`angle_between` (rad)."""
+    d = np.abs(np.sum(np.asarray(p) * np.asarray(q), axis=-1))
+    return 2.0 * np.arccos(np.clip(d, -1.0, 1.0))

@@ -1,0 +1,26 @@
+"""Orientation error metrics (the BROAD benchmark's, see bench/README)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from mkf_ros.core.quaternion import qconj_np, qmul_np
+
+
+def orientation_errors(q_est: np.ndarray, q_ref: np.ndarray) -> dict[str, np.ndarray]:
+    """Total, heading and inclination error (rad) of ``q_est`` against ``q_ref`` (both
+    [w, x, y, z], sensor → world), from ``e = q_est ⊗ q_ref⁻¹`` in the world frame:
+    total ``2 acos|e_w|``, heading ``2 atan|e_z/e_w|``, inclination ``2 acos √(e_w² + e_z²)``.
+    """
+    e = qmul_np(q_est, qconj_np(q_ref))
+    w = np.abs(e[..., 0])
+    z = np.abs(e[..., 3])
+    total = 2.0 * np.arccos(np.clip(w, 0.0, 1.0))
+    heading = 2.0 * np.arctan2(z, w)
+    incl = 2.0 * np.arccos(np.clip(np.sqrt(w * w + z * z), 0.0, 1.0))
+    return {"total": total, "heading": heading, "inclination": incl}
+
+
+def rmse_deg(err_rad: np.ndarray) -> float:
+    """Root-mean-square of an error series, in degrees."""
+    return float(np.degrees(np.sqrt(np.mean(np.square(err_rad)))))
