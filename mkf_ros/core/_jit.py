@@ -1,14 +1,85 @@
-"""The one place that decides how kernels are compiled.
+"""The one place that decides how kernels are compiled and cached.
 
-Every numerical kernel in :mod:`mkf_ros.core` is a plain Python function decorated with
-:func:`jit`. With numba available they are compiled once (and cached on disk); with
-``NUMBA_DISABLE_JIT=1`` they run as ordinary Python, which is how a researcher can step through
-the equations in a debugger.
+Every numerical kernel in mkf_ros is a plain Python function decorated with :func:`jit`. With
+numba they are compiled once and cached on disk; with ``NUMBA_DISABLE_JIT=1`` they run as ordinary
+Python, which is how a researcher can step through the equations in a debugger.
+
+Caching: numba's own cache is keyed per source file, so a kernel is not recompiled when a kernel
+it calls (in another file) changes — stale machine code. :class:`KernelCacheLocator` keys every
+kernel on a hash of *all* kernel sources of the package instead, and keeps the cache in a per-user
+directory (``$MKF_ROS_CACHE_DIR``, else ``$XDG_CACHE_HOME/mkf_ros``, else ``~/.cache/mkf_ros``),
+so an editable install, a colcon install tree and every process share one cache, and any change
+to any kernel invalidates all of them. If that directory is not writable numba's usual locations
+are used.
 """
 
 from __future__ import annotations
 
+import hashlib
+import os
+import sys
+from pathlib import Path
+
 import numba
+from numba.core import caching
+
+_PACKAGE_DIR = Path(__file__).resolve().parents[1]
+_MARKER = "core._jit import jit"
+
+
+def _kernel_hash() -> str:
+    """Hash of every package source file that defines kernels, plus the numba/Python version."""
+    h = hashlib.sha256(f"{numba.__version__} {sys.version_info[:2]}".encode())
+    for path in sorted(_PACKAGE_DIR.rglob("*.py")):
+        data = path.read_bytes()
+        if path.name == "_jit.py" or _MARKER.encode() in data:
+            h.update(str(path.relative_to(_PACKAGE_DIR)).encode())
+            h.update(data)
+    return h.hexdigest()[:16]
+
+
+def _cache_root() -> Path:
+    env = os.environ.get("MKF_ROS_CACHE_DIR")
+    if env:
+        return Path(env)
+    xdg = os.environ.get("XDG_CACHE_HOME")
+    return (Path(xdg) if xdg else Path.home() / ".cache") / "mkf_ros"
+
+
+KERNEL_HASH = _kernel_hash()
+
+
+class KernelCacheLocator(caching._SourceFileBackedLocatorMixin, caching._CacheLocator):
+    """numba cache locator for mkf_ros kernels (see the module docstring)."""
+
+    def __init__(self, py_func: object, py_file: str) -> None:
+        self._py_file = py_file
+        self._lineno = py_func.__code__.co_firstlineno  # type: ignore[attr-defined]
+        rel = Path(py_file).resolve().parent.relative_to(_PACKAGE_DIR)
+        self._cache_path = str(_cache_root() / f"numba-{KERNEL_HASH}" / rel)
+
+    def get_cache_path(self) -> str:
+        return self._cache_path
+
+    def get_source_stamp(self) -> str:
+        return KERNEL_HASH
+
+    @classmethod
+    def from_function(cls, py_func: object, py_file: str) -> KernelCacheLocator | None:
+        try:
+            Path(py_file).resolve().relative_to(_PACKAGE_DIR)
+        except ValueError:
+            return None  # not one of ours: numba's usual locators decide
+        self = cls(py_func, py_file)
+        try:
+            self.ensure_cache_path()
+        except OSError:
+            return None
+        return self
+
+
+if KernelCacheLocator not in caching.CacheImpl._locator_classes:
+    caching.CacheImpl._locator_classes.insert(0, KernelCacheLocator)
 
 #: Compile options shared by every kernel: no Python objects, cached, GIL released.
 jit = numba.njit(cache=True, nogil=True, error_model="numpy")

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from mkf_ros.core._jit import jit
-from mkf_ros.core.quaternion import q_omega, qconj_mul, qmul
+from mkf_ros.core.quaternion import q_omega_t, qconj_mul, qmul, t3, t4
 
 O, RP, MRP, RV = 0, 1, 2, 3  # noqa: E741 (the paper's name of the orthographic chart)
 CHART_NAMES = ("o", "rp", "mrp", "rv")
@@ -28,10 +28,10 @@ _TINY = 1e-12
 
 
 @jit
-def _canonical(d: np.ndarray) -> np.ndarray:
+def _canonical(d: tuple) -> tuple:
     """Sign fix ``δ ← −δ`` if ``δ0 < 0`` (§2.1): q and −q are the same rotation."""
     if d[0] < 0.0:
-        return -d
+        return (-d[0], -d[1], -d[2], -d[3])
     return d
 
 
@@ -52,38 +52,42 @@ def _t_form(alpha: float, beta: float, gamma: float, v: np.ndarray) -> np.ndarra
     return r
 
 
-# --- O: orthographic -------------------------------------------------------------------------
+# Each chart: φ on a 4-tuple δ, φ⁻¹ on a 3-tuple e (Table 2), and T(δ̄) (Table 4). Tuples are
+# passed by value in numba, so the MUKF's sigma-point loop runs these without allocations.
+
+# --- O: orthographic ---------------------------------------------------------------------------
 @jit
-def _o_to(d: np.ndarray) -> np.ndarray:
+def _o_to(d: tuple) -> tuple:
     d = _canonical(d)
-    return 2.0 * d[1:]
+    return (2.0 * d[1], 2.0 * d[2], 2.0 * d[3])
 
 
 @jit
-def _o_from(e: np.ndarray) -> np.ndarray:
+def _o_from(e: tuple) -> tuple:
     n2 = e[0] * e[0] + e[1] * e[1] + e[2] * e[2]
-    return np.array((np.sqrt(max(1.0 - 0.25 * n2, 0.0)), 0.5 * e[0], 0.5 * e[1], 0.5 * e[2]))
+    return (np.sqrt(max(1.0 - 0.25 * n2, 0.0)), 0.5 * e[0], 0.5 * e[1], 0.5 * e[2])
 
 
 @jit
 def _o_t(d: np.ndarray) -> np.ndarray:
     # T = δ0 I − [δv]× + δv δvᵀ / δ0   (Table 4)
-    d = _canonical(d)
-    v = d[1:]
-    return _t_form(d[0], 1.0 / max(d[0], _TINY), 1.0, v)
+    s = -1.0 if d[0] < 0.0 else 1.0
+    d0 = s * d[0]
+    return _t_form(d0, 1.0 / max(d0, _TINY), 1.0, s * d[1:])
 
 
 # --- RP: Rodrigues parameters / gnomonic -------------------------------------------------------
 @jit
-def _rp_to(d: np.ndarray) -> np.ndarray:
+def _rp_to(d: tuple) -> tuple:
     d = _canonical(d)  # φ(−δ) = φ(δ); the fix only makes the δ0 guard below one-sided
-    return 2.0 * d[1:] / max(d[0], _TINY)
+    k = 2.0 / max(d[0], _TINY)
+    return (k * d[1], k * d[2], k * d[3])
 
 
 @jit
-def _rp_from(e: np.ndarray) -> np.ndarray:
+def _rp_from(e: tuple) -> tuple:
     s = 1.0 / np.sqrt(4.0 + e[0] * e[0] + e[1] * e[1] + e[2] * e[2])
-    return np.array((2.0 * s, e[0] * s, e[1] * s, e[2] * s))
+    return (2.0 * s, e[0] * s, e[1] * s, e[2] * s)
 
 
 @jit
@@ -94,40 +98,40 @@ def _rp_t(d: np.ndarray) -> np.ndarray:
 
 # --- MRP: modified Rodrigues parameters / stereographic ---------------------------------------
 @jit
-def _mrp_to(d: np.ndarray) -> np.ndarray:
+def _mrp_to(d: tuple) -> tuple:
     d = _canonical(d)
-    return 4.0 * d[1:] / (1.0 + d[0])
+    k = 4.0 / (1.0 + d[0])
+    return (k * d[1], k * d[2], k * d[3])
 
 
 @jit
-def _mrp_from(e: np.ndarray) -> np.ndarray:
+def _mrp_from(e: tuple) -> tuple:
     n2 = e[0] * e[0] + e[1] * e[1] + e[2] * e[2]
     s = 1.0 / (16.0 + n2)
-    return np.array(((16.0 - n2) * s, 8.0 * e[0] * s, 8.0 * e[1] * s, 8.0 * e[2] * s))
+    return ((16.0 - n2) * s, 8.0 * e[0] * s, 8.0 * e[1] * s, 8.0 * e[2] * s)
 
 
 @jit
 def _mrp_t(d: np.ndarray) -> np.ndarray:
     # T = ½ [ (1 + δ0)(δ0 I − [δv]×) + δv δvᵀ ]   (Table 4)
-    d = _canonical(d)
-    v = d[1:]
-    return _t_form(0.5 * (1.0 + d[0]) * d[0], 0.5, 0.5 * (1.0 + d[0]), v)
+    s = -1.0 if d[0] < 0.0 else 1.0
+    d0 = s * d[0]
+    return _t_form(0.5 * (1.0 + d0) * d0, 0.5, 0.5 * (1.0 + d0), s * d[1:])
 
 
 # --- RV: rotation vector / equidistant ---------------------------------------------------------
 @jit
-def _rv_to(d: np.ndarray) -> np.ndarray:
+def _rv_to(d: tuple) -> tuple:
     # robust form 2 atan2(‖δv‖, δ0) δv/‖δv‖ (§2.1 recommendation)
     d = _canonical(d)
     n = np.sqrt(d[1] * d[1] + d[2] * d[2] + d[3] * d[3])
-    if n < _TINY:
-        return 2.0 * d[1:] / max(d[0], _TINY)
-    return (2.0 * np.arctan2(n, d[0]) / n) * d[1:]
+    k = 2.0 / max(d[0], _TINY) if n < _TINY else 2.0 * np.arctan2(n, d[0]) / n
+    return (k * d[1], k * d[2], k * d[3])
 
 
 @jit
-def _rv_from(e: np.ndarray) -> np.ndarray:
-    return q_omega(e, 1.0)
+def _rv_from(e: tuple) -> tuple:
+    return q_omega_t(e, 1.0)
 
 
 @jit
@@ -135,8 +139,9 @@ def _rv_t(d: np.ndarray) -> np.ndarray:
     # T = k (δ0 (I − uuᵀ) − [δv]×) + uuᵀ,  k = x/arcsin x, x = ‖δv‖, u = δv/x   (Table 4)
     # rewritten as k δ0 I + c δv δvᵀ − k [δv]×,  c = (1 − k δ0)/x², which has the limit 2/3 at
     # x → 0 (so T → I there, §3.2).
-    d = _canonical(d)
-    v = d[1:]
+    s = -1.0 if d[0] < 0.0 else 1.0
+    d0 = s * d[0]
+    v = s * d[1:]
     x2 = v[0] * v[0] + v[1] * v[1] + v[2] * v[2]
     if x2 < 1e-8:
         k = 1.0 - x2 / 6.0
@@ -144,13 +149,13 @@ def _rv_t(d: np.ndarray) -> np.ndarray:
     else:
         x = np.sqrt(x2)
         k = x / np.arcsin(min(x, 1.0))
-        c = (1.0 - k * d[0]) / x2
-    return _t_form(k * d[0], c, k, v)
+        c = (1.0 - k * d0) / x2
+    return _t_form(k * d0, c, k, v)
 
 
 # --- dispatchers -------------------------------------------------------------------------------
 @jit
-def to_chart(chart: int, d: np.ndarray) -> np.ndarray:
+def to_chart_t(chart: int, d: tuple) -> tuple:
     """``e = φ(δ)`` for a deviation ``δ`` from the chart centre (§2.1, Table 2)."""
     if chart == O:
         return _o_to(d)
@@ -162,8 +167,8 @@ def to_chart(chart: int, d: np.ndarray) -> np.ndarray:
 
 
 @jit
-def from_chart(chart: int, e: np.ndarray) -> np.ndarray:
-    """``δ = φ⁻¹(e)`` (§2.1); ``e`` must lie in the image (see :func:`saturate`)."""
+def from_chart_t(chart: int, e: tuple) -> tuple:
+    """``δ = φ⁻¹(e)`` (§2.1); ``e`` must lie in the image (see :func:`saturate_t`)."""
     if chart == O:
         return _o_from(e)
     if chart == RP:
@@ -174,13 +179,32 @@ def from_chart(chart: int, e: np.ndarray) -> np.ndarray:
 
 
 @jit
-def saturate(chart: int, e: np.ndarray) -> np.ndarray:
+def saturate_t(chart: int, e: tuple) -> tuple:
     """Radially clip ``e`` to the chart's image (§2.2)."""
     r = RADIUS[chart]
     n = np.sqrt(e[0] * e[0] + e[1] * e[1] + e[2] * e[2])
     if n > r:
-        return e * (r / n)
+        k = r / n
+        return (e[0] * k, e[1] * k, e[2] * k)
     return e
+
+
+@jit
+def to_chart(chart: int, d: np.ndarray) -> np.ndarray:
+    """Array form of :func:`to_chart_t`."""
+    return np.array(to_chart_t(chart, t4(d)))
+
+
+@jit
+def from_chart(chart: int, e: np.ndarray) -> np.ndarray:
+    """Array form of :func:`from_chart_t`."""
+    return np.array(from_chart_t(chart, t3(e)))
+
+
+@jit
+def saturate(chart: int, e: np.ndarray) -> np.ndarray:
+    """Array form of :func:`saturate_t`."""
+    return np.array(saturate_t(chart, t3(e)))
 
 
 @jit

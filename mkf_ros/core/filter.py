@@ -25,8 +25,14 @@ import numpy as np
 from mkf_ros.core._jit import jit
 from mkf_ros.core.charts import chart_id, from_chart, t_matrix
 from mkf_ros.core.frames import FROM_ENU, align_tilt, heading_correction, keep_yaw
-from mkf_ros.core.linalg import congruence, eye, mm, mmt
-from mkf_ros.core.mekf import mekf_predict, mekf_update, transport_covariance
+from mkf_ros.core.linalg import congruence, eye, mm
+from mkf_ros.core.mekf import (
+    mekf_apply,
+    mekf_gyro_update,
+    mekf_predict,
+    mekf_vector_update,
+    transport_covariance,
+)
 from mkf_ros.core.mukf import mukf_step
 from mkf_ros.core.params import ALGORITHMS, FilterParams
 from mkf_ros.core.quaternion import qmul, qnormalize, rotate, rotmat
@@ -43,6 +49,10 @@ S_QC, S_E, S_W, S_B, S_MREF, S_MSUM = 0, 4, 7, 10, 13, 16  # q̄_c(4) ē(3) ω̄
 S_SIZE = 19
 NX_MAX = 9
 
+# --- noise matrices derived from the configuration (built once per parameter set) -------------
+N_QW, N_QB, N_RW, N_RA, N_QA, N_RM, N_QM = 0, 1, 2, 3, 4, 5, 6
+N_SIZE = 7
+
 # --- flags and counters ------------------------------------------------------------------------
 F_INIT, F_HEADING, F_EVER, F_MCOUNT = 0, 1, 2, 3
 F_SIZE = 4
@@ -57,6 +67,7 @@ K_SAMPLES, K_GYR_MISSING, K_GYR_INVALID, K_ACC_MISSING, K_ACC_INVALID = 0, 1, 2,
 K_MAG_MISSING, K_MAG_INVALID, K_GAPS, K_UPDATE_FAILED, K_BEFORE_INIT = 5, 6, 7, 8, 9
 K_SIZE = len(COUNTER_NAMES)
 
+UP = np.array((0.0, 0.0, 1.0))  # world up in ENU: what a resting accelerometer measures
 MAG_REF_SAMPLES = 100  # magnetometer samples averaged into a learned reference
 P0_PAPER = 100.0  # §8 item 9
 YAW0_STDDEV = 1e-3  # rad: heading is defined by the start-up heading when no magnetometer
@@ -98,9 +109,7 @@ def recentre(cfg: np.ndarray, st: np.ndarray, P: np.ndarray) -> None:
     d = from_chart(chart, e)
     st[S_QC:S_QC + 4] = qnormalize(qmul(st[S_QC:S_QC + 4], d))
     st[S_E:S_E + 3] = 0.0
-    Pn = P[:nx, :nx].copy()
-    transport_covariance(Pn, t_matrix(chart, d))
-    P[:nx, :nx] = Pn
+    transport_covariance(P, nx, t_matrix(chart, d))
 
 
 @jit
@@ -232,8 +241,20 @@ def _paper_init(cfg: np.ndarray, st: np.ndarray, P: np.ndarray, fl: np.ndarray) 
 
 
 @jit
-def sensor_step(cfg: np.ndarray, st: np.ndarray, P: np.ndarray, fl: np.ndarray,
-                cnt: np.ndarray, dt: float, gyr: np.ndarray, acc: np.ndarray,
+def build_noise(cfg: np.ndarray) -> np.ndarray:
+    """The isotropic noise matrices of the configuration: Q_ω, Q_b, R_ω, R_acc, Q_acc, R_mag,
+    Q_mag (normalised vector units for the accelerometer and magnetometer, §8 item 15)."""
+    nz = np.zeros((N_SIZE, 3, 3))
+    for k, c in ((N_QW, C_QW), (N_QB, C_QB), (N_RW, C_RW), (N_RA, C_RA), (N_QA, C_QA),
+                 (N_RM, C_RM), (N_QM, C_QM)):
+        for i in range(3):
+            nz[k, i, i] = cfg[c]
+    return nz
+
+
+@jit
+def sensor_step(cfg: np.ndarray, nz: np.ndarray, st: np.ndarray, P: np.ndarray,
+                fl: np.ndarray, cnt: np.ndarray, dt: float, gyr: np.ndarray, acc: np.ndarray,
                 mag: np.ndarray) -> None:
     """Process one sample: any of ``gyr`` (rad/s), ``acc`` (any unit, +g up at rest) and
     ``mag`` (any unit) may be NaN (missing). ``dt`` is the time since the previous sample."""
@@ -269,39 +290,37 @@ def sensor_step(cfg: np.ndarray, st: np.ndarray, P: np.ndarray, fl: np.ndarray,
     if has_m and fl[F_HEADING] == 0:
         _heading_init(cfg, st, P, fl, m_body)
         has_m = False  # this sample set the heading; do not count it twice
-    vm = np.zeros((2, 3))
-    vref = np.zeros((2, 3))
-    Rv = np.zeros((2, 3, 3))
-    Qv = np.zeros((2, 3, 3))
-    use_v = np.zeros(2, dtype=np.bool_)
-    if has_a:
-        use_v[0] = True
-        vm[0] = _unit(acc)
-        vref[0, 2] = 1.0  # world up, ENU
-        for i in range(3):
-            Rv[0, i, i] = cfg[C_RA]
-            Qv[0, i, i] = cfg[C_QA]
-    if has_m:
-        use_v[1] = True
-        vm[1] = m_body
-        vref[1] = st[S_MREF:S_MREF + 3]
-        for i in range(3):
-            Rv[1, i, i] = cfg[C_RM]
-            Qv[1, i, i] = cfg[C_QM]
-    Qw = eye(3, cfg[C_QW])
-    Qb = eye(3, cfg[C_QB])
-    Rw = eye(3, cfg[C_RW])
     qc = st[S_QC:S_QC + 4]
     w = st[S_W:S_W + 3]
     b = st[S_B:S_B + 3]
-    if int(cfg[C_ALGO]) == 0:
-        mekf_predict(qc, w, P, nx, dt, Qw, Qb)
-        ok = mekf_update(chart, cfg[C_CU] > 0, qc, w, b, P, nx, vm, vref, Rv, Qv, use_v, g,
-                         has_g, Rw)
-    else:
+    a_body = _unit(acc) if has_a else np.zeros(3)
+    ok = True
+    if int(cfg[C_ALGO]) == 0:  # MEKF: predict, one block per sensor, one move to the manifold
+        mekf_predict(qc, w, P, nx, dt, nz[N_QW], nz[N_QB])
+        R = rotmat(qc)
+        dx = np.zeros(nx)
+        if has_a:
+            ok &= mekf_vector_update(P, nx, dx, R, a_body, UP, nz[N_RA], nz[N_QA], np.inf) >= 0
+        if has_m:
+            ok &= mekf_vector_update(P, nx, dx, R, m_body, st[S_MREF:S_MREF + 3], nz[N_RM],
+                                     nz[N_QM], np.inf) >= 0
+        if has_g:
+            ok &= mekf_gyro_update(P, nx, dx, w, b, g, nz[N_RW], np.inf) >= 0
+        mekf_apply(chart, cfg[C_CU] > 0, qc, w, b, P, nx, dx)
+    else:  # MUKF: stacked measurement through the sigma points
+        vm = np.zeros((2, 3))
+        vref = np.zeros((2, 3))
+        use_v = np.zeros(2, dtype=np.bool_)
+        Rv = np.empty((2, 3, 3))
+        Qv = np.empty((2, 3, 3))
+        Rv[0], Qv[0], Rv[1], Qv[1] = nz[N_RA], nz[N_QA], nz[N_RM], nz[N_QM]
+        use_v[0], use_v[1] = has_a, has_m
+        vm[0], vref[0] = a_body, UP
+        if has_m:
+            vm[1], vref[1] = m_body, st[S_MREF:S_MREF + 3]
         ok = mukf_step(chart, cfg[C_CU] > 0, cfg[C_PUBLISHED] > 0, cfg[C_W0], qc,
-                       st[S_E:S_E + 3], w, b, P, nx, dt, Qw, Qb, vm, vref, Rv, Qv, use_v, g,
-                       has_g, Rw)
+                       st[S_E:S_E + 3], w, b, P, nx, dt, nz[N_QW], nz[N_QB], vm, vref, Rv, Qv,
+                       use_v, g, has_g, nz[N_RW])
     if not ok:
         cnt[K_UPDATE_FAILED] += 1
         for i in range(nx):  # regularise so that the next step can factorise again
@@ -316,12 +335,19 @@ def world_output(cfg: np.ndarray, st: np.ndarray, P: np.ndarray, q_from_enu: np.
     """Orientation in the world frame (``q0 ≥ 0``) and its 3×3 covariance about world axes:
     ``Σ_W = R(q_W) Σ_body R(q_W)ᵀ`` (the error is body-side, ``q = q̂ * δ(e)``)."""
     q, Pb = estimate_enu(cfg, st, P)
-    q = qnormalize(qmul(q_from_enu, q))
+    q = qmul(q_from_enu, q)
+    n = np.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
     if q[0] < 0.0:
-        q = -q
-    q_out[:] = q
-    R = rotmat(q)
-    cov_out[:, :] = mmt(mm(R, Pb), R)
+        n = -n
+    for i in range(4):
+        q_out[i] = q[i] / n
+    R = rotmat(q_out)
+    for i in range(3):
+        for j in range(3):
+            s = 0.0
+            for k in range(3):
+                s += R[i, k] * (Pb[k, 0] * R[j, 0] + Pb[k, 1] * R[j, 1] + Pb[k, 2] * R[j, 2])
+            cov_out[i, j] = s
 
 
 @jit
@@ -332,8 +358,9 @@ def run_batch(cfg: np.ndarray, st: np.ndarray, P: np.ndarray, fl: np.ndarray, cn
               out_init: np.ndarray) -> None:
     """:func:`sensor_step` over a whole recording, writing the outputs of every sample."""
     nx = int(cfg[C_NX])
+    nz = build_noise(cfg)
     for n in range(dts.shape[0]):
-        sensor_step(cfg, st, P, fl, cnt, dts[n], gyr[n], acc[n], mag[n])
+        sensor_step(cfg, nz, st, P, fl, cnt, dts[n], gyr[n], acc[n], mag[n])
         world_output(cfg, st, P, q_from_enu, out_q[n], out_cov[n])
         out_init[n] = fl[F_INIT] > 0
         out_w[n] = st[S_W:S_W + 3]
@@ -390,6 +417,7 @@ class AttitudeFilter:
     def __init__(self, params: FilterParams | None = None, **overrides: object) -> None:
         self._params = (params or FilterParams()).replace(**overrides)
         self._cfg = build_cfg(self._params)
+        self._nz = build_noise(self._cfg)
         self._q_from_enu = FROM_ENU[self._params.world_frame].copy()
         self.counters = np.zeros(K_SIZE, dtype=np.int64)
         self.reset()
@@ -427,13 +455,13 @@ class AttitudeFilter:
             new.use_mag and not self._params.use_mag
         ):
             self._fl[F_HEADING] = 0  # re-establish heading from the next magnetometer sample
-        self._params, self._cfg = new, cfg
+        self._params, self._cfg, self._nz = new, cfg, build_noise(cfg)
         self._q_from_enu = FROM_ENU[new.world_frame].copy()
         return new
 
     def step(self, dt: float, gyr: object = None, acc: object = None, mag: object = None) -> None:
         """Process one sample; ``None`` means the sensor has no reading at this time."""
-        sensor_step(self._cfg, self._st, self._P, self._fl, self.counters, float(dt),
+        sensor_step(self._cfg, self._nz, self._st, self._P, self._fl, self.counters, float(dt),
                     _vec(gyr), _vec(acc), _vec(mag))
 
     @property

@@ -14,9 +14,18 @@ from __future__ import annotations
 import numpy as np
 
 from mkf_ros.core._jit import jit
-from mkf_ros.core.charts import from_chart_at, saturate, to_chart_at
+from mkf_ros.core.charts import from_chart_at, from_chart_t, saturate, saturate_t, to_chart_t
 from mkf_ros.core.linalg import cho_solve, cholesky, mtv, symmetrize
-from mkf_ros.core.quaternion import q_omega, qmul, rotmat
+from mkf_ros.core.quaternion import (
+    q_omega_t,
+    qconj_mul_t,
+    qmul_t,
+    qnormalize_t,
+    rotate_inv_t,
+    rotmat,
+    t3,
+    t4,
+)
 
 
 @jit
@@ -46,62 +55,66 @@ def mukf_step(
             nvec += 1
     m = 3 * nvec + (3 if use_w else 0)
 
-    # 1. augment: x̄ᵃ = (ē, ω̄[, b̄], w̄_ω = 0, w̄_v = 0 …), Pᵃ = blockdiag(P, Q_ωᵃ, Q_v …)
+    # 1. augment: x̄ᵃ = (ē, ω̄[, b̄], w̄_ω = 0, w̄_v = 0 …), Pᵃ = blockdiag(P, Q_ωᵃ, Q_v …), N = dim
+    # 2. sigma points X_0 = x̄ᵃ, X_j, X_{N+j} = x̄ᵃ ± c L[:, j], c = √(N/(1 − W_0)),
+    #    W_j = (1 − W_0)/(2N), L the lower Cholesky factor of Pᵃ (block diagonal like Pᵃ).
+    #    Exact reduction: a pair along a Q_v column leaves q, ω, b equal to X_0's and moves y_k by
+    #    ±R(q_0⁻)ᵀ c L_v[:, j]; summed over the pairs (2 W_j c² = 1) it adds W_j·2 to X_0's weight
+    #    in every mean and covariance and R(q_0⁻)ᵀ Q_v R(q_0⁻) to the k-th block of P_yy. So only
+    #    the 1 + 2(nx + 3) state and rate-noise points are propagated.
     N = nx + 3 + 3 * nvec
-    xa = np.zeros(N)
-    xa[0:3] = ebar
-    xa[3:6] = w
-    if nx == 9:
-        xa[6:9] = b
-    Pa = np.zeros((N, N))
-    Pa[:nx, :nx] = P[:nx, :nx]
-    Pa[nx:nx + 3, nx:nx + 3] = Qw if published_scaling else Qw * dt
-    col = nx + 3
-    for k in range(use_v.shape[0]):
-        if use_v[k]:
-            Pa[col:col + 3, col:col + 3] = Qv[k]
-            col += 3
-
-    # 2. sigma points: X_0 = x̄ᵃ, X_{j}, X_{N+j} = x̄ᵃ ± c L[:, j],  c = √(N/(1 − W_0))
-    L, ok = cholesky(Pa)
+    L, ok = cholesky(P[:nx, :nx].copy())
+    if not ok:
+        return False
+    Lw, ok = cholesky(Qw if published_scaling else Qw * dt)
     if not ok:
         return False
     c = np.sqrt(N / (1.0 - w0))
     wj = (1.0 - w0) / (2.0 * N)
-    ns = 2 * N + 1
+    nd = nx + 3  # propagated directions: state and rate noise
+    ns = 2 * nd + 1
     Qs = np.empty((ns, 4))
     Ws = np.empty((ns, 3))
     Bs = np.empty((ns, 3))
     Ys = np.empty((ns, m))
     wts = np.empty(ns)
     wts[:] = wj
-    wts[0] = w0
+    wts[0] = w0 + 2.0 * 3.0 * nvec * wj
+    x = np.empty(nx)
+    nw = np.empty(3)
+    qc_t = t4(qc)
     for s in range(ns):
-        x = xa.copy()
+        for i in range(nx):
+            x[i] = ebar[i] if i < 3 else (w[i - 3] if i < 6 else b[i - 6])
+        nw[:] = 0.0
         if s > 0:
-            j = (s - 1) % N
-            sign = 1.0 if s <= N else -1.0
-            for i in range(N):
-                x[i] += sign * c * L[i, j]
+            j = (s - 1) % nd
+            step = c if s <= nd else -c
+            if j < nx:
+                for i in range(j, nx):
+                    x[i] += step * L[i, j]
+            else:
+                for i in range(j - nx, 3):
+                    nw[i] = step * Lw[i, j - nx]
         # 3. to the manifold, propagate, predict the measurement
-        q = from_chart_at(chart, qc, saturate(chart, x[0:3]))
-        ws = x[3:6] + (x[nx:nx + 3] * dt if published_scaling else x[nx:nx + 3])
-        bs = x[6:9] if nx == 9 else b
-        q = qmul(q, q_omega(ws, dt))
-        q = q / np.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
-        Qs[s] = q
-        Ws[s] = ws
-        Bs[s] = bs
-        R = rotmat(q)
+        #    q_j = q̄_c * φ⁻¹(sat(e_j)),  ω_j⁻ = ω_j + n_ω (·Δt),  q_j⁻ = q_j * q_ω(ω_j⁻, Δt)
+        for i in range(3):
+            Ws[s, i] = x[3 + i] + (nw[i] * dt if published_scaling else nw[i])
+            Bs[s, i] = x[6 + i] if nx == 9 else b[i]
+        qj = qmul_t(qc_t, from_chart_t(chart, saturate_t(chart, (x[0], x[1], x[2]))))
+        qj = qnormalize_t(qmul_t(qnormalize_t(qj), q_omega_t(t3(Ws[s]), dt)))
+        for i in range(4):
+            Qs[s, i] = qj[i]
         row = 0
-        col = nx + 3
         for k in range(use_v.shape[0]):
-            if use_v[k]:
-                Ys[s, row:row + 3] = mtv(R, vref[k] + x[col:col + 3])  # R(q_j⁻)ᵀ (v + n_v,j)
+            if use_v[k]:  # y = R(q_j⁻)ᵀ v  (w̄_v = 0; its spread is added to P_yy below)
+                y = rotate_inv_t(qj, t3(vref[k]))
+                for i in range(3):
+                    Ys[s, row + i] = y[i]
                 row += 3
-                col += 3
-        if use_w:
-            Ys[s, row:row + 3] = ws + bs
+        if use_w:  # gyro: ω_j⁻ + b_j
+            for i in range(3):
+                Ys[s, row + i] = Ws[s, i] + Bs[s, i]
     # 4. hemisphere alignment with the propagated sigma point 0
     for s in range(1, ns):
         dot = Qs[s, 0] * Qs[0, 0] + Qs[s, 1] * Qs[0, 1] + Qs[s, 2] * Qs[0, 2] + Qs[s, 3] * Qs[0, 3]
@@ -118,6 +131,7 @@ def mukf_step(
         bm += wts[s] * Bs[s]
         ym += wts[s] * Ys[s]
     qm /= np.sqrt(qm[0] * qm[0] + qm[1] * qm[1] + qm[2] * qm[2] + qm[3] * qm[3])
+    qm_t = t4(qm)
     # 6. re-express in the chart of the new mean; covariances (no subtraction of Σ W e_j, §8.7)
     Pxx = np.zeros((nx, nx))
     Pxy = np.zeros((nx, m))
@@ -125,7 +139,8 @@ def mukf_step(
     dx = np.empty(nx)
     dy = np.empty(m)
     for s in range(ns):
-        dx[0:3] = to_chart_at(chart, qm, Qs[s])
+        e = to_chart_t(chart, qconj_mul_t(qm_t, t4(Qs[s])))
+        dx[0], dx[1], dx[2] = e[0], e[1], e[2]
         dx[3:6] = Ws[s] - wm_
         if nx == 9:
             dx[6:9] = Bs[s] - bm
@@ -133,17 +148,32 @@ def mukf_step(
             dy[i] = Ys[s, i] - ym[i]
         ws_ = wts[s]
         for i in range(nx):
-            for jj in range(nx):
-                Pxx[i, jj] += ws_ * dx[i] * dx[jj]
+            wdx = ws_ * dx[i]
+            for jj in range(i + 1):
+                Pxx[i, jj] += wdx * dx[jj]
             for jj in range(m):
-                Pxy[i, jj] += ws_ * dx[i] * dy[jj]
+                Pxy[i, jj] += wdx * dy[jj]
         for i in range(m):
-            for jj in range(m):
-                Pyy[i, jj] += ws_ * dy[i] * dy[jj]
+            wdy = ws_ * dy[i]
+            for jj in range(i + 1):
+                Pyy[i, jj] += wdy * dy[jj]
+    for i in range(nx):  # the loops above filled the lower triangles
+        for jj in range(i):
+            Pxx[jj, i] = Pxx[i, jj]
+    for i in range(m):
+        for jj in range(i):
+            Pyy[jj, i] = Pyy[i, jj]
+    R0 = rotmat(Qs[0])
     row = 0
     for k in range(use_v.shape[0]):
-        if use_v[k]:
-            Pyy[row:row + 3, row:row + 3] += Rv[k]
+        if use_v[k]:  # R_v + R(q_0⁻)ᵀ Q_v R(q_0⁻): the disturbance sigma pairs, summed exactly
+            for i in range(3):
+                for jj in range(3):
+                    qb = 0.0
+                    for a in range(3):
+                        for bb in range(3):
+                            qb += R0[a, i] * Qv[k, a, bb] * R0[bb, jj]
+                    Pyy[row + i, row + jj] += Rv[k, i, jj] + qb
             row += 3
     if use_w:
         Pyy[row:row + 3, row:row + 3] += Rw

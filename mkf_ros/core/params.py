@@ -149,6 +149,69 @@ PARAMS: tuple[Param, ...] = (
     _P("max_dt", float, 0.5, "A gap between samples longer than this re-aligns roll and pitch "
        "(and heading with a magnetometer) instead of integrating the rate across it",
        unit="s", range=(1e-4, 3600.0), group="time"),
+    # ============================================================================================
+    # scope "node": the streaming front end (mkf_ros.stream) and the ROS node only. Names follow
+    # imu_filter_madgwick where the meaning is the same (drop-in). Owned by the estimator node.
+    # ============================================================================================
+    # --- node: input and time -------------------------------------------------------------------
+    _P("constant_dt", float, 0.0, "Time step used for every IMU sample instead of the header "
+       "stamps; 0 = use the stamps (imu_filter_madgwick name)", unit="s", range=(0.0, 10.0),
+       scope="node", group="node: input and time"),
+    _P("time_jump_threshold", float, 1.0, "An IMU stamp this much older than the previous one "
+       "(bag loop, clock reset) resets the filter; smaller steps back are dropped as out of "
+       "order (10 in a row also reset)", unit="s", range=(0.0, 1e6), scope="node",
+       group="node: input and time"),
+    _P("mag_max_delay", float, 0.1, "A magnetometer sample up to this much older than the "
+       "latest IMU sample is still fused (rotated forward by the estimated rate); older ones "
+       "are dropped", unit="s", range=(0.0, 10.0), scope="node", group="node: input and time"),
+    _P("acc_magnitude_tolerance", float, 0.5, "Accelerometer samples whose magnitude differs "
+       "from gravity by more than this fraction are not fused (the gyro still is)", unit="1",
+       range=(0.01, 1000.0), scope="node", group="node: input and time"),
+    _P("mag_bias_x", float, 0.0, "Hard-iron offset subtracted from the magnetometer x reading",
+       unit="T", range=(-10.0, 10.0), scope="node", group="node: input and time"),
+    _P("mag_bias_y", float, 0.0, "Hard-iron offset subtracted from the magnetometer y reading",
+       unit="T", range=(-10.0, 10.0), scope="node", group="node: input and time"),
+    _P("mag_bias_z", float, 0.0, "Hard-iron offset subtracted from the magnetometer z reading",
+       unit="T", range=(-10.0, 10.0), scope="node", group="node: input and time"),
+    # --- node: output -----------------------------------------------------------------------------
+    _P("angular_velocity_source", str, "input", "angular_velocity published in imu/data: the "
+       "input gyro as received, the input minus the estimated gyro bias, or the filter's "
+       "rate estimate", choices=("input", "bias_corrected", "estimate"), scope="node",
+       group="node: output"),
+    _P("orientation_stddev", float, 0.0, "If > 0, publish this fixed orientation_covariance "
+       "diagonal instead of the filter's propagated covariance (0 = the filter's, recommended)",
+       unit="rad", range=(0.0, 3.15), scope="node", group="node: output"),
+    _P("angular_velocity_stddev", float, 0.0, "Fills angular_velocity_covariance (diagonal) "
+       "when the input leaves it unknown (all zeros); 0 = copy the input as is (REP-145)",
+       unit="rad/s", range=(0.0, 100.0), scope="node", group="node: output"),
+    _P("linear_acceleration_stddev", float, 0.0, "Fills linear_acceleration_covariance "
+       "(diagonal) when the input leaves it unknown (all zeros); 0 = copy the input as is "
+       "(REP-145)", unit="m/s^2", range=(0.0, 1000.0), scope="node", group="node: output"),
+    _P("remove_gravity_vector", bool, False, "Subtract the estimated gravity from "
+       "linear_acceleration (default: pass the specific force through, REP-145)",
+       scope="node", group="node: output"),
+    _P("yaw_offset", float, 0.0, "Rotation about the world's up axis (counter-clockwise seen "
+       "from above) added to the published heading, message and TF", unit="rad",
+       range=(-6.2832, 6.2832), scope="node", group="node: output"),
+    _P("declination", float, 0.0, "Magnetic declination (positive east); subtracted from the "
+       "heading so that it refers to true north, message and TF", unit="rad",
+       range=(-3.1416, 3.1416), scope="node", group="node: output"),
+    _P("publish_debug_topics", bool, False, "Also publish imu/rpy/filtered (roll, pitch, yaw "
+       "in rad) and imu/gyro_bias (geometry_msgs/Vector3Stamped)", scope="node",
+       group="node: output"),
+    # --- node: TF ---------------------------------------------------------------------------------
+    _P("publish_tf", bool, False, "Broadcast the orientation as a TF fixed_frame -> IMU frame "
+       "(rotation only; needs tf2_ros)", scope="node", group="node: tf"),
+    _P("fixed_frame", str, "odom", "Parent frame of the TF (imu_filter_madgwick default)",
+       scope="node", group="node: tf"),
+    _P("reverse_tf", bool, False, "Broadcast IMU frame -> fixed_frame (the inverse) instead",
+       scope="node", group="node: tf"),
+    # --- node: diagnostics ------------------------------------------------------------------------
+    _P("diagnostics_period", float, 1.0, "Period of the /diagnostics status; 0 = off",
+       unit="s", range=(0.0, 3600.0), scope="node", group="node: diagnostics"),
+    _P("input_timeout", float, 5.0, "Diagnostics warn (naming the topic) when no message has "
+       "arrived on an expected input for this long", unit="s", range=(0.1, 3600.0),
+       scope="node", group="node: diagnostics"),
 )
 
 BY_NAME: dict[str, Param] = {p.name: p for p in PARAMS}

@@ -13,15 +13,78 @@ from mkf_ros.core._jit import jit
 from mkf_ros.core.linalg import mtv, mv
 
 
+# Tuple kernels (suffix ``_t``) are the single implementation of each operation: numba passes
+# tuples by value, so the filters' inner loops run them without heap allocations. The array
+# functions below wrap them for readable code elsewhere.
+@jit
+def qmul_t(p: tuple, q: tuple) -> tuple:
+    """Hamilton product ``p * q`` (§1.1)."""
+    return (
+        p[0] * q[0] - p[1] * q[1] - p[2] * q[2] - p[3] * q[3],
+        p[0] * q[1] + p[1] * q[0] + p[2] * q[3] - p[3] * q[2],
+        p[0] * q[2] + p[2] * q[0] + p[3] * q[1] - p[1] * q[3],
+        p[0] * q[3] + p[3] * q[0] + p[1] * q[2] - p[2] * q[1],
+    )
+
+
+@jit
+def qconj_mul_t(p: tuple, q: tuple) -> tuple:
+    """``p* * q``: the deviation of q from p (§2.3)."""
+    return qmul_t((p[0], -p[1], -p[2], -p[3]), q)
+
+
+@jit
+def qnormalize_t(q: tuple) -> tuple:
+    """``q / ‖q‖`` (§8 item 16)."""
+    n = 1.0 / np.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
+    return (q[0] * n, q[1] * n, q[2] * n, q[3] * n)
+
+
+@jit
+def rotate_inv_t(q: tuple, v: tuple) -> tuple:
+    """``R(q)ᵀ v`` for a unit quaternion: world vector to body coordinates (§1.2)."""
+    # R(q)ᵀ v = v + 2 u × (u × v − q0 v)... written out: t = 2 (u × v), r = v − q0 t + u × t
+    ux, uy, uz = -q[1], -q[2], -q[3]  # conjugate rotates the other way
+    tx = 2.0 * (uy * v[2] - uz * v[1])
+    ty = 2.0 * (uz * v[0] - ux * v[2])
+    tz = 2.0 * (ux * v[1] - uy * v[0])
+    return (
+        v[0] + q[0] * tx + (uy * tz - uz * ty),
+        v[1] + q[0] * ty + (uz * tx - ux * tz),
+        v[2] + q[0] * tz + (ux * ty - uy * tx),
+    )
+
+
+@jit
+def q_omega_t(w: tuple, dt: float) -> tuple:
+    """Increment for a constant body rate ``w`` over ``dt`` (§1.3, paper eq. A20).
+
+    ``(cos(‖w‖dt/2), w · sin(‖w‖dt/2)/‖w‖)``, the bracket evaluated as a sinc so that it stays
+    finite for ``w → 0``.
+    """
+    n = np.sqrt(w[0] * w[0] + w[1] * w[1] + w[2] * w[2])
+    half = 0.5 * n * dt
+    # sin(x)/‖w‖ with x = ‖w‖dt/2; Taylor series near 0
+    s = 0.5 * dt * (1.0 - half * half / 6.0) if half < 1e-4 else np.sin(half) / n
+    return (np.cos(half), w[0] * s, w[1] * s, w[2] * s)
+
+
+@jit
+def t4(q: np.ndarray) -> tuple:
+    """Array → 4-tuple."""
+    return (q[0], q[1], q[2], q[3])
+
+
+@jit
+def t3(v: np.ndarray) -> tuple:
+    """Array → 3-tuple."""
+    return (v[0], v[1], v[2])
+
+
 @jit
 def qmul(p: np.ndarray, q: np.ndarray) -> np.ndarray:
     """Hamilton product ``p * q`` (§1.1)."""
-    r = np.empty(4)
-    r[0] = p[0] * q[0] - p[1] * q[1] - p[2] * q[2] - p[3] * q[3]
-    r[1] = p[0] * q[1] + p[1] * q[0] + p[2] * q[3] - p[3] * q[2]
-    r[2] = p[0] * q[2] + p[2] * q[0] + p[3] * q[1] - p[1] * q[3]
-    r[3] = p[0] * q[3] + p[3] * q[0] + p[1] * q[2] - p[2] * q[1]
-    return r
+    return np.array(qmul_t(t4(p), t4(q)))
 
 
 @jit
@@ -33,19 +96,13 @@ def qconj(q: np.ndarray) -> np.ndarray:
 @jit
 def qconj_mul(p: np.ndarray, q: np.ndarray) -> np.ndarray:
     """``p* * q`` without forming ``p*``: the deviation of q from p (§2.3)."""
-    r = np.empty(4)
-    r[0] = p[0] * q[0] + p[1] * q[1] + p[2] * q[2] + p[3] * q[3]
-    r[1] = p[0] * q[1] - p[1] * q[0] - p[2] * q[3] + p[3] * q[2]
-    r[2] = p[0] * q[2] - p[2] * q[0] - p[3] * q[1] + p[1] * q[3]
-    r[3] = p[0] * q[3] - p[3] * q[0] - p[1] * q[2] + p[2] * q[1]
-    return r
+    return np.array(qconj_mul_t(t4(p), t4(q)))
 
 
 @jit
 def qnormalize(q: np.ndarray) -> np.ndarray:
     """Return ``q / ‖q‖`` (§8 item 16: renormalise after every product)."""
-    n = np.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
-    return q / n
+    return np.array(qnormalize_t(t4(q)))
 
 
 @jit
@@ -79,16 +136,8 @@ def rotate_inv(q: np.ndarray, v: np.ndarray) -> np.ndarray:
 
 @jit
 def q_omega(w: np.ndarray, dt: float) -> np.ndarray:
-    """Increment for a constant body rate ``w`` over ``dt`` (§1.3, paper eq. A20).
-
-    ``(cos(‖w‖dt/2), w · sin(‖w‖dt/2)/‖w‖)``, the bracket evaluated as a sinc so that it stays
-    finite for ``w → 0``.
-    """
-    n = np.sqrt(w[0] * w[0] + w[1] * w[1] + w[2] * w[2])
-    half = 0.5 * n * dt
-    # sin(x)/‖w‖ with x = ‖w‖dt/2; Taylor series near 0
-    s = 0.5 * dt * (1.0 - half * half / 6.0) if half < 1e-4 else np.sin(half) / n
-    return np.array((np.cos(half), w[0] * s, w[1] * s, w[2] * s))
+    """Array form of :func:`q_omega_t` (§1.3, eq. A20)."""
+    return np.array(q_omega_t(t3(w), dt))
 
 
 @jit
