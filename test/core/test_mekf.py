@@ -1,0 +1,132 @@
+"""MEKF (spec §5): known-answer test, and the kernels against a literal transcription."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from spec_reference import mekf_predict_ref, mekf_update_ref
+
+from mkf_ros.core.charts import CHART_NAMES, chart_id
+from mkf_ros.core.mekf import mekf_predict, mekf_update
+from mkf_ros.core.quaternion import rotmat
+
+
+def _kat_inputs() -> tuple:
+    q = np.array([0.9, 0.1, -0.3, 0.2])
+    q /= np.linalg.norm(q)
+    return q, np.array([0.5, -0.2, 0.1]), np.zeros(3), np.diag([0.01, 0.02, 0.03, 0.1, 0.1, 0.1])
+
+
+def _kat_step(chart: str, cu: bool) -> tuple:
+    q, w, b, P6 = _kat_inputs()
+    P = np.zeros((9, 9))
+    P[:6, :6] = P6
+    mekf_predict(q, w, P, 6, 0.01, np.eye(3), np.zeros((3, 3)))
+    ok = mekf_update(chart_id(chart), cu, q, w, b, P, 6, np.array([[0.1, -0.2, 0.97]]),
+                     np.array([[0.0, 0.0, 1.0]]), np.array([1e-4 * np.eye(3)]),
+                     np.array([0.01 * np.eye(3)]), np.array([True]),
+                     np.array([0.52, -0.18, 0.12]), True, 1e-4 * np.eye(3))
+    assert ok
+    return q, w, P[:6, :6]
+
+
+@pytest.mark.parametrize("cu", [True, False])
+def test_known_answer_rp(cu: bool) -> None:
+    """§5 known-answer test (RP chart, one step), chart update and reset, to 1e-6."""
+    q, w, P = _kat_step("rp", cu)
+    np.testing.assert_allclose(q, [0.947370, 0.007849, -0.161872, 0.276090], atol=1e-6)
+    np.testing.assert_allclose(w, [0.519974, -0.180002, 0.119987], atol=1e-6)
+    if cu:
+        diag = [6.068587e-3, 6.274503e-3, 1.845337e-2] + [9.9909e-5] * 3
+        p01 = 1.539248e-4
+    else:
+        diag = [7.742978e-3, 6.769181e-3, 1.772198e-2] + [9.9909e-5] * 3
+        p01 = 3.993013e-4
+    np.testing.assert_allclose(np.diag(P), diag, atol=1e-6, rtol=1e-5)
+    assert abs(P[0, 1] - p01) < 1e-6 * 1e-3 + 1e-9
+
+
+def test_known_answer_rv() -> None:
+    q, _, _ = _kat_step("rv", True)
+    np.testing.assert_allclose(q, [0.947460, 0.006643, -0.160020, 0.276893], atol=1e-6)
+
+
+def _random_case(rng: np.random.Generator, nx: int) -> tuple:
+    q = rng.normal(size=4)
+    q /= np.linalg.norm(q)
+    A = rng.normal(size=(nx, nx)) * 0.1
+    P = A @ A.T + 1e-3 * np.eye(nx)
+    return q, rng.normal(size=3), rng.normal(size=3) * 0.01 * (nx == 9), P
+
+
+@pytest.mark.parametrize("nx", [6, 9])
+@pytest.mark.parametrize("chart", CHART_NAMES)
+@pytest.mark.parametrize("cu", [True, False])
+def test_kernel_equals_joint_update(nx: int, chart: str, cu: bool) -> None:
+    """Predict + update with two vector sensors (one non-isotropic disturbance) and the gyro:
+    the block-sequential kernel equals the spec's joint update to 1e-10."""
+    rng = np.random.default_rng(nx * 10 + chart_id(chart) + 100 * cu)
+    for _ in range(20):
+        q, w, b, P0 = _random_case(rng, nx)
+        Qw, Qb, dt = np.diag([1.0, 2.0, 0.5]), 1e-6 * np.eye(3), 0.02
+        vrefs = [np.array([0, 0, 1.0]), np.array([0, 0.5, -0.8])]
+        # readings near the prediction (large random ones would saturate the chart at 180°,
+        # where the RV T-matrix is discontinuous and rounding picks a side)
+        vms = [rotmat(q).T @ v + rng.normal(size=3) * 0.2 for v in vrefs]
+        Rvs = [1e-3 * np.eye(3), 4e-4 * np.eye(3)]
+        B = rng.normal(size=(3, 3)) * 0.05
+        Qvs = [1e-2 * np.eye(3), B @ B.T]
+        wm = w + rng.normal(size=3) * 0.1
+        Rw = 1e-4 * np.eye(3)
+        qr, Pr = mekf_predict_ref(q, w, P0, nx, dt, Qw, Qb)
+        qr, wr, br, Pr = mekf_update_ref(chart_id(chart), cu, qr, w, b, Pr, nx, vms, vrefs, Rvs,
+                                         Qvs, wm, Rw)
+        qk, wk, bk = q.copy(), w.copy(), b.copy()
+        Pk = np.zeros((9, 9))
+        Pk[:nx, :nx] = P0
+        mekf_predict(qk, wk, Pk, nx, dt, Qw, Qb)
+        assert mekf_update(chart_id(chart), cu, qk, wk, bk, Pk, nx, np.array(vms),
+                           np.array(vrefs), np.array(Rvs), np.array(Qvs),
+                           np.array([True, True]), wm, True, Rw)
+        np.testing.assert_allclose(qk, qr, atol=1e-10)
+        np.testing.assert_allclose(wk, wr, atol=1e-10)
+        np.testing.assert_allclose(bk, br, atol=1e-10)
+        np.testing.assert_allclose(Pk[:nx, :nx], Pr, atol=1e-10)
+
+
+def test_any_subset_of_sensors() -> None:
+    """Gyro only or vector only (§8 item 15); with nothing the state is unchanged."""
+    rng = np.random.default_rng(7)
+    q, w, b, P0 = _random_case(rng, 6)
+    vm = np.array([[0.0, 0.1, 1.0]])
+    vr = np.array([[0.0, 0.0, 1.0]])
+    Rv = np.array([1e-3 * np.eye(3)])
+    for use_v, use_w in ([False], True), ([True], False):
+        k = 1 if use_v[0] else 0
+        qr, wr, br, Pr = mekf_update_ref(1, True, q, w, b, P0, 6, [vm[0]][:k], [vr[0]][:k],
+                                         [Rv[0]][:k], [Rv[0]][:k], w + 0.1 if use_w else None,
+                                         1e-4 * np.eye(3))
+        qk, wk, bk = q.copy(), w.copy(), b.copy()
+        Pk = np.zeros((9, 9))
+        Pk[:6, :6] = P0
+        mekf_update(1, True, qk, wk, bk, Pk, 6, vm, vr, Rv, Rv, np.array(use_v), w + 0.1,
+                    use_w, 1e-4 * np.eye(3))
+        np.testing.assert_allclose(qk, qr, atol=1e-12)
+        np.testing.assert_allclose(Pk[:6, :6], Pr, atol=1e-12)
+    qk, Pk = q.copy(), np.zeros((9, 9))
+    Pk[:6, :6] = P0
+    mekf_update(1, True, qk, w.copy(), b.copy(), Pk, 6, vm, vr, Rv, Rv, np.array([False]), w,
+                False, 1e-4 * np.eye(3))
+    np.testing.assert_allclose(qk, q, atol=1e-15)
+    np.testing.assert_allclose(Pk[:6, :6], P0, atol=1e-15)
+
+
+def test_not_positive_definite_is_reported_not_nan() -> None:
+    q, w, b, _ = _random_case(np.random.default_rng(1), 6)
+    P = np.zeros((9, 9))
+    P[0, 0] = -1.0  # corrupt
+    ok = mekf_update(1, True, q, w, b, P, 6, np.array([[0, 0, 1.0]]), np.array([[0, 0, 1.0]]),
+                     np.zeros((1, 3, 3)), np.zeros((1, 3, 3)), np.array([True]), w, False,
+                     np.eye(3))
+    assert not ok
+    assert np.all(np.isfinite(q)) and np.all(np.isfinite(P))
