@@ -485,6 +485,7 @@ def simulate(
         intervals["gimbal_lock"] = _intervals_where(t, lock)
     meta: dict[str, Any] = dict(scenario=scenario, rate=rate, seed=seed, duration=duration,
                                 mag_field=np.asarray(mag_field, float), mag_rate=mag_rate,
+                                gyro_noise=gyro_noise, acc_noise=acc_noise, mag_noise=mag_noise,
                                 description=sc.description, params=dict(ctx.args),
                                 intervals=intervals, **ctx.extra)
     sd = SimData(t=stamps, gyr=gyr, acc=acc, mag=mag, quat=quat, omega=omega, bias=bias,

@@ -1,0 +1,317 @@
+"""Reading bags: ROS 2 (rosbag2 v4–v9, MCAP or sqlite3, as a directory or a bare storage file)
+and ROS 1 (``.bag``, converted to ROS 2 CDR on the fly), with one error type.
+
+Messages always come out as ROS 2 CDR bytes, exactly as recorded for ROS 2 bags (never
+re-encoded), so they can be published raw or decoded with :mod:`mkf_ros.bags.cdr`.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import sqlite3
+from collections.abc import Callable, Iterable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+STORAGE_SUFFIXES = {".mcap": "mcap", ".db3": "sqlite3", ".bag": "ros1"}
+
+
+class BagError(Exception):
+    """A bag cannot be used: one line naming the bag and the problem."""
+
+
+@dataclass(frozen=True)
+class TopicInfo:
+    name: str
+    msgtype: str
+    count: int
+
+
+@dataclass
+class Batch:
+    """All messages of one topic: log (receive) times in ns and raw ROS 2 CDR, in log order."""
+
+    log_ns: np.ndarray
+    raws: list[bytes]
+
+    def __len__(self) -> int:
+        return len(self.raws)
+
+
+def _typestore() -> Any:
+    from rosbags.typesys import Stores, get_typestore
+
+    return get_typestore(Stores.ROS2_JAZZY)
+
+
+def normalize_topic(name: str) -> str:
+    """Bags store absolute names: ``imu/data_raw`` → ``/imu/data_raw``."""
+    name = name.strip()
+    return name if name.startswith("/") else "/" + name
+
+
+class BagReader:
+    """An open bag. Use as a context manager; every failure raises :class:`BagError`.
+
+    ``path`` is a rosbag2 directory (with ``metadata.yaml``), a bare ``.mcap`` or ``.db3`` file,
+    or a ROS 1 ``.bag`` file.
+    """
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        self._reader: Any = None
+        self._ros1 = False
+        self._files: list[Path] = []
+        self._ts: Any = None
+        self._conv: dict[str, Callable[[bytes], bytes] | None] = {}
+        self._compressed = False
+        try:
+            self._open()
+        except BagError:
+            raise
+        except Exception as e:  # rosbags, sqlite3, yaml and OS errors on a broken bag
+            self.close()
+            raise BagError(f"cannot read bag {self.path}: {_reason(e)}") from None
+
+    # -- opening ---------------------------------------------------------------------------
+    def _open(self) -> None:
+        p = self.path
+        if not p.exists():
+            raise BagError(f"no such bag: {p}")
+        if p.is_dir():
+            if not (p / "metadata.yaml").is_file():
+                files = [f for f in sorted(p.iterdir()) if f.suffix in (".mcap", ".db3")]
+                if len(files) != 1:
+                    raise BagError(f"{p} is not a bag: no metadata.yaml and "
+                                   f"{'no' if not files else 'several'} .mcap/.db3 files")
+                p = files[0]
+        elif p.suffix not in STORAGE_SUFFIXES:
+            raise BagError(f"unknown storage format of {p}: expected a rosbag2 directory, an "
+                           ".mcap or .db3 file, or a ROS 1 .bag file")
+        if p.is_file() and p.stat().st_size == 0:
+            raise BagError(f"cannot read bag {self.path}: the file is empty")
+        if p.suffix == ".bag":
+            from rosbags.rosbag1 import Reader as Reader1
+
+            self._ros1 = True
+            self._reader = Reader1(p)
+            self._reader.open()
+            self.storage = "ros1"
+            self._files = [p]
+        else:
+            from rosbags.rosbag2 import Reader as Reader2
+
+            self._reader = Reader2(p)
+            self._reader.open()
+            if p.is_dir():
+                import yaml
+
+                info = yaml.safe_load((p / "metadata.yaml").read_text())
+                info = info["rosbag2_bagfile_information"]
+                self._files = [p / Path(x).name for x in info.get("relative_file_paths", [])]
+                self.storage = str(info.get("storage_identifier", ""))
+                self._compressed = bool(info.get("compression_format"))
+            else:
+                self._files = [p]
+                self.storage = STORAGE_SUFFIXES[p.suffix]
+                self._compressed = False
+        self.topics: dict[str, TopicInfo] = {}
+        for c in self._reader.connections:
+            old = self.topics.get(c.topic)
+            cnt = c.msgcount + (old.count if old else 0)
+            self.topics[c.topic] = TopicInfo(c.topic, c.msgtype, cnt)
+        if self._reader.message_count == 0 and not self.topics:
+            raise BagError(f"bag {self.path} contains no topics")
+
+    def close(self) -> None:
+        if self._reader is not None and getattr(self._reader, "is_open", True):
+            with contextlib.suppress(Exception):  # closing a half-open reader: best effort
+                self._reader.close()
+        self._reader = None
+
+    def __enter__(self) -> BagReader:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # -- metadata --------------------------------------------------------------------------
+    @property
+    def start_ns(self) -> int:
+        return int(self._reader.start_time)
+
+    @property
+    def end_ns(self) -> int:
+        return int(self._reader.end_time)
+
+    @property
+    def message_count(self) -> int:
+        return int(self._reader.message_count)
+
+    def resolve(self, topic: str, msgtype: str | None = None, *, role: str = "") -> str:
+        """The bag's name for ``topic`` (leading slash optional); BagError if it is missing or
+        has another type than ``msgtype``."""
+        for name in (topic, normalize_topic(topic)):
+            if name in self.topics:
+                info = self.topics[name]
+                if msgtype and info.msgtype != msgtype:
+                    what = f"{role} topic" if role else "topic"
+                    raise BagError(f"{what} {name} in {self.path} is {info.msgtype}, expected "
+                                   f"{msgtype}")
+                return name
+        have = ", ".join(f"{t} ({i.msgtype})" for t, i in sorted(self.topics.items())) or "none"
+        what = f"{role} topic" if role else "topic"
+        raise BagError(f"{what} {normalize_topic(topic)} not in {self.path} (topics: {have})")
+
+    # -- messages --------------------------------------------------------------------------
+    def _converter(self, conn: Any) -> Callable[[bytes], bytes] | None:
+        """ROS 1 → ROS 2 CDR for a connection's type (None: type unknown, skip)."""
+        if not self._ros1:
+            return bytes
+        if conn.msgtype not in self._conv:
+            if self._ts is None:
+                self._ts = _typestore()
+            ts = self._ts
+            if conn.msgtype not in ts.fielddefs:
+                try:
+                    from rosbags.typesys import get_types_from_msg
+
+                    types = get_types_from_msg(conn.msgdef.data, conn.msgtype)
+                    types.pop("std_msgs/msg/Header", None)
+                    ts.register(types)
+                except Exception:
+                    self._conv[conn.msgtype] = None
+                    return None
+            typename = conn.msgtype
+            self._conv[typename] = lambda raw: bytes(ts.ros1_to_cdr(raw, typename))
+        return self._conv[conn.msgtype]
+
+    def messages(self, topics: Iterable[str] | None = None, start_ns: int | None = None,
+                 stop_ns: int | None = None) -> Iterator[tuple[str, int, bytes]]:
+        """``(topic, log time ns, ROS 2 CDR bytes)`` in log-time order (streaming)."""
+        want = None if topics is None else set(topics)
+        conns = [c for c in self._reader.connections if want is None or c.topic in want]
+        convs = {id(c): self._converter(c) for c in conns}
+        conns = [c for c in conns if convs[id(c)] is not None]
+        if not conns:
+            return
+        try:
+            for c, t, raw in self._reader.messages(connections=conns, start=start_ns,
+                                                   stop=stop_ns):
+                yield c.topic, t, convs[id(c)](raw)  # type: ignore[misc]
+        except BagError:
+            raise
+        except Exception as e:
+            raise BagError(f"cannot read bag {self.path}: {_reason(e)}") from None
+
+    def read(self, topics: Iterable[str], progress: Callable[[int], None] | None = None
+             ) -> dict[str, Batch]:
+        """Every message of ``topics`` at once (fast bulk path for MCAP and sqlite3 files).
+
+        ``progress``, if given, is called with increments of work done; the total is
+        :meth:`work_total`.
+        """
+        topics = list(topics)
+        try:
+            if self.storage == "mcap" and not self._compressed:
+                return self._read_mcap(topics, progress)
+            if self.storage == "sqlite3" and not self._compressed:
+                return self._read_sqlite(topics, progress)
+        except BagError:
+            raise
+        except Exception as e:
+            raise BagError(f"cannot read bag {self.path}: {_reason(e)}") from None
+        return self._read_generic(topics, progress)
+
+    def work_total(self, topics: Iterable[str]) -> int:
+        """Units :meth:`read` reports to ``progress`` (bytes for MCAP, messages otherwise)."""
+        if self.storage == "mcap" and not self._compressed:
+            return sum(f.stat().st_size for f in self._files)
+        return sum(self.topics[t].count for t in topics if t in self.topics)
+
+    def _read_mcap(self, topics: list[str], progress: Callable[[int], None] | None
+                   ) -> dict[str, Batch]:
+        from mkf_ros.bags.mcap import McapError, McapFile
+
+        parts: dict[str, list[tuple[np.ndarray, list[bytes]]]] = {t: [] for t in topics}
+        for f in self._files:
+            try:
+                mf = McapFile(f)
+                ids = {cid for cid, ch in mf.channels.items() if ch.topic in parts}
+                got = mf.read(ids, progress)
+            except McapError as e:
+                raise BagError(f"cannot read bag {self.path}: {f.name}: {e}") from None
+            for cid, (t, d) in got.items():
+                parts[mf.channels[cid].topic].append((t, d))
+        return {t: _merge(p) for t, p in parts.items()}
+
+    def _read_sqlite(self, topics: list[str], progress: Callable[[int], None] | None
+                     ) -> dict[str, Batch]:
+        parts: dict[str, list[tuple[np.ndarray, list[bytes]]]] = {t: [] for t in topics}
+        for f in self._files:
+            db = sqlite3.connect(f"file:{f}?mode=ro&immutable=1", uri=True)
+            try:
+                ids = {row[0]: row[1] for row in db.execute("SELECT id, name FROM topics")
+                       if row[1] in parts}
+                for tid, name in ids.items():
+                    rows = db.execute("SELECT timestamp, data FROM messages WHERE topic_id = ? "
+                                      "ORDER BY timestamp, id", (tid,)).fetchall()
+                    t = np.fromiter((r[0] for r in rows), dtype=np.int64, count=len(rows))
+                    parts[name].append((t, [r[1] for r in rows]))
+                    if progress:
+                        progress(len(rows))
+            finally:
+                db.close()
+        return {t: _merge(p) for t, p in parts.items()}
+
+    def _read_generic(self, topics: list[str], progress: Callable[[int], None] | None
+                      ) -> dict[str, Batch]:
+        ts: dict[str, list[int]] = {t: [] for t in topics}
+        ds: dict[str, list[bytes]] = {t: [] for t in topics}
+        n = 0
+        for topic, t, raw in self.messages(topics):
+            ts[topic].append(t)
+            ds[topic].append(raw)
+            n += 1
+            if progress and n % 10000 == 0:
+                progress(10000)
+        if progress:
+            progress(n % 10000)
+        return {t: Batch(np.asarray(ts[t], np.int64), ds[t]) for t in topics}
+
+
+def _merge(parts: list[tuple[np.ndarray, list[bytes]]]) -> Batch:
+    if not parts:
+        return Batch(np.zeros(0, np.int64), [])
+    if len(parts) == 1:
+        return Batch(*parts[0])
+    t = np.concatenate([p[0] for p in parts])
+    d = [x for p in parts for x in p[1]]
+    order = np.argsort(t, kind="stable")
+    return Batch(t[order], [d[i] for i in order.tolist()])
+
+
+#: storage backend messages → what they mean for the user
+_HINTS = (
+    ("end magic", "truncated or incomplete MCAP file"),
+    ("file magic", "not an MCAP file"),
+    ("malformed", "corrupt or truncated sqlite3 database"),
+    ("not a database", "not an sqlite3 database"),
+    ("no such table", "not a rosbag2 sqlite3 database"),
+)
+
+
+def _reason(e: BaseException) -> str:
+    """One line for an exception from a storage backend."""
+    text = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+    text = text.rstrip(".")
+    low = text.lower()
+    for key, hint in _HINTS:
+        if key in low:
+            return f"{hint} ({text})"
+    if isinstance(e, EOFError) or "truncat" in low:
+        return f"truncated ({text})"
+    return text
