@@ -140,9 +140,12 @@ def covariance_out(input_cov: Any, stddev: float, add: np.ndarray | None = None)
     """A published 3×3 covariance (9 values, row major) from the input's (REP-145).
 
     An unknown input covariance (all zeros) is filled with ``stddev²`` on the diagonal when
-    ``stddev > 0`` and otherwise stays unknown; ``add`` (3×3) is added to a known one.
+    ``stddev > 0`` and otherwise stays unknown; ``add`` (3×3) is added to a known one. A
+    covariance with NaN/Inf or the "not reported" marker (-1 first) counts as unknown.
     """
     c = np.array(input_cov, dtype=float).reshape(9)
+    if c[0] == -1.0 or not math.isfinite(float(c.sum())):
+        c[:] = 0.0
     if not c.any():
         if stddev <= 0.0:
             return c

@@ -1,0 +1,113 @@
+"""``sensor_msgs`` messages ↔ arrays.
+
+The core uses quaternions ``[w, x, y, z]``; ROS messages store ``x, y, z, w``. The reordering
+happens here and nowhere else. Imu.msg conventions (REP-145): a covariance of all zeros means
+"unknown"; element 0 = -1 means "this field is not reported" (such a field is passed to the
+filter as missing and published with covariance[0] = -1 again).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from builtin_interfaces.msg import Time
+from geometry_msgs.msg import Quaternion, TransformStamped, Vector3
+from sensor_msgs.msg import Imu, MagneticField
+
+from mkf_ros.stream import StreamOutput, covariance_out
+
+_NOT_REPORTED = np.array([-1.0, 0, 0, 0, 0, 0, 0, 0, 0])
+
+
+def stamp_to_sec(stamp: Time) -> float:
+    """``builtin_interfaces/Time`` → seconds (float)."""
+    return stamp.sec + stamp.nanosec * 1e-9
+
+
+def sec_to_stamp(t: float) -> Time:
+    """Seconds → ``builtin_interfaces/Time`` (rounded to the nanosecond)."""
+    ns = round(t * 1e9)
+    return Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
+
+
+def vec(v: Vector3) -> np.ndarray:
+    return np.array((v.x, v.y, v.z))
+
+
+def set_vec(msg: Vector3, v: np.ndarray) -> None:
+    msg.x, msg.y, msg.z = float(v[0]), float(v[1]), float(v[2])
+
+
+def quat_wxyz(q: Quaternion) -> np.ndarray:
+    """``geometry_msgs/Quaternion`` (x, y, z, w) → ``[w, x, y, z]``."""
+    return np.array((q.w, q.x, q.y, q.z))
+
+
+def set_quat(msg: Quaternion, q_wxyz: np.ndarray) -> None:
+    """``[w, x, y, z]`` → ``geometry_msgs/Quaternion`` (x, y, z, w)."""
+    msg.w, msg.x, msg.y, msg.z = (float(q_wxyz[0]), float(q_wxyz[1]), float(q_wxyz[2]),
+                                  float(q_wxyz[3]))
+
+
+def imu_to_arrays(msg: Imu) -> tuple[float, np.ndarray | None, np.ndarray | None]:
+    """``(stamp_s, gyr rad/s, acc m/s²)``; a field whose covariance[0] is -1 is None."""
+    g = None if msg.angular_velocity_covariance[0] == -1.0 else vec(msg.angular_velocity)
+    a = None if msg.linear_acceleration_covariance[0] == -1.0 else vec(msg.linear_acceleration)
+    return stamp_to_sec(msg.header.stamp), g, a
+
+
+def mag_to_array(msg: MagneticField) -> tuple[float, np.ndarray]:
+    """``(stamp_s, field T)``; NaN components mean "not reported" (REP-145)."""
+    return stamp_to_sec(msg.header.stamp), vec(msg.magnetic_field)
+
+
+def fill_imu(out: Imu, inp: Imu, est: StreamOutput, angular_velocity_stddev: float,
+             linear_acceleration_stddev: float) -> Imu:
+    """Write the estimate into ``out`` (reused between calls): header of the input,
+    orientation and its covariance from the filter, angular velocity per the chosen source,
+    linear acceleration passed through; input covariances copied or filled (REP-145)."""
+    out.header = inp.header
+    set_quat(out.orientation, est.quat_wxyz)
+    out.orientation_covariance = np.ascontiguousarray(est.orientation_cov, dtype=float).reshape(9)
+    w = est.angular_velocity
+    if w is None:
+        set_vec(out.angular_velocity, np.zeros(3))
+        out.angular_velocity_covariance = _NOT_REPORTED.copy()
+    else:
+        set_vec(out.angular_velocity, w)
+        if est.angular_velocity_cov is not None:
+            out.angular_velocity_covariance = np.ascontiguousarray(
+                est.angular_velocity_cov, dtype=float).reshape(9)
+        else:
+            out.angular_velocity_covariance = covariance_out(
+                inp.angular_velocity_covariance, angular_velocity_stddev,
+                est.angular_velocity_cov_add)
+    a = est.linear_acceleration
+    if a is None:
+        set_vec(out.linear_acceleration, np.zeros(3))
+        out.linear_acceleration_covariance = _NOT_REPORTED.copy()
+    else:
+        set_vec(out.linear_acceleration, a)
+        out.linear_acceleration_covariance = covariance_out(
+            inp.linear_acceleration_covariance, linear_acceleration_stddev)
+    return out
+
+
+def rpy(q_wxyz: np.ndarray) -> tuple[float, float, float]:
+    """Roll, pitch, yaw (rad; fixed axes x-y-z, as tf2's getRPY) of ``[w, x, y, z]``."""
+    w, x, y, z = (float(c) for c in q_wxyz)
+    roll = math.atan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
+    pitch = math.asin(max(-1.0, min(1.0, 2 * (w * y - z * x))))
+    yaw = math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+    return roll, pitch, yaw
+
+
+def transform(stamp: Time, parent: str, child: str, q_wxyz: np.ndarray) -> TransformStamped:
+    """A rotation-only ``TransformStamped`` parent → child."""
+    t = TransformStamped()
+    t.header.stamp = stamp
+    t.header.frame_id = parent
+    t.child_frame_id = child
+    set_quat(t.transform.rotation, q_wxyz)
+    return t

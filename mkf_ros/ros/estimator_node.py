@@ -1,0 +1,355 @@
+"""The ``estimator`` node: MEKF/MUKF attitude from ``imu/data_raw`` (+ ``imu/mag``) to ``imu/data``.
+
+A drop-in replacement for imu_filter_madgwick (same topics, same names for the parameters that
+mean the same thing) and a thin rclpy wrapper around :class:`mkf_ros.stream.StreamAdapter`,
+which holds every rule about time and input.
+
+Topics (relative names: remap ``imu:=...`` to move them together, REP-145):
+
+* subscribes ``imu/data_raw`` (sensor_msgs/Imu) and ``imu/mag`` (sensor_msgs/MagneticField,
+  tesla), best-effort, keep last 50 (matches reliable and best-effort publishers); both are
+  overridable with ``qos_overrides.<topic>.subscription.*``. The magnetometer is fused
+  asynchronously and never gates the IMU;
+* publishes ``imu/data`` (sensor_msgs/Imu, reliable, keep last 50) once initialised, one
+  message per accepted IMU message, with its header; ``/diagnostics`` (DiagnosticArray);
+  ``imu/rpy/filtered`` and ``imu/gyro_bias`` with ``publish_debug_topics``; TF with
+  ``publish_tf`` when tf2_ros is importable;
+* service ``~/reset`` (std_srvs/Trigger).
+
+Every parameter of :data:`mkf_ros.core.params.PARAMS` is declared and can be changed at run
+time through SetParameters (``ros2 param set``): validated in the on-set callback (a rejected
+value leaves everything as it was and the caller sees the reason) and applied atomically,
+between two messages, in the post-set callback.
+"""
+
+from __future__ import annotations
+
+import sys
+import threading
+import time
+from collections.abc import Sequence
+from typing import Any
+
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import Vector3Stamped
+from rcl_interfaces.msg import SetParametersResult
+from rclpy.clock import Clock, ClockType, JumpThreshold, TimeJump
+from rclpy.duration import Duration
+from rclpy.exceptions import (
+    InvalidParameterTypeException,
+    InvalidParameterValueException,
+    ParameterException,
+)
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.qos_overriding_options import QoSOverridingOptions
+from rclpy.utilities import remove_ros_args
+from sensor_msgs.msg import Imu, MagneticField
+from std_srvs.srv import Trigger
+
+from mkf_ros.core.params import BY_NAME
+from mkf_ros.core.quaternion import qconj_np
+from mkf_ros.ros import convert
+from mkf_ros.ros.diagnostics import DiagnosticsTracker, Snapshot
+from mkf_ros.ros.parameters import declare_all, to_double, unknown_overrides
+from mkf_ros.stream import StreamAdapter
+
+#: Input QoS: sensor-data policies (best effort, volatile) with a deeper queue than the
+#: profile's 5, so that a burst at 1 kHz is not dropped while a callback runs.
+INPUT_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=50,
+                       reliability=ReliabilityPolicy.BEST_EFFORT,
+                       durability=DurabilityPolicy.VOLATILE)
+#: Output QoS: reliable (what rviz, rosbag and robot_localization expect by default).
+OUTPUT_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=50,
+                        reliability=ReliabilityPolicy.RELIABLE,
+                        durability=DurabilityPolicy.VOLATILE)
+
+
+class ParameterError(Exception):
+    """An invalid start-up parameter (reported as one line; the node does not start)."""
+
+
+class EstimatorNode(Node):
+    """The attitude estimator node (see the module docstring)."""
+
+    def __init__(self, node_name: str = "estimator", *, warm: bool = True,
+                 **node_kwargs: Any) -> None:
+        super().__init__(node_name, **node_kwargs)
+        self._lock = threading.Lock()
+        self._t_start = time.monotonic()
+        log = self.get_logger()
+        try:
+            values = declare_all(self)
+            self.stream = StreamAdapter(values)
+        except (ValueError, InvalidParameterValueException, InvalidParameterTypeException,
+                ParameterException) as e:
+            msg = " ".join(str(e).split())
+            self.destroy_node()
+            raise ParameterError(f"invalid parameter: {msg}") from None
+        self.add_pre_set_parameters_callback(self._pre_set)
+        self.add_on_set_parameters_callback(self._on_set)
+        self.add_post_set_parameters_callback(self._post_set)
+
+        if warm:
+            log.info("loading the compiled filter kernels (the first start after an install "
+                     "or update compiles them: about a minute)...")
+            t0 = time.monotonic()
+            from mkf_ros.api import warmup
+
+            warmup()
+            log.info(f"filter kernels ready in {time.monotonic() - t0:.1f} s")
+
+        # counters and state owned by the node (the adapter has the rest)
+        self._published = 0
+        self._exceptions = 0
+        self._last_exception = ""
+        self._last_imu_wall: float | None = None
+        self._last_mag_wall: float | None = None
+        self._frame_id = ""
+        self._warned: set[str] = set()
+        self._out = Imu()
+
+        qos_opts = QoSOverridingOptions.with_default_policies
+        self._pub = self.create_publisher(Imu, "imu/data", OUTPUT_QOS,
+                                          qos_overriding_options=qos_opts())
+        self._sub_imu = self.create_subscription(Imu, "imu/data_raw", self._on_imu, INPUT_QOS,
+                                                 qos_overriding_options=qos_opts())
+        self._sub_mag = self.create_subscription(MagneticField, "imu/mag", self._on_mag,
+                                                 INPUT_QOS, qos_overriding_options=qos_opts())
+        self._diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+        self._diag = DiagnosticsTracker(f"{self.get_name()}: attitude estimator")
+        self._srv_reset = self.create_service(Trigger, "~/reset", self._on_reset)
+        self._steady = Clock(clock_type=ClockType.STEADY_TIME)
+        self._timer = None
+        # a ROS-time jump back (bag loop with /clock) or a switch to/from sim time resets
+        self._jump_handle = self.get_clock().create_jump_callback(
+            JumpThreshold(min_forward=None, min_backward=Duration(nanoseconds=-1),
+                          on_clock_change=True),
+            post_callback=self._on_time_jump)
+        self._tf = None
+        self._rpy_pub = self._bias_pub = None
+        self._apply_node_side_effects()
+
+        for name, hint in unknown_overrides(self).items():
+            log.warning(f"ignoring unknown parameter {name!r}: {hint}")
+        p = self.stream.params
+        log.info(
+            f"{p['algorithm']} on chart {p['chart']}, world frame {p['world_frame']}, "
+            f"use_mag {str(p['use_mag']).lower()}; listening on {self._sub_imu.topic_name} and "
+            f"{self._sub_mag.topic_name}, publishing {self._pub.topic_name}")
+
+    # --- parameters ----------------------------------------------------------------------------
+    def _pre_set(self, params: list[Parameter]) -> list[Parameter]:
+        """Accept integers for floating-point parameters (``ros2 param set x max_dt 1``)."""
+        return [to_double(p) for p in params]
+
+    def _on_set(self, params: list[Parameter]) -> SetParametersResult:
+        """Validate only, no side effects: the reason reaches the SetParameters caller."""
+        changes = {p.name: p.value for p in params if p.name in BY_NAME}
+        if changes:
+            try:
+                with self._lock:
+                    self.stream.validate(changes)
+            except ValueError as e:
+                return SetParametersResult(successful=False, reason=str(e))
+        return SetParametersResult(successful=True)
+
+    def _post_set(self, params: list[Parameter]) -> None:
+        """Apply accepted changes atomically (between two messages)."""
+        changes = {p.name: p.value for p in params if p.name in BY_NAME}
+        if not changes:
+            return
+        try:
+            with self._lock:
+                self.stream.set_params(**changes)
+        except Exception as e:  # validated already: would be a bug; never kill the node
+            self._count_exception(e, "applying parameters")
+            return
+        self._apply_node_side_effects(changes)
+        self.get_logger().info("parameters changed: " + ", ".join(
+            f"{k}={v!r}" for k, v in changes.items()))
+
+    def _apply_node_side_effects(self, changes: dict[str, Any] | None = None) -> None:
+        self._p = p = self.stream.params
+        if changes is None or "diagnostics_period" in changes:
+            self._make_timer()
+        if p["publish_tf"] and self._tf is None:
+            try:
+                import tf2_ros  # optional: no pip wheel; present on a real ROS install
+            except ImportError:
+                self._warn_once("tf", "publish_tf is true but tf2_ros cannot be imported "
+                                "(install ros-jazzy-tf2-ros); not publishing TF")
+            else:
+                self._tf = tf2_ros.TransformBroadcaster(self)
+        if p["publish_debug_topics"] and self._rpy_pub is None:
+            self._rpy_pub = self.create_publisher(Vector3Stamped, "imu/rpy/filtered", 10)
+            self._bias_pub = self.create_publisher(Vector3Stamped, "imu/gyro_bias", 10)
+
+    def _make_timer(self) -> None:
+        if self._timer is not None:
+            self.destroy_timer(self._timer)
+        period = float(self.stream.params["diagnostics_period"]) or 1.0
+        self._timer = self.create_timer(period, self._on_timer, clock=self._steady)
+
+    # --- callbacks -----------------------------------------------------------------------------
+    def _on_imu(self, msg: Imu) -> None:
+        try:
+            self._last_imu_wall = time.monotonic()
+            stamp, gyr, acc = convert.imu_to_arrays(msg)
+            p = self._p
+            with self._lock:
+                out = self.stream.on_imu(stamp, gyr, acc)
+                if out is None:
+                    return
+                convert.fill_imu(self._out, msg, out, p["angular_velocity_stddev"],
+                                 p["linear_acceleration_stddev"])
+            self._frame_id = msg.header.frame_id
+            self._pub.publish(self._out)
+            self._published += 1
+            if self._tf is not None and p["publish_tf"]:
+                self._send_tf(msg, out.quat_wxyz, p)
+            if self._rpy_pub is not None and p["publish_debug_topics"]:
+                self._send_debug(msg, out)
+        except Exception as e:
+            self._count_exception(e, "imu callback")
+
+    def _on_mag(self, msg: MagneticField) -> None:
+        try:
+            self._last_mag_wall = time.monotonic()
+            stamp, m = convert.mag_to_array(msg)
+            with self._lock:
+                self.stream.on_mag(stamp, m)
+        except Exception as e:
+            self._count_exception(e, "magnetometer callback")
+
+    def _send_tf(self, msg: Imu, q: Any, p: dict[str, Any]) -> None:
+        child = msg.header.frame_id
+        if not child:
+            self._warn_once("tf-frame", "publish_tf: the IMU messages have no frame_id; "
+                            "not publishing TF")
+            return
+        if p["reverse_tf"]:
+            t = convert.transform(msg.header.stamp, child, p["fixed_frame"], qconj_np(q))
+        else:
+            t = convert.transform(msg.header.stamp, p["fixed_frame"], child, q)
+        self._tf.sendTransform(t)
+
+    def _send_debug(self, msg: Imu, out: Any) -> None:
+        r = Vector3Stamped(header=msg.header)
+        r.vector.x, r.vector.y, r.vector.z = convert.rpy(out.quat_wxyz)
+        self._rpy_pub.publish(r)
+        b = Vector3Stamped(header=msg.header)
+        convert.set_vec(b.vector, out.bias)
+        self._bias_pub.publish(b)
+
+    def _on_reset(self, request: Trigger.Request, response: Trigger.Response
+                  ) -> Trigger.Response:
+        with self._lock:
+            self.stream.reset("reset service")
+        self.get_logger().info("reset requested: re-initialising from the next samples")
+        response.success = True
+        response.message = "filter reset; re-initialising from the next accelerometer sample"
+        return response
+
+    def _on_time_jump(self, jump: TimeJump) -> None:
+        try:
+            why = "ROS time source changed" if jump.clock_change else (
+                f"ROS time jumped back by {-jump.delta.nanoseconds * 1e-9:.3f} s")
+            with self._lock:
+                if self.stream.time is None:
+                    return  # nothing to forget
+                self.stream.reset(why)
+            self.get_logger().info(f"{why}: filter reset")
+        except Exception as e:
+            self._count_exception(e, "time jump callback")
+
+    def _on_timer(self) -> None:
+        try:
+            now = time.monotonic()
+            self._check_silence(now)
+            if self.stream.params["diagnostics_period"] > 0:
+                arr = DiagnosticArray()
+                arr.header.stamp = self.get_clock().now().to_msg()
+                arr.status = [self._diag.status(self.snapshot(now))]
+                self._diag_pub.publish(arr)
+        except Exception as e:
+            self._count_exception(e, "diagnostics timer")
+
+    def snapshot(self, now: float | None = None) -> Snapshot:
+        """The node's state for diagnostics (and tests)."""
+        with self._lock:
+            s = self.stream
+            f = s.filter
+            return Snapshot(
+                now=time.monotonic() if now is None else now, start=self._t_start,
+                imu_topic=self._sub_imu.topic_name, mag_topic=self._sub_mag.topic_name,
+                params=s.params, counters=s.all_counters(), published=self._published,
+                exceptions=self._exceptions, last_exception=self._last_exception,
+                last_imu=self._last_imu_wall, last_mag=self._last_mag_wall,
+                initialized=f.initialized, heading_initialized=f.heading_initialized,
+                cov=f.covariance if f.initialized else None, bias=f.bias,
+                bias_stddev=f.bias_stddev, acc_norm=s.acc_norm, mag_norm=s.mag_norm,
+                mag_offset=s.mag_offset, dt_stats=s.pop_dt_stats(),
+                last_reset_reason=s.last_reset_reason, frame_id=self._frame_id)
+
+    def _check_silence(self, now: float) -> None:
+        """Log (not only diagnose) a silent input, once per silence."""
+        timeout = self.stream.params["input_timeout"]
+        for key, last, topic, needed in (
+            ("imu", self._last_imu_wall, self._sub_imu.topic_name, True),
+            ("mag", self._last_mag_wall, self._sub_mag.topic_name,
+             self.stream.params["use_mag"]),
+        ):
+            silent = now - (last if last is not None else self._t_start)
+            if needed and silent > timeout:
+                kind = "Imu" if key == "imu" else "MagneticField"
+                self._warn_once(f"silent-{key}-{last}", f"no data on {topic} for {silent:.0f} s "
+                                f"(sensor_msgs/{kind}; driver running? topic remapped? QoS "
+                                "compatible?)")
+
+    # --- helpers -------------------------------------------------------------------------------
+    def _warn_once(self, key: str, text: str) -> None:
+        if key not in self._warned:
+            self._warned.add(key)
+            self.get_logger().warning(text)
+
+    def _count_exception(self, e: BaseException, where: str) -> None:
+        self._exceptions += 1
+        self._last_exception = f"{where}: {type(e).__name__}: {e}"
+        self.get_logger().error(self._last_exception, throttle_duration_sec=5.0)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Console script ``estimator`` (``ros2 run mkf_ros estimator [--ros-args ...]``)."""
+    args = list(sys.argv if argv is None else argv)
+    plain = remove_ros_args(args)
+    if any(a in ("-h", "--help") for a in plain[1:]):
+        print(__doc__.split("\n\n", 1)[0])
+        print("\nusage: estimator [--ros-args -p NAME:=VALUE --params-file FILE "
+              "-r imu:=NAMESPACE ...]\nparameters: mkf params --format markdown")
+        return 0
+    rclpy.init(args=args)
+    try:
+        node = EstimatorNode()
+    except ParameterError as e:
+        print(f"estimator: {e}", file=sys.stderr)
+        rclpy.try_shutdown()
+        return 2
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
+    try:
+        executor.spin()
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        executor.shutdown()
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,104 @@
+"""ROS parameter declarations generated from the single definition (:mod:`mkf_ros.core.params`).
+
+Every :class:`~mkf_ros.core.params.Param` becomes a statically typed ROS parameter whose
+``ParameterDescriptor`` carries the description with unit, a ``FloatingPointRange`` /
+``IntegerRange``, the allowed choices in ``additional_constraints``, and ``read_only`` where
+the definition says so. Integers given for floating-point parameters (``max_dt:=1`` on the
+command line, ``max_dt: 1`` in YAML) are accepted as doubles.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+
+from mkf_ros.core.params import BY_NAME, PARAMS, Param
+
+#: imu_filter_madgwick / imu_complementary_filter parameters without a same-named equivalent.
+FOREIGN_HINTS: dict[str, str] = {
+    "gain": "imu_filter_madgwick's gain has no equivalent: the Kalman gain follows from "
+            "acc_noise, acc_disturbance and gyro_noise",
+    "zeta": "imu_filter_madgwick's zeta: use estimate_gyro_bias (and gyro_bias_noise)",
+    "stateless": "stateless mode is not supported",
+    "use_magnetic_field_msg": "a ROS 1 parameter: imu/mag is always sensor_msgs/MagneticField",
+    "gain_acc": "imu_complementary_filter's gain_acc: tune acc_noise / acc_disturbance",
+    "gain_mag": "imu_complementary_filter's gain_mag: tune mag_noise / mag_disturbance",
+    "do_bias_estimation": "use estimate_gyro_bias",
+    "bias_alpha": "use gyro_bias_noise",
+    "do_adaptive_gain": "accelerometer disturbances are modelled by acc_disturbance and "
+                        "acc_magnitude_tolerance",
+}
+
+
+def descriptor(p: Param) -> ParameterDescriptor:
+    """The ROS descriptor of one parameter."""
+    d = ParameterDescriptor(name=p.name, description=p.doc(), read_only=p.read_only)
+    constraints = []
+    if p.range is not None:
+        lo, hi = p.range
+        if p.type is float:
+            d.floating_point_range = [FloatingPointRange(from_value=float(lo), to_value=float(hi),
+                                                         step=0.0)]
+        elif p.type is int:
+            d.integer_range = [IntegerRange(from_value=int(lo), to_value=int(hi), step=0)]
+        else:
+            constraints.append(f"each element in [{lo:g}, {hi:g}]")
+    if p.choices:
+        constraints.append("one of: " + ", ".join(p.choices))
+    if p.type is list and p.length:
+        constraints.insert(0, f"{p.length} numbers")
+    d.additional_constraints = "; ".join(constraints)
+    return d
+
+
+def default_value(p: Param) -> Any:
+    """The default as the ROS type wants it (floats for float parameters and lists)."""
+    if p.type is float:
+        return float(p.default)
+    if p.type is list:
+        return [float(x) for x in p.default]
+    return p.default
+
+
+def to_double(param: Parameter) -> Parameter:
+    """An INTEGER(_ARRAY) value for a float (list) parameter converted to DOUBLE(_ARRAY)."""
+    p = BY_NAME.get(param.name)
+    if p is None:
+        return param
+    if p.type is float and param.type_ == Parameter.Type.INTEGER:
+        return Parameter(param.name, Parameter.Type.DOUBLE, float(param.value))
+    if p.type is list and param.type_ == Parameter.Type.INTEGER_ARRAY:
+        return Parameter(param.name, Parameter.Type.DOUBLE_ARRAY, [float(x) for x in param.value])
+    return param
+
+
+def coerce_overrides(node: Node) -> None:
+    """Apply :func:`to_double` to the node's start-up overrides (YAML, ``-p``) before they
+    are declared; rclpy would otherwise reject ``max_dt: 1`` as the wrong type."""
+    overrides = getattr(node, "_parameter_overrides", None)
+    if isinstance(overrides, dict):
+        for name, param in list(overrides.items()):
+            overrides[name] = to_double(param)
+
+
+def declare_all(node: Node) -> dict[str, Any]:
+    """Declare every parameter of :data:`PARAMS`; return the effective values."""
+    coerce_overrides(node)
+    declared = node.declare_parameters(
+        "", [(p.name, default_value(p), descriptor(p)) for p in PARAMS])
+    return {param.name: param.value for param in declared}
+
+
+def unknown_overrides(node: Node) -> dict[str, str]:
+    """Start-up overrides that match no declared parameter → a hint for each (a typo, or a
+    parameter of another filter), so that they are not silently ignored."""
+    overrides = getattr(node, "_parameter_overrides", None) or {}
+    out = {}
+    for name in overrides:
+        if node.has_parameter(name):
+            continue
+        out[name] = FOREIGN_HINTS.get(name, "not a parameter of this node (typo?)")
+    return out

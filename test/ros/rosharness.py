@@ -1,0 +1,180 @@
+"""Harness for the estimator node tests: the node and a client node in one context, one
+single-threaded executor, helpers to publish timestamped streams and to call the node's
+services the way ``ros2 topic pub`` / ``ros2 param set`` would (from another node)."""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import numpy as np
+import pytest
+
+rclpy = pytest.importorskip("rclpy")
+
+from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
+from rclpy.executors import SingleThreadedExecutor  # noqa: E402
+from rclpy.node import Node  # noqa: E402
+from rclpy.parameter import Parameter, parameter_value_to_python  # noqa: E402
+from rclpy.parameter_client import AsyncParameterClient  # noqa: E402
+from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
+from sensor_msgs.msg import Imu, MagneticField  # noqa: E402
+from std_srvs.srv import Trigger  # noqa: E402
+
+from mkf_ros.ros import convert  # noqa: E402
+from mkf_ros.ros.estimator_node import EstimatorNode  # noqa: E402
+
+RELIABLE_IN = {
+    "qos_overrides./imu/data_raw.subscription.reliability": "reliable",
+    "qos_overrides./imu/data_raw.subscription.depth": 2000,
+    "qos_overrides./imu/mag.subscription.reliability": "reliable",
+    "qos_overrides./imu/mag.subscription.depth": 2000,
+}
+QOS = QoSProfile(depth=2000, reliability=ReliabilityPolicy.RELIABLE)
+
+
+def imu_msg(stamp: float, gyr: Sequence[float] | None, acc: Sequence[float] | None,
+            frame: str = "imu_link") -> Imu:
+    m = Imu()
+    m.header.stamp = convert.sec_to_stamp(stamp) if stamp > 0 else m.header.stamp
+    m.header.frame_id = frame
+    if gyr is None:
+        m.angular_velocity_covariance[0] = -1.0
+    else:
+        convert.set_vec(m.angular_velocity, np.asarray(gyr, float))
+    if acc is None:
+        m.linear_acceleration_covariance[0] = -1.0
+    else:
+        convert.set_vec(m.linear_acceleration, np.asarray(acc, float))
+    return m
+
+
+def mag_msg(stamp: float, mag: Sequence[float], frame: str = "imu_link") -> MagneticField:
+    m = MagneticField()
+    m.header.stamp = convert.sec_to_stamp(stamp)
+    m.header.frame_id = frame
+    convert.set_vec(m.magnetic_field, np.asarray(mag, float))
+    return m
+
+
+class Harness:
+    """An estimator node plus a client node, spun together by one executor."""
+
+    def __init__(self, ctx: Any, params: dict[str, Any] | None = None, *,
+                 reliable: bool = True, namespace: str | None = None,
+                 node_kwargs: dict[str, Any] | None = None) -> None:
+        overrides = dict(RELIABLE_IN if reliable else {}, **(params or {}))
+        if namespace:
+            overrides = {k.replace("./imu/", f".{namespace}/imu/"): v
+                         for k, v in overrides.items()}
+        self.ctx = ctx
+        self.est = EstimatorNode(
+            context=ctx, namespace=namespace,
+            parameter_overrides=[Parameter(k, value=v) for k, v in overrides.items()],
+            **(node_kwargs or {}))
+        self.cli = Node("test_client", context=ctx, namespace=namespace)
+        self.out: list[Imu] = []
+        self.diag: list[DiagnosticArray] = []
+        self.cli.create_subscription(Imu, "imu/data", self.out.append, QOS)
+        self.cli.create_subscription(DiagnosticArray, "/diagnostics", self.diag.append, 10)
+        self.pub_imu = self.cli.create_publisher(Imu, "imu/data_raw", QOS)
+        self.pub_mag = self.cli.create_publisher(MagneticField, "imu/mag", QOS)
+        self.ex = SingleThreadedExecutor(context=ctx)
+        self.ex.add_node(self.est)
+        self.ex.add_node(self.cli)
+        self.params = AsyncParameterClient(self.cli, self.est.get_fully_qualified_name())
+        self.reset_cli = self.cli.create_client(
+            Trigger, self.est.get_fully_qualified_name() + "/reset")
+        self.spin_until(lambda: self.pub_imu.get_subscription_count() > 0
+                        and self.pub_mag.get_subscription_count() > 0
+                        and self.est._pub.get_subscription_count() > 0, 10.0)
+
+    # --- spinning ----------------------------------------------------------------------------
+    def spin_until(self, cond: Callable[[], bool], timeout: float = 5.0) -> bool:
+        end = time.monotonic() + timeout
+        while not cond():
+            if time.monotonic() > end:
+                return False
+            self.ex.spin_once(timeout_sec=0.02)
+        return True
+
+    def spin_for(self, seconds: float) -> None:
+        end = time.monotonic() + seconds
+        while time.monotonic() < end:
+            self.ex.spin_once(timeout_sec=0.02)
+
+    def received(self) -> int:
+        return self.est.stream.counters["imu_received"] + self.est.stream.counters[
+            "mag_received"]
+
+    def send(self, msgs: Sequence[Imu | MagneticField], timeout: float = 10.0) -> None:
+        """Publish in order and spin until the node has taken every message."""
+        want = self.received() + len(msgs)
+        for i, m in enumerate(msgs):
+            (self.pub_imu if isinstance(m, Imu) else self.pub_mag).publish(m)
+            if i % 20 == 19:
+                self.ex.spin_once(timeout_sec=0.0)
+        assert self.spin_until(lambda: self.received() >= want, timeout), (
+            f"node received {self.received()} of {want} messages")
+        # let the client take the outputs of the last messages
+        pub = self.est._published
+        self.spin_until(lambda: len(self.out) >= pub, 2.0)
+
+    def send_imu(self, stamps: Sequence[float], gyr: Any = (0.0, 0.0, 0.0),
+                 acc: Any = (0.0, 0.0, 9.80665)) -> None:
+        self.send([imu_msg(t, gyr, acc) for t in stamps])
+
+    def send_recording(self, rec: Any, t0: float = 100.0, mag: bool = True) -> None:
+        """A simulated recording: IMU every row, magnetometer on its non-NaN rows, in stamp
+        order (the magnetometer after the IMU message of the same stamp)."""
+        msgs: list[Any] = []
+        for k in range(len(rec.t)):
+            msgs.append(imu_msg(t0 + rec.t[k], rec.gyr[k], rec.acc[k]))
+            if mag and not math.isnan(rec.mag[k, 0]):
+                msgs.append(mag_msg(t0 + rec.t[k], rec.mag[k]))
+        self.send(msgs)
+
+    # --- services ----------------------------------------------------------------------------
+    def wait(self, fut: Any, timeout: float = 10.0) -> Any:
+        assert self.spin_until(fut.done, timeout), "service call timed out"
+        return fut.result()
+
+    def set(self, **values: Any) -> list[Any]:
+        """SetParameters from the client node; returns the SetParametersResult list."""
+        assert self.params.wait_for_services(timeout_sec=10.0)
+        fut = self.params.set_parameters([Parameter(k, value=v) for k, v in values.items()])
+        return list(self.wait(fut).results)
+
+    def set_atomically(self, **values: Any) -> Any:
+        assert self.params.wait_for_services(timeout_sec=10.0)
+        fut = self.params.set_parameters_atomically(
+            [Parameter(k, value=v) for k, v in values.items()])
+        return self.wait(fut).result
+
+    def get(self, *names: str) -> list[Any]:
+        fut = self.params.get_parameters(list(names))
+        return [parameter_value_to_python(v) for v in self.wait(fut).values]
+
+    def reset(self) -> Any:
+        assert self.reset_cli.wait_for_service(timeout_sec=10.0)
+        return self.wait(self.reset_cli.call_async(Trigger.Request()))
+
+    def close(self) -> None:
+        self.ex.shutdown()
+        self.est.destroy_node()
+        self.cli.destroy_node()
+
+
+def quat(m: Imu) -> np.ndarray:
+    return convert.quat_wxyz(m.orientation)
+
+
+def finite(m: Imu) -> bool:
+    vals = [m.orientation.x, m.orientation.y, m.orientation.z, m.orientation.w,
+            *m.orientation_covariance, *m.angular_velocity_covariance,
+            *m.linear_acceleration_covariance, m.angular_velocity.x, m.angular_velocity.y,
+            m.angular_velocity.z, m.linear_acceleration.x, m.linear_acceleration.y,
+            m.linear_acceleration.z]
+    return all(math.isfinite(v) for v in vals)
