@@ -34,7 +34,7 @@ import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import Vector3Stamped
 from rcl_interfaces.msg import SetParametersResult
-from rclpy.clock import Clock, ClockType, JumpThreshold, TimeJump
+from rclpy.clock import Clock, ClockChange, ClockType, JumpThreshold, TimeJump
 from rclpy.duration import Duration
 from rclpy.exceptions import (
     InvalidParameterTypeException,
@@ -104,6 +104,7 @@ class EstimatorNode(Node):
 
         # counters and state owned by the node (the adapter has the rest)
         self._published = 0
+        self.received_imu = self.received_mag = 0  #: messages taken from each subscription
         self._exceptions = 0
         self._last_exception = ""
         self._last_imu_wall: float | None = None
@@ -196,6 +197,7 @@ class EstimatorNode(Node):
 
     # --- callbacks -----------------------------------------------------------------------------
     def _on_imu(self, msg: Imu) -> None:
+        self.received_imu += 1
         try:
             self._last_imu_wall = time.monotonic()
             stamp, gyr, acc = convert.imu_to_arrays(msg)
@@ -217,6 +219,7 @@ class EstimatorNode(Node):
             self._count_exception(e, "imu callback")
 
     def _on_mag(self, msg: MagneticField) -> None:
+        self.received_mag += 1
         try:
             self._last_mag_wall = time.monotonic()
             stamp, m = convert.mag_to_array(msg)
@@ -256,8 +259,11 @@ class EstimatorNode(Node):
 
     def _on_time_jump(self, jump: TimeJump) -> None:
         try:
-            why = "ROS time source changed" if jump.clock_change else (
-                f"ROS time jumped back by {-jump.delta.nanoseconds * 1e-9:.3f} s")
+            if jump.clock_change in (ClockChange.ROS_TIME_ACTIVATED,
+                                     ClockChange.ROS_TIME_DEACTIVATED):
+                why = "ROS time source changed (use_sim_time)"
+            else:
+                why = f"ROS time jumped back by {-jump.delta.nanoseconds * 1e-9:.3f} s"
             with self._lock:
                 if self.stream.time is None:
                     return  # nothing to forget

@@ -106,8 +106,7 @@ class Harness:
             self.ex.spin_once(timeout_sec=0.02)
 
     def received(self) -> int:
-        return self.est.stream.counters["imu_received"] + self.est.stream.counters[
-            "mag_received"]
+        return self.est.received_imu + self.est.received_mag
 
     def send(self, msgs: Sequence[Imu | MagneticField], timeout: float = 10.0) -> None:
         """Publish in order and spin until the node has taken every message."""
@@ -165,6 +164,23 @@ class Harness:
         self.ex.shutdown()
         self.est.destroy_node()
         self.cli.destroy_node()
+
+
+def record_calls(stream: Any) -> list[tuple[str, tuple]]:
+    """Record the adapter calls the node makes (in order), for a replay."""
+    calls: list[tuple[str, tuple]] = []
+    on_imu, on_mag = stream.on_imu, stream.on_mag
+
+    def imu(*args):
+        calls.append(("imu", args))
+        return on_imu(*args)
+
+    def mag(*args):
+        calls.append(("mag", args))
+        return on_mag(*args)
+
+    stream.on_imu, stream.on_mag = imu, mag
+    return calls
 
 
 def quat(m: Imu) -> np.ndarray:

@@ -25,7 +25,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from rosharness import finite, quat
+from rosharness import finite, quat, record_calls
 
 from mkf_ros.core.frames import FROM_ENU
 from mkf_ros.core.quaternion import qconj_np, qmul_np
@@ -35,23 +35,6 @@ from mkf_ros.stream import StreamAdapter
 
 T0 = 100.0
 pytestmark = pytest.mark.ros
-
-
-def record_calls(stream: StreamAdapter) -> list[tuple[str, tuple]]:
-    """Record the adapter calls the node makes (in order), for a replay."""
-    calls: list[tuple[str, tuple]] = []
-    on_imu, on_mag = stream.on_imu, stream.on_mag
-
-    def imu(*args):
-        calls.append(("imu", args))
-        return on_imu(*args)
-
-    def mag(*args):
-        calls.append(("mag", args))
-        return on_mag(*args)
-
-    stream.on_imu, stream.on_mag = imu, mag
-    return calls
 
 
 @pytest.fixture(scope="module")

@@ -1,0 +1,254 @@
+"""Runtime reconfiguration through SetParameters, from another node, for EVERY parameter.
+
+The parameter lists are generated from :data:`mkf_ros.core.params.PARAMS`, so a parameter
+added there is covered here without touching this file.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+import pytest
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rosharness import Harness, imu_msg, mag_msg, quat, record_calls
+from sensor_msgs.msg import Imu
+
+from mkf_ros.core.params import BY_NAME, PARAMS, Param
+from mkf_ros.ros.estimator_node import EstimatorNode, ParameterError
+from mkf_ros.sim import simulate
+from mkf_ros.stream import StreamAdapter
+
+pytestmark = pytest.mark.ros
+T0 = 100.0
+
+
+def alt_value(p: Param) -> Any:
+    """A valid value different from the default."""
+    if p.type is bool:
+        return not p.default
+    if p.type is str:
+        return next(c for c in p.choices if c != p.default) if p.choices else "test_frame"
+    if p.type is list:
+        return [0.0, 1.0, -1.0][: p.length or 3]
+    lo, hi = p.range if p.range else (-math.inf, math.inf)
+    for v in (p.default * 2, p.default / 2, (lo + hi) / 2, hi, lo):
+        if v != p.default and lo <= v <= hi and math.isfinite(v):
+            return p.type(v)
+    raise AssertionError(f"no alternative value for {p.name}")
+
+
+def invalid_values(p: Param) -> list[Any]:
+    """Values that must be rejected (wrong type, out of range, not a choice, wrong length)."""
+    bad: list[Any] = []
+    if p.type in (float, int):
+        bad.append("fast")
+        if p.range:
+            bad += [p.type(p.range[1] * 2 + 1), p.type(p.range[0] - 1 - abs(p.range[0]))]
+    elif p.type is bool:
+        bad.append(3.5)
+    elif p.type is str:
+        bad.append(1.0)
+        if p.choices:
+            bad.append("no_such_" + p.name)
+    elif p.type is list:
+        bad += ["x", [1.0, 2.0]]
+        if p.range:
+            bad.append([p.range[1] * 2 + 1] * (p.length or 3))
+    return bad
+
+
+@pytest.fixture
+def running(harness) -> Harness:
+    """A node that has been initialised by a few samples and keeps publishing."""
+    h = harness()
+    h.send_imu([T0 + 0.01 * k for k in range(5)])
+    assert len(h.out) == 5
+    return h
+
+
+def publishes(h: Harness, t: float) -> bool:
+    n = len(h.out)
+    h.send_imu([t, t + 0.01], gyr=(0.0, 0.0, 0.1))
+    return len(h.out) == n + 2
+
+
+def test_descriptors_generated_from_the_definition(running) -> None:
+    h = running
+    fut = h.params.describe_parameters([p.name for p in PARAMS])
+    descs = h.wait(fut).descriptors
+    for p, d in zip(PARAMS, descs, strict=True):
+        assert d.name == p.name
+        assert d.description == p.doc(), p.name
+        if p.unit:
+            assert f"[{p.unit}]" in d.description
+        if p.type is float and p.range:
+            r = d.floating_point_range[0]
+            assert (r.from_value, r.to_value) == p.range, p.name
+        if p.choices:
+            assert all(c in d.additional_constraints for c in p.choices), p.name
+        assert d.read_only == p.read_only
+    names = set(h.wait(h.params.list_parameters()).result.names)
+    assert {p.name for p in PARAMS} <= names
+
+
+def test_every_parameter_changes_at_runtime(running) -> None:
+    """Each parameter set to another valid value (and back) from another node: accepted,
+    readable, applied to the adapter (and the filter), and the node keeps publishing."""
+    h, t, failures = running, T0 + 1.0, []
+    for p in PARAMS:
+        for value in (alt_value(p), p.default):
+            res = h.set(**{p.name: value})[0]
+            got = h.get(p.name)[0]
+            applied = h.est.stream.params[p.name]
+            if not res.successful:
+                failures.append(f"{p.name}={value!r} rejected: {res.reason}")
+            elif (got, applied) != (value, value):
+                failures.append(f"{p.name}={value!r}: reads {got!r}, applied {applied!r}")
+            elif p.scope == "filter" and h.est.stream.filter.params[p.name] != value:
+                failures.append(f"{p.name}={value!r} not in the filter")
+            elif not publishes(h, t):
+                failures.append(f"{p.name}={value!r}: node stopped publishing")
+            t += 0.02
+    assert not failures, "\n".join(failures)
+    assert h.est._exceptions == 0
+
+
+def test_invalid_values_rejected_with_reason(running) -> None:
+    h, failures = running, []
+    before = dict(h.est.stream.params)
+    for p in PARAMS:
+        for value in invalid_values(p):
+            res = h.set(**{p.name: value})[0]
+            if res.successful:
+                failures.append(f"{p.name}={value!r} accepted")
+            elif not res.reason.strip():
+                failures.append(f"{p.name}={value!r} rejected without a reason")
+            if h.get(p.name)[0] != before[p.name]:
+                failures.append(f"{p.name}={value!r} changed the parameter")
+    assert not failures, "\n".join(failures)
+    assert h.est.stream.params == before
+    # the reasons are specific
+    r = h.set(algorithm="ekf")[0]
+    assert "algorithm must be one of mekf, mukf, got 'ekf'" in r.reason
+    r = h.set(max_dt=-1.0)[0]
+    assert "max_dt" in r.reason and "range" in r.reason
+    r = h.set(mag_reference=[1.0, 2.0])[0]
+    assert "mag_reference must have 3 elements" in r.reason
+
+
+def test_integers_accepted_for_floats(running) -> None:
+    h = running
+    assert h.set(max_dt=1)[0].successful
+    assert h.get("max_dt") == [1.0] and isinstance(h.get("max_dt")[0], float)
+    assert h.set(mag_reference=[0, 1, -2])[0].successful
+    assert h.est.stream.params["mag_reference"] == [0.0, 1.0, -2.0]
+
+
+def test_cross_parameter_rule_rejects_all_atomically(running) -> None:
+    h = running
+    res = h.set_atomically(init_mode="paper", use_mag=True)
+    assert not res.successful and "init_mode 'paper' with use_mag needs mag_reference" in res.reason
+    assert h.get("init_mode", "use_mag") == ["align", False]
+    res = h.set_atomically(algorithm="mukf", chart="mrp", gyro_noise=0.02, constant_dt=0.01)
+    assert res.successful
+    p = h.est.stream.params
+    assert (p["algorithm"], p["chart"], p["gyro_noise"], p["constant_dt"]) == (
+        "mukf", "mrp", 0.02, 0.01)
+
+
+def test_other_nodes_parameters_do_not_affect_it(running, ros_context) -> None:
+    """imu_filter_madgwick reacted to any node's parameter events (imu_tools PR #220)."""
+    h = running
+    other = Node("other", context=ros_context)
+    other.declare_parameter("algorithm", "mekf")
+    other.declare_parameter("gyro_noise", 0.01)
+    other.set_parameters([Parameter("algorithm", value="mukf"),
+                          Parameter("gyro_noise", value=0.5)])
+    h.ex.add_node(other)
+    h.spin_for(0.3)
+    assert h.est.stream.params["algorithm"] == "mekf"
+    assert h.est.stream.params["gyro_noise"] == 0.01
+    other.destroy_node()
+
+
+@pytest.mark.parametrize("switch", [
+    {"algorithm": "mukf"},
+    {"chart": "rv"},
+    {"chart": "o", "chart_update": False},
+    {"algorithm": "mukf", "chart": "mrp"},
+], ids=lambda d: "+".join(f"{k}={v}" for k, v in d.items()))
+def test_switch_continuity(harness, switch: dict[str, Any]) -> None:
+    """Switching algorithm/chart/chart_update mid-stream keeps the estimate.
+
+    Bound: across the switch the published orientation may only differ from an unswitched
+    reference by what one step of the other filter does differently: < 0.05° (the motion
+    turns by up to 0.35° per 10 ms step). The covariance carries over: its trace changes by
+    less than 20 % in that step.
+    """
+    rec = simulate("slow_rotation", duration=3.0, rate=100.0, seed=5, mag_rate=50.0)
+    base = {"use_mag": True, "algorithm": "mekf", "chart": "rp", "chart_update": True}
+    h = harness(base)
+    calls = record_calls(h.est.stream)
+    k_switch = 150
+    msgs = []
+    for k in range(len(rec.t)):
+        msgs.append(imu_msg(T0 + rec.t[k], rec.gyr[k], rec.acc[k]))
+        if not np.isnan(rec.mag[k, 0]):
+            msgs.append(mag_msg(T0 + rec.t[k], rec.mag[k]))
+    cut = [i for i, m in enumerate(msgs) if isinstance(m, Imu)][k_switch]
+    h.send(msgs[:cut])
+    assert len(h.out) == k_switch
+    assert all(r.successful for r in h.set(**switch))
+    h.send(msgs[cut:])
+    q = np.array([quat(m) for m in h.out])
+    cov = np.array([np.reshape(m.orientation_covariance, (3, 3)) for m in h.out])
+    # the reference: the same calls, in the node's order, without the switch
+    ref = StreamAdapter(base)
+    ref_out = [ref.on_imu(*a) if kind == "imu" else ref.on_mag(*a) for kind, a in calls]
+    ref_out = [o for (kind, _), o in zip(calls, ref_out, strict=True) if kind == "imu"]
+    q_ref_before = ref_out[k_switch - 1].quat_wxyz
+    c_ref_before = ref_out[k_switch - 1].orientation_cov
+    q_ref_after = ref_out[k_switch].quat_wxyz
+
+    def angle(a: np.ndarray, b: np.ndarray) -> float:
+        return math.degrees(2 * math.acos(min(1.0, abs(float(a @ b)))))
+
+    assert angle(q[k_switch - 1], q_ref_before) == 0.0  # the same filter until the switch
+    assert angle(q[k_switch], q_ref_after) < 0.05
+    tr0, tr1 = np.trace(cov[k_switch - 1]), np.trace(cov[k_switch])
+    assert abs(tr1 / tr0 - 1) < 0.2
+    assert abs(np.trace(c_ref_before) / tr0 - 1) < 0.05
+    # and it keeps tracking afterwards (no re-convergence, no jump later on)
+    steps = [angle(q[k], q[k + 1]) for k in range(k_switch - 5, len(q) - 1)]
+    assert max(steps) < 0.5
+
+
+def test_start_up_parameters(ros_context, tmp_path, capfd) -> None:
+    """A params file with imu_filter_madgwick leftovers, an int for a float; bad values fail
+    the start with one line."""
+    f = tmp_path / "p.yaml"
+    f.write_text("/**:\n  ros__parameters:\n    max_dt: 2\n    gain: 0.1\n    zeta: 0.0\n"
+                 "    algorithm: mukf\n    fixed_frame: Map_IMU\n")
+    node = EstimatorNode(context=ros_context, warm=False,
+                         cli_args=["--ros-args", "--params-file", str(f)])
+    p = node.stream.params
+    assert (p["max_dt"], p["algorithm"], p["fixed_frame"]) == (2.0, "mukf", "Map_IMU")
+    node.destroy_node()
+    err = capfd.readouterr().err
+    assert "ignoring unknown parameter 'gain'" in err and "acc_noise" in err
+    assert "ignoring unknown parameter 'zeta'" in err and "estimate_gyro_bias" in err
+    for bad, why in ((Parameter("algorithm", value="ekf"), "algorithm must be one of"),
+                     (Parameter("max_dt", value=-3.0), "max_dt"),
+                     (Parameter("max_dt", value="long"), "max_dt")):
+        with pytest.raises(ParameterError, match=why) as e:
+            EstimatorNode(context=ros_context, warm=False, parameter_overrides=[bad])
+        assert "\n" not in str(e.value)
+
+
+def test_every_filter_parameter_has_a_node_counterpart() -> None:
+    """Every PARAMS entry is declared: the node owns no parameter list of its own."""
+    assert len(BY_NAME) == len(PARAMS)
+    assert {p.scope for p in PARAMS} == {"filter", "node"}

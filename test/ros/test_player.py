@@ -1,0 +1,235 @@
+"""The player node: synth mode, bag replay (raw bytes, stamps, windows, selection, remapping,
+ROS 1 bags), /clock and loops, bad parameters. In one process with a probe node (fast);
+the cross-process path is covered by test_player_roundtrip.py and the demo test."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+rclpy = pytest.importorskip("rclpy")
+
+from geometry_msgs.msg import QuaternionStamped  # noqa: E402
+from rclpy.executors import SingleThreadedExecutor  # noqa: E402
+from rclpy.node import Node  # noqa: E402
+from rclpy.parameter import Parameter  # noqa: E402
+from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
+from rosgraph_msgs.msg import Clock  # noqa: E402
+from sensor_msgs.msg import Imu, MagneticField  # noqa: E402
+
+from mkf_ros.bags import cdr  # noqa: E402
+from mkf_ros.bags.synth import DEFAULT_START_NS, sim_streams, write_bag  # noqa: E402
+from mkf_ros.ros.player_node import PlayerError, PlayerNode  # noqa: E402
+from mkf_ros.sim import simulate  # noqa: E402
+
+pytestmark = pytest.mark.ros
+#: the probe must not lose anything (best-effort matching is tested with the estimator)
+RELIABLE = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
+TYPES = {"/imu/data_raw": Imu, "/imu/mag": MagneticField, "/imu/ground_truth": QuaternionStamped}
+
+
+class Probe:
+    """A player and a probe node recording raw messages, spun by one executor."""
+
+    def __init__(self, ctx: Any, params: dict[str, Any], topics: dict[str, Any] | None = None,
+                 *, cli_args: list[str] | None = None, namespace: str | None = None,
+                 probe_ns: str | None = None) -> None:
+        self.player = PlayerNode(context=ctx, namespace=namespace, cli_args=cli_args,
+                                 parameter_overrides=[Parameter(k, value=v)
+                                                      for k, v in params.items()])
+        self.node = Node("probe", context=ctx, namespace=probe_ns)
+        self.got: dict[str, list[tuple[float, bytes]]] = {}
+        for topic, cls in (topics or TYPES).items():
+            self.got[topic] = []
+            self.node.create_subscription(
+                cls, topic, lambda m, t=topic: self.got[t].append((time.monotonic(), m)),
+                RELIABLE, raw=True)
+        self.ex = SingleThreadedExecutor(context=ctx)
+        self.ex.add_node(self.player)
+        self.ex.add_node(self.node)
+
+    def spin_until(self, cond: Callable[[], bool], timeout: float = 20.0) -> bool:
+        end = time.monotonic() + timeout
+        while not cond():
+            if time.monotonic() > end:
+                return False
+            self.ex.spin_once(timeout_sec=0.01)
+        return True
+
+    def play(self, timeout: float = 20.0) -> None:
+        assert self.spin_until(lambda: self.player.done, timeout), "player did not finish"
+        self.spin_until(lambda: False, 0.2)  # take what is still in flight
+
+    def raws(self, topic: str) -> list[bytes]:
+        return [m for _, m in self.got[topic]]
+
+    def close(self) -> None:
+        self.ex.shutdown()
+        self.player.destroy_node()
+        self.node.destroy_node()
+
+
+@pytest.fixture
+def probe(ros_context: Any):
+    made: list[Probe] = []
+
+    def make(params: dict[str, Any], **kw: Any) -> Probe:
+        p = Probe(ros_context, params, **kw)
+        made.append(p)
+        return p
+
+    yield make
+    for p in made:
+        p.close()
+
+
+WAIT = {"wait_for_subscribers": 1, "start_delay": 0.2}
+
+
+@pytest.fixture(scope="module")
+def bag(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    path = tmp_path_factory.mktemp("player") / "slow"
+    write_bag(simulate("slow_rotation", duration=3.0, rate=100.0, mag_rate=25.0, seed=5), path)
+    return path
+
+
+def test_synth_mode_streams_with_truth(probe: Callable[..., Probe]) -> None:
+    t_start = time.time_ns()
+    p = probe(dict(WAIT, duration=1.0, imu_rate=100.0, mag_rate=20.0, rate=4.0, seed=3,
+                   scenario="sweep"))
+    p.play()
+    imu = cdr.decode(p.raws("/imu/data_raw"), cdr.IMU)
+    truth = cdr.decode(p.raws("/imu/ground_truth"), cdr.QUATERNION_STAMPED)
+    mag = cdr.decode(p.raws("/imu/mag"), cdr.MAGNETIC_FIELD)
+    assert len(imu.stamp_ns) == 101 and len(mag.stamp_ns) == 20
+    np.testing.assert_array_equal(imu.stamp_ns, truth.stamp_ns)
+    assert abs(imu.stamp_ns[0] - t_start) < 30e9  # stamps start at the wall-clock start
+    np.testing.assert_allclose(np.diff(imu.stamp_ns), 10_000_000, atol=1)
+    sim = p.player.source.sim
+    q = truth.fields["quaternion"]
+    np.testing.assert_array_equal(q[:, [3, 0, 1, 2]], sim.quat)
+    np.testing.assert_array_equal(imu.fields["angular_velocity"], sim.gyr)
+    assert imu.fields["orientation_covariance"][0, 0] == -1.0  # REP-145: no orientation
+    assert imu.frame_ids == ["imu_link"]
+    # paced by the recording: 1 s at rate 4 takes about 0.25 s
+    t = [w for w, _ in p.got["/imu/data_raw"]]
+    assert 0.15 < t[-1] - t[0] < 1.0
+
+
+def test_bag_mode_publishes_the_recorded_bytes(probe: Callable[..., Probe], bag: Path) -> None:
+    p = probe(dict(WAIT, bag=str(bag), rate=5.0))
+    p.play()
+    want = sim_streams(simulate("slow_rotation", duration=3.0, rate=100.0, mag_rate=25.0,
+                                seed=5))
+    for s in want.values():
+        assert p.raws(s.topic) == cdr.split_rows(s.rows), s.topic
+    assert p.player.published == {"/imu/mag": 75, "/imu/data_raw": 301,
+                                  "/imu/ground_truth": 301}
+
+
+def test_window_selection_and_remapping(probe: Callable[..., Probe], bag: Path) -> None:
+    p = probe(dict(WAIT, bag=str(bag), rate=5.0, start_offset=1.0, duration=0.5,
+                   topics=["imu/data_raw"]),
+              topics={"/robot/imu": Imu, "/imu/data_raw": Imu, "/imu/mag": MagneticField},
+              cli_args=["--ros-args", "-r", "/imu/data_raw:=/robot/imu"])
+    p.play()
+    got = cdr.decode(p.raws("/robot/imu"), cdr.IMU)
+    assert p.got["/imu/data_raw"] == [] and p.got["/imu/mag"] == []
+    t = (got.stamp_ns - DEFAULT_START_NS) * 1e-9
+    assert len(t) == 50 and t[0] == pytest.approx(1.0) and t[-1] == pytest.approx(1.49)
+
+
+def test_relative_topics_follow_the_namespace(probe: Callable[..., Probe], bag: Path) -> None:
+    p = probe(dict(bag=str(bag), rate=10.0, relative_topics=True, topics=["/imu/mag"],
+                   wait_for_subscribers=1, start_delay=0.2),
+              topics={"/robot/imu/mag": MagneticField}, namespace="/robot")
+    p.play()
+    assert len(p.got["/robot/imu/mag"]) == 75
+
+
+def test_loop_and_clock(probe: Callable[..., Probe], tmp_path: Path) -> None:
+    path = tmp_path / "short"
+    write_bag(simulate("static", duration=0.5, rate=50.0, mag_rate=10.0), path, "sqlite3")
+    p = probe(dict(WAIT, bag=str(path), rate=2.0, loop=True, publish_clock=True,
+                   clock_frequency=50.0, topics=["/imu/data_raw"]),
+              topics={"/clock": Clock, "/imu/data_raw": Imu})
+    assert p.spin_until(lambda: p.player.loops >= 2, 10.0)
+    p.spin_until(lambda: False, 0.1)  # the clock of the second loop is in flight
+    clocks = np.array([int.from_bytes(m[4:8], "little", signed=True) * 10**9
+                       + int.from_bytes(m[8:12], "little") for m in p.raws("/clock")])
+    d = np.diff(clocks)
+    jumps = np.flatnonzero(d < 0)
+    assert len(jumps) >= 2  # one per loop
+    assert clocks[jumps[0] + 1] == DEFAULT_START_NS  # back to the start of the bag
+    assert clocks.min() >= DEFAULT_START_NS and clocks.max() <= DEFAULT_START_NS + 0.5e9
+    assert len(p.got["/imu/data_raw"]) >= 2 * 26
+    assert not p.player.done
+
+
+def test_ros1_bag_replay(probe: Callable[..., Probe], tmp_path: Path) -> None:
+    rosbag1 = pytest.importorskip("rosbags.rosbag1")
+    typesys = pytest.importorskip("rosbags.typesys")
+    ts1 = typesys.get_typestore(typesys.Stores.ROS1_NOETIC)
+    ts2 = typesys.get_typestore(typesys.Stores.ROS2_JAZZY)
+    sim = simulate("static", duration=0.2, rate=50.0)
+    rows = sim_streams(sim)["imu"].rows
+    path = tmp_path / "r1.bag"
+    fields = ("orientation", "orientation_covariance", "angular_velocity",
+              "angular_velocity_covariance", "linear_acceleration",
+              "linear_acceleration_covariance")
+    with rosbag1.Writer(path) as w:
+        c = w.add_connection("/imu/data_raw", "sensor_msgs/msg/Imu", typestore=ts1)
+        for i, r in enumerate(rows):
+            m = ts2.deserialize_cdr(bytes(r), "sensor_msgs/msg/Imu")
+            h = ts1.types["std_msgs/msg/Header"](seq=i, stamp=m.header.stamp,
+                                                  frame_id=m.header.frame_id)
+            m1 = ts1.types["sensor_msgs/msg/Imu"](h, *[getattr(m, f) for f in fields])
+            w.write(c, DEFAULT_START_NS + i * 20_000_000,
+                    ts1.serialize_ros1(m1, "sensor_msgs/msg/Imu"))
+    p = probe(dict(WAIT, bag=str(path), rate=5.0), topics={"/imu/data_raw": Imu})
+    p.play()
+    assert p.raws("/imu/data_raw") == cdr.split_rows(rows)
+
+
+def test_bad_parameters(ros_context: Any, tmp_path: Path, bag: Path) -> None:
+    def make(**params: Any) -> None:
+        PlayerNode(context=ros_context,
+                   parameter_overrides=[Parameter(k, value=v) for k, v in params.items()])
+
+    with pytest.raises(PlayerError, match="no such bag"):
+        make(bag=str(tmp_path / "missing"))
+    with pytest.raises(PlayerError, match=r"topic /nope is not in"):
+        make(bag=str(bag), topics=["nope"])
+    with pytest.raises(PlayerError, match="past the end"):
+        make(bag=str(bag), start_offset=10.0)
+    with pytest.raises(PlayerError, match="rate must be positive"):
+        make(rate=0.0)
+    with pytest.raises(PlayerError, match="unknown scenario 'x'"):
+        make(scenario="x")
+    with pytest.raises(PlayerError, match="scenario_params"):
+        make(scenario_params=["acc_peak"])
+
+
+def _run_player(*ros_args: str) -> subprocess.CompletedProcess:
+    env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    return subprocess.run([sys.executable, "-m", "mkf_ros.ros.player_node", "--ros-args",
+                           *ros_args], env=env, capture_output=True, text=True, timeout=60)
+
+
+def test_console_errors_are_one_line(tmp_path: Path) -> None:
+    (tmp_path / "x.txt").write_text("not a bag")
+    r = _run_player("-p", f"bag:={tmp_path / 'x.txt'}")
+    assert r.returncode == 2
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("player: unknown storage format"), r.stderr
+    r = _run_player("-p", "rate:=fast")
+    assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1, r.stderr
+    assert "Traceback" not in r.stderr

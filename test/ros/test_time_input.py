@@ -1,0 +1,158 @@
+"""Time and bad input through the node: every case is dropped or skipped and counted, the
+node never publishes NaN and never dies on a message."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from rosgraph_msgs.msg import Clock
+from rosharness import finite, imu_msg, mag_msg, quat
+
+from mkf_ros.ros import convert
+
+pytestmark = pytest.mark.ros
+T0 = 100.0
+G = (0.0, 0.0, 9.80665)
+
+
+def yaw(m) -> float:
+    q = quat(m)
+    return 2 * math.atan2(q[3], q[0])
+
+
+def test_not_published_before_initialisation(harness) -> None:
+    h = harness()
+    h.send([imu_msg(T0, (0, 0, 0), None), imu_msg(T0 + 0.01, (0, 0, 0), (0, 0, 0))])
+    assert h.out == [] and not h.est.stream.initialized
+    h.send_imu([T0 + 0.02])
+    assert len(h.out) == 1
+    assert any(h.out[0].orientation_covariance), "orientation_covariance never all zero"
+
+
+def test_duplicate_and_out_of_order_dropped(harness) -> None:
+    h = harness()
+    h.send_imu([T0, T0 + 0.01, T0 + 0.02, T0 + 0.02, T0 + 0.015, T0 + 0.03])
+    stamps = [convert.stamp_to_sec(m.header.stamp) for m in h.out]
+    np.testing.assert_allclose(stamps, [T0, T0 + 0.01, T0 + 0.02, T0 + 0.03])
+    c = h.est.stream.counters
+    assert (c["imu_duplicate"], c["imu_out_of_order"], c["resets"]) == (1, 1, 0)
+
+
+def test_bag_loop_resets(harness) -> None:
+    h = harness()
+    h.send_imu([T0 + 0.01 * k for k in range(50)], gyr=(0.0, 0.0, 1.0))
+    assert yaw(h.out[-1]) > 0.4
+    h.send_imu([T0 - 10.0 + 0.01 * k for k in range(5)])  # the bag starts again
+    assert h.est.stream.counters["resets_time_jump"] == 1
+    assert len(h.out) == 55
+    assert abs(yaw(h.out[50])) < 1e-9  # re-initialised from the first sample after the loop
+
+
+def test_sim_time_jump_back_resets(harness) -> None:
+    h = harness({"use_sim_time": True})
+    clock = h.cli.create_publisher(Clock, "/clock", 10)
+    assert h.spin_until(lambda: clock.get_subscription_count() > 0)
+
+    def tick(t: float) -> None:
+        clock.publish(Clock(clock=convert.sec_to_stamp(t)))
+        assert h.spin_until(lambda: abs(h.est.get_clock().now().nanoseconds * 1e-9 - t) < 1e-6)
+
+    tick(T0)
+    h.send_imu([T0 + 0.01 * k for k in range(10)])
+    assert h.est.stream.counters["resets"] == 0
+    tick(T0 + 1.0)
+    assert h.est.stream.counters["resets"] == 0
+    tick(T0 - 50.0)  # `ros2 bag play --loop` with /clock
+    assert h.est.stream.counters["resets"] == 1
+    assert "ROS time jumped back by 51.000 s" in h.est.stream.last_reset_reason
+    assert not h.est.stream.initialized
+    h.send_imu([T0 - 50.0 + 0.01 * k for k in range(3)])
+    assert len(h.out) == 13
+
+
+def test_gap_realigns(harness) -> None:
+    h = harness({"max_dt": 0.5})
+    h.send_imu([T0 + 0.01 * k for k in range(10)])
+    rolled = (0.0, 9.80665 * math.sin(0.4), 9.80665 * math.cos(0.4))
+    h.send_imu([T0 + 5.0], acc=rolled)
+    q = quat(h.out[-1])
+    assert 2 * math.atan2(q[1], q[0]) == pytest.approx(0.4, abs=1e-6)
+    assert h.est.stream.all_counters()["gaps"] == 1
+
+
+def test_bad_vectors_skipped_counted_never_nan(harness) -> None:
+    h = harness({"use_mag": True})
+    nan, inf = math.nan, math.inf
+    h.send_imu([T0 + 0.01 * k for k in range(5)])
+    t = T0 + 0.05
+    msgs = [
+        imu_msg(t, (nan, nan, nan), G),  # gyro missing: published, angular velocity -1
+        imu_msg(t + 0.01, (nan, 0.0, 0.0), G),  # gyro invalid
+        imu_msg(t + 0.02, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0)),  # zero accelerometer
+        imu_msg(t + 0.03, (0.0, 0.0, 0.0), (inf, 0.0, 9.8)),  # Inf accelerometer
+        imu_msg(t + 0.04, (0.0, 0.0, 0.0), (0.0, 0.0, 0.9)),  # in g, or gravity removed
+        imu_msg(t + 0.05, None, None),  # both not reported (covariance[0] = -1)
+        mag_msg(t + 0.05, (nan, nan, nan)),  # phidgets-style empty magnetometer sample
+        mag_msg(t + 0.05, (inf, 0.0, 1e-5)),
+        mag_msg(t + 0.05, (0.0, 0.0, 0.0)),
+        imu_msg(t + 0.06, (0.0, 0.0, 0.0), G),
+    ]
+    h.send(msgs)
+    assert all(finite(m) for m in h.out)
+    c = h.est.stream.counters
+    assert (c["gyr_missing"], c["gyr_invalid"]) == (2, 1)
+    assert (c["acc_missing"], c["acc_invalid"], c["acc_implausible"]) == (1, 2, 1)
+    assert (c["mag_missing"], c["mag_invalid"]) == (1, 2)
+    assert len(h.out) == 5 + 7
+    assert h.out[5].angular_velocity_covariance[0] == -1.0  # "not reported", REP-145
+    assert h.out[10].linear_acceleration_covariance[0] == -1.0
+    assert h.out[9].linear_acceleration.z == pytest.approx(0.9)  # passed through
+    assert h.est._exceptions == 0
+
+
+def test_zero_stamps_and_constant_dt(harness) -> None:
+    h = harness()
+    h.send([imu_msg(0.0, (0, 0, 0), G)] * 3)  # a driver that does not stamp
+    assert h.out == [] and h.est.stream.counters["imu_bad_stamp"] == 3
+    assert h.set(constant_dt=0.01)[0].successful
+    h.send([imu_msg(0.0, (0.0, 0.0, 1.0), G) for _ in range(101)])
+    assert len(h.out) == 101
+    assert yaw(h.out[-1]) == pytest.approx(1.0, abs=0.02)  # 100 × 0.01 s × 1 rad/s
+
+
+def test_magnetometer_never_gates_the_imu(harness) -> None:
+    h = harness({"use_mag": True})
+    h.send_imu([T0 + 0.01 * k for k in range(20)])
+    assert len(h.out) == 20 and not h.est.stream.filter.heading_initialized
+    msgs = []
+    for k in range(20, 40):
+        msgs.append(imu_msg(T0 + 0.01 * k, (0, 0, 0), G))
+        if k % 5 == 0:
+            msgs.append(mag_msg(T0 + 0.01 * k - 0.003, (20e-6, 20e-6, -40e-6)))
+    h.send(msgs)
+    assert len(h.out) == 40 and h.est.stream.filter.heading_initialized
+    assert abs(math.degrees(yaw(h.out[-1]))) == pytest.approx(45.0, abs=0.5)
+    h.send_imu([T0 + 0.01 * k for k in range(40, 60)])  # the magnetometer stops
+    assert len(h.out) == 60
+
+
+def test_never_dies_on_a_message(harness) -> None:
+    """An exception inside the processing is counted and reported; the node goes on."""
+    h = harness({"diagnostics_period": 0.2})
+    real = h.est.stream.on_imu
+    calls = {"n": 0}
+
+    def flaky(*a):
+        calls["n"] += 1
+        if calls["n"] == 3:
+            raise RuntimeError("boom")
+        return real(*a)
+
+    h.est.stream.on_imu = flaky
+    h.send_imu([T0 + 0.01 * k for k in range(6)])
+    assert len(h.out) == 5 and h.est._exceptions == 1
+    assert h.spin_until(lambda: any(s.level == b"\x02" for d in h.diag for s in d.status), 3.0)
+    st = next(s for d in h.diag for s in d.status if s.level == b"\x02")
+    assert "RuntimeError: boom" in st.message
