@@ -74,8 +74,8 @@ def _time_steps(n: int, dt: object, timestamps: object) -> np.ndarray:
     d = np.diff(t)
     if (d <= 0).any():
         i = int(np.argmax(d <= 0)) + 1
-        raise ValueError(f"timestamps must increase: timestamps[{i}] = {t[i]!r} is not after "
-                         f"timestamps[{i - 1}] = {t[i - 1]!r}")
+        raise ValueError(f"timestamps must increase: timestamps[{i}] = {t[i]:g} is not after "
+                         f"timestamps[{i - 1}] = {t[i - 1]:g}")
     dts[1:] = d
     return dts
 

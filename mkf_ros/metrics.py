@@ -15,7 +15,7 @@ def orientation_errors(q_est: np.ndarray, q_ref: np.ndarray) -> dict[str, np.nda
     e = qmul_np(q_est, qconj_np(q_ref))
     w = np.abs(e[..., 0])
     z = np.abs(e[..., 3])
-    total = 2.0 * np.arccos(np.clip(w, 0.0, 1.0))
+    total = 2.0 * np.arctan2(np.linalg.norm(e[..., 1:], axis=-1), w)  # = 2 acos|e_w|, exact
     heading = 2.0 * np.arctan2(z, w)
     incl = 2.0 * np.arccos(np.clip(np.sqrt(w * w + z * z), 0.0, 1.0))
     return {"total": total, "heading": heading, "inclination": incl}

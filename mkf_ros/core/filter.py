@@ -33,14 +33,14 @@ from mkf_ros.core.mekf import (
     mekf_vector_update,
     transport_covariance,
 )
-from mkf_ros.core.mukf import mukf_step
+from mkf_ros.core.mukf import NOISE_MODES, mukf_step
 from mkf_ros.core.params import ALGORITHMS, FilterParams
 from mkf_ros.core.quaternion import qmul, qnormalize, rotate, rotmat
 
 # --- layout of the configuration vector --------------------------------------------------------
 C_ALGO, C_CHART, C_CU, C_USE_MAG, C_NX = 0, 1, 2, 3, 4
 C_RW, C_RA, C_QA, C_RM, C_QM, C_QW, C_QB, C_B0 = 5, 6, 7, 8, 9, 10, 11, 12
-C_W0, C_PUBLISHED, C_PAPER, C_MAXDT, C_MREF_GIVEN = 13, 14, 15, 16, 17
+C_W0, C_MUKF_NOISE, C_PAPER, C_MAXDT, C_MREF_GIVEN = 13, 14, 15, 16, 17
 C_MREF = 18  # 3 values: given magnetic reference, ENU, unit
 C_SIZE = 21
 
@@ -318,7 +318,7 @@ def sensor_step(cfg: np.ndarray, nz: np.ndarray, st: np.ndarray, P: np.ndarray,
         vm[0], vref[0] = a_body, UP
         if has_m:
             vm[1], vref[1] = m_body, st[S_MREF:S_MREF + 3]
-        ok = mukf_step(chart, cfg[C_CU] > 0, cfg[C_PUBLISHED] > 0, cfg[C_W0], qc,
+        ok = mukf_step(chart, cfg[C_CU] > 0, int(cfg[C_MUKF_NOISE]), cfg[C_W0], qc,
                        st[S_E:S_E + 3], w, b, P, nx, dt, nz[N_QW], nz[N_QB], vm, vref, Rv, Qv,
                        use_v, g, has_g, nz[N_RW])
     if not ok:
@@ -390,7 +390,7 @@ def build_cfg(p: FilterParams) -> np.ndarray:
     cfg[C_QB] = p.gyro_bias_noise**2
     cfg[C_B0] = p.gyro_bias_stddev**2
     cfg[C_W0] = p.mukf_w0
-    cfg[C_PUBLISHED] = float(p.mukf_noise_scaling == "published")
+    cfg[C_MUKF_NOISE] = NOISE_MODES.index(p.mukf_noise_scaling)
     cfg[C_PAPER] = float(p.init_mode == "paper")
     cfg[C_MAXDT] = p.max_dt
     ref = np.asarray(p.mag_reference, dtype=float)

@@ -27,10 +27,13 @@ from mkf_ros.core.quaternion import (
     t4,
 )
 
+NOISE_CONSISTENT, NOISE_PUBLISHED, NOISE_INTEGRATED = 0, 1, 2
+NOISE_MODES = ("consistent", "published", "integrated")
+
 
 @jit
 def mukf_step(
-    chart: int, chart_update: bool, published_scaling: bool, w0: float,
+    chart: int, chart_update: bool, noise_mode: int, w0: float,
     qc: np.ndarray, ebar: np.ndarray, w: np.ndarray, b: np.ndarray, P: np.ndarray, nx: int,
     dt: float, Qw: np.ndarray, Qb: np.ndarray,
     vm: np.ndarray, vref: np.ndarray, Rv: np.ndarray, Qv: np.ndarray, use_v: np.ndarray,
@@ -38,10 +41,20 @@ def mukf_step(
 ) -> bool:
     """One MUKF prediction + update over ``dt`` (§6 steps 0–7), in place.
 
-    Measurement arguments as in :func:`mkf_ros.core.mekf.mekf_update`. ``published_scaling``
-    selects the authors' ``ω + n_ω Δt`` with ``Q_ωᵃ = Q_ω`` (ω-variance grows by ``Q_ω Δt²``,
-    reproduces the paper's figures) instead of the consistent ``ω + n_ω`` with
-    ``Q_ωᵃ = Q_ω Δt`` (§8 item 3). Returns False (state untouched) if a factorisation fails.
+    Measurement arguments as in :func:`mkf_ros.core.mekf.mekf_update`. ``noise_mode`` says how
+    the angular-velocity noise enters (§8 item 3):
+
+    * ``NOISE_CONSISTENT`` (0, the spec's recommendation): ``Q_ωᵃ = Q_ω Δt``, ``ω_j⁻ = ω_j + n``;
+    * ``NOISE_PUBLISHED`` (1, also ``True``): the authors' ``Q_ωᵃ = Q_ω``, ``ω_j⁻ = ω_j + n Δt``
+      (the rate variance grows by ``Q_ω Δt²``; reproduces the paper's figures);
+    * ``NOISE_INTEGRATED`` (2, extension): as consistent, but the step rotates with the mean
+      rate ``ω_j + n/2`` of a Wiener rate going from ``ω_j`` to ``ω_j + n``, and the Brownian-
+      bridge remainder ``Q_ω Δt³/12`` is added to the attitude covariance. The attitude then
+      receives ``Q_ω Δt³/3`` per step like the MEKF (§5) and a continuously varying rate;
+      with 0 and 1 the gyro at the end of the step appears to observe the whole increment,
+      which makes the covariance over-confident when the rate wanders.
+
+    Returns False (state untouched) if a factorisation fails.
     """
     # 0. reset variant: re-centre at the estimate, keep P
     if not chart_update:
@@ -49,6 +62,9 @@ def mukf_step(
         ebar[:] = 0.0
     if nx == 9:  # bias random walk, added before the sigma points so that it reaches P_xy
         P[6:9, 6:9] += Qb * dt
+    published = noise_mode == NOISE_PUBLISHED
+    if noise_mode == NOISE_INTEGRATED:  # Brownian-bridge part of the attitude increment
+        P[0:3, 0:3] += Qw * (dt * dt * dt / 12.0)
     nvec = 0
     for k in range(use_v.shape[0]):
         if use_v[k]:
@@ -66,7 +82,7 @@ def mukf_step(
     L, ok = cholesky(P[:nx, :nx].copy())
     if not ok:
         return False
-    Lw, ok = cholesky(Qw if published_scaling else Qw * dt)
+    Lw, ok = cholesky(Qw if published else Qw * dt)
     if not ok:
         return False
     c = np.sqrt(N / (1.0 - w0))
@@ -82,6 +98,7 @@ def mukf_step(
     wts[0] = w0 + 2.0 * 3.0 * nvec * wj
     x = np.empty(nx)
     nw = np.empty(3)
+    wstep = np.empty(3)
     qc_t = t4(qc)
     for s in range(ns):
         for i in range(nx):
@@ -99,10 +116,12 @@ def mukf_step(
         # 3. to the manifold, propagate, predict the measurement
         #    q_j = q̄_c * φ⁻¹(sat(e_j)),  ω_j⁻ = ω_j + n_ω (·Δt),  q_j⁻ = q_j * q_ω(ω_j⁻, Δt)
         for i in range(3):
-            Ws[s, i] = x[3 + i] + (nw[i] * dt if published_scaling else nw[i])
+            n_w = nw[i] * dt if published else nw[i]
+            Ws[s, i] = x[3 + i] + n_w  # ω_j⁻, the rate at the end of the step
+            wstep[i] = x[3 + i] + 0.5 * n_w if noise_mode == NOISE_INTEGRATED else Ws[s, i]
             Bs[s, i] = x[6 + i] if nx == 9 else b[i]
         qj = qmul_t(qc_t, from_chart_t(chart, saturate_t(chart, (x[0], x[1], x[2]))))
-        qj = qnormalize_t(qmul_t(qnormalize_t(qj), q_omega_t(t3(Ws[s]), dt)))
+        qj = qnormalize_t(qmul_t(qnormalize_t(qj), q_omega_t(t3(wstep), dt)))
         for i in range(4):
             Qs[s, i] = qj[i]
         row = 0

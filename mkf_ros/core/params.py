@@ -108,10 +108,12 @@ PARAMS: tuple[Param, ...] = (
     _P("chart_update", bool, True, "Move the covariance to the chart of the updated estimate "
        "(paper eq. 47b); false = the classic reset"),
     _P("mukf_w0", float, 1.0 / 25.0, "MUKF weight of the central sigma point W_0 (§6)",
-       range=(1e-3, 0.99)),
-    _P("mukf_noise_scaling", str, "consistent", "MUKF angular-velocity noise: 'consistent' "
-       "grows the rate variance by Q_w*dt, 'published' by Q_w*dt^2 as in the paper's figures "
-       "(§8 item 3)", choices=("consistent", "published")),
+       unit="1", range=(1e-3, 0.99)),
+    _P("mukf_noise_scaling", str, "consistent", "MUKF angular-velocity noise (§8 item 3): "
+       "'consistent' grows the rate variance by Q_w*dt; 'published' by Q_w*dt^2 as in the "
+       "paper's figures; 'integrated' (extension) also rotates each step with the mean rate of "
+       "the Wiener process, giving the attitude the MEKF's Q_w*dt^3/3 and an honest covariance",
+       choices=("consistent", "published", "integrated")),
     # --- frames and sensors -----------------------------------------------------------------
     _P("world_frame", str, "enu", "World frame of the published orientation (REP-103/145)",
        choices=WORLD_FRAMES, group="frames"),

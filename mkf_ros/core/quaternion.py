@@ -161,11 +161,10 @@ def skew(a: np.ndarray) -> np.ndarray:
 
 @jit
 def angle_between(p: np.ndarray, q: np.ndarray) -> float:
-    """Rotation angle of ``p* * q`` in rad, in [0, π]: ``2 arccos|p·q|`` (§7.3, eq. 72)."""
-    d = abs(p[0] * q[0] + p[1] * q[1] + p[2] * q[2] + p[3] * q[3])
-    if d > 1.0:
-        d = 1.0
-    return 2.0 * np.arccos(d)
+    """Rotation angle of ``p* * q`` in rad, in [0, π] (§7.3, eq. 72: ``2 arccos|p·q|``), computed
+    as ``2 atan2(‖δ_v‖, |δ0|)``, which is the same value but exact for small angles too."""
+    d = qconj_mul_t(t4(p), t4(q))
+    return 2.0 * np.arctan2(np.sqrt(d[1] * d[1] + d[2] * d[2] + d[3] * d[3]), abs(d[0]))
 
 
 def as_unit_quaternion(q: np.ndarray) -> np.ndarray:
@@ -213,5 +212,5 @@ def qconj_np(q: np.ndarray) -> np.ndarray:
 
 def angle_between_np(p: np.ndarray, q: np.ndarray) -> np.ndarray:
     """Vectorised :func:`angle_between` (rad)."""
-    d = np.abs(np.sum(np.asarray(p) * np.asarray(q), axis=-1))
-    return 2.0 * np.arccos(np.clip(d, -1.0, 1.0))
+    d = qmul_np(qconj_np(p), q)
+    return 2.0 * np.arctan2(np.linalg.norm(d[..., 1:], axis=-1), np.abs(d[..., 0]))

@@ -1,0 +1,201 @@
+"""The real-sensor layer (mkf_ros.core.filter): alignment, frames, covariance, bad samples,
+gaps and runtime reconfiguration."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from mkf_ros.core.filter import AttitudeFilter
+from mkf_ros.core.frames import FROM_ENU
+from mkf_ros.core.quaternion import angle_between, q_from_rotvec, qmul, rotmat
+from mkf_ros.metrics import orientation_errors
+from mkf_ros.sim import simulate
+
+G = 9.80665
+MAG_ENU = np.array([0.0, 20e-6, -40e-6])  # north and down
+
+
+def reading(q_enu: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Noise-free accelerometer and magnetometer readings of a body at rest with attitude q."""
+    R = rotmat(q_enu)
+    return R.T @ np.array([0.0, 0.0, G]), R.T @ MAG_ENU
+
+
+@pytest.mark.parametrize("algorithm", ["mekf", "mukf"])
+def test_alignment_is_exact_on_the_first_sample(algorithm: str) -> None:
+    q = q_from_rotvec(np.array([0.4, -0.7, 2.0]))
+    acc, mag = reading(q)
+    f = AttitudeFilter(algorithm=algorithm, use_mag=True)
+    assert not f.initialized
+    f.step(0.0, gyr=np.zeros(3), acc=acc, mag=mag)
+    assert f.initialized and f.heading_initialized
+    assert np.degrees(angle_between(f.quaternion, q)) < 1e-6
+
+
+def test_world_frames() -> None:
+    """A level sensor whose x axis points north, at rest: identity in NED (x north, z down) for
+    a body frame x forward/y right/z down; in ENU a level x-north body has yaw +90°; NWU yaw 0.
+    (REP-103 / REP-145.)"""
+    q_enu_flu = q_from_rotvec(np.array([0, 0, np.pi / 2]))  # body FLU, x north
+    acc, mag = reading(q_enu_flu)
+    out = {}
+    for frame in ("enu", "ned", "nwu"):
+        f = AttitudeFilter(use_mag=True, world_frame=frame)
+        f.step(0.0, np.zeros(3), acc, mag)
+        out[frame] = f.quaternion
+    assert angle_between(out["enu"], q_enu_flu) < 1e-9
+    assert angle_between(out["nwu"], np.array([1.0, 0, 0, 0])) < 1e-9
+    # an FRD body (x north, y east, z down) is the identity in NED
+    flu_to_frd = np.array([0.0, 1.0, 0.0, 0.0])  # 180° about x
+    q_enu_frd = qmul(q_enu_flu, flu_to_frd)
+    acc, mag = reading(q_enu_frd)
+    f = AttitudeFilter(use_mag=True, world_frame="ned")
+    f.step(0.0, np.zeros(3), acc, mag)
+    assert angle_between(f.quaternion, np.array([1.0, 0, 0, 0])) < 1e-9
+    for frame, qw in FROM_ENU.items():
+        assert angle_between(out[frame], qmul(qw, out["enu"])) < 1e-9
+
+
+@pytest.mark.parametrize("frame", ["enu", "ned", "nwu"])
+def test_covariance_is_about_world_axes(frame: str) -> None:
+    """Without a magnetometer only yaw — rotation about the world's vertical axis — is
+    unobservable: its variance grows while the tilt variances stay small."""
+    sim = simulate("slow_rotation", duration=60, rate=100, seed=2)
+    f = AttitudeFilter(world_frame=frame)
+    covs = []
+    for k in range(sim.t.size):
+        f.step(0.01 if k else 0.0, sim.gyr[k], sim.acc[k])
+        covs.append(f.covariance)
+    covs = np.array(covs)
+    assert np.all(np.isfinite(covs))
+    np.testing.assert_allclose(covs, np.transpose(covs, (0, 2, 1)), atol=1e-15)
+    assert np.all(np.linalg.eigvalsh(covs[1:]) > 0)  # never all-zero, positive definite
+    vert = 2  # ENU and NWU: z up; NED: z down — the vertical axis is z in all three
+    tilt = covs[-1, 0, 0] + covs[-1, 1, 1]
+    assert covs[-1, vert, vert] > 20 * tilt
+    assert covs[-1, vert, vert] > 3 * covs[100, vert, vert]  # grows: yaw drifts with the gyro
+
+
+def test_covariance_before_initialisation_is_unknown_not_zero() -> None:
+    f = AttitudeFilter()
+    f.step(0.01, gyr=np.zeros(3))  # no accelerometer yet
+    assert not f.initialized
+    assert np.all(np.diag(f.covariance) >= np.pi**2 - 1e-9)
+    assert f.counter_dict()["before_init"] == 1
+
+
+@pytest.mark.parametrize("algorithm", ["mekf", "mukf"])
+def test_bad_samples_are_skipped_and_counted(algorithm: str) -> None:
+    sim = simulate("slow_rotation", duration=5, rate=100, seed=1)
+    f = AttitudeFilter(algorithm=algorithm, use_mag=True)
+    bad = {10: ("acc", [np.nan, 1, 2]), 11: ("acc", [0, 0, 0]), 12: ("gyr", [np.inf, 0, 0]),
+           13: ("mag", [0, 0, 0]), 14: ("mag", [np.nan] * 3), 15: ("acc", [1e308, 1e308, 1])}
+    for k in range(sim.t.size):
+        s = {"gyr": sim.gyr[k], "acc": sim.acc[k], "mag": sim.mag[k]}
+        if k in bad:
+            s[bad[k][0]] = np.array(bad[k][1], dtype=float)
+        f.step(0.01 if k else 0.0, **s)
+        assert np.all(np.isfinite(f.quaternion)) and np.all(np.isfinite(f.covariance))
+    c = f.counter_dict()
+    assert c["acc_invalid"] == 2 and c["gyr_invalid"] == 1
+    assert c["mag_invalid"] == 1 and c["mag_missing"] == 1
+    err = orientation_errors(f.quaternion[None], sim.quat[-1][None])
+    assert np.degrees(err["total"][0]) < 2.0
+
+
+@pytest.mark.parametrize("algorithm", ["mekf", "mukf"])
+def test_gap_realigns_and_keeps_heading(algorithm: str) -> None:
+    """A gap longer than max_dt re-aligns roll and pitch from the next accelerometer sample
+    instead of integrating a stale rate; without a magnetometer the heading is kept."""
+    q0 = q_from_rotvec(np.array([0.0, 0.0, 1.0]))
+    acc, _ = reading(q0)
+    f = AttitudeFilter(algorithm=algorithm, max_dt=0.5)
+    f.step(0.0, np.zeros(3), acc)
+    for _ in range(50):
+        f.step(0.01, np.array([0.0, 0.0, 0.3]), acc)  # spinning about the vertical
+    yaw_before = f.quaternion
+    q1 = qmul(q_from_rotvec(np.array([0.0, 0.0, 0.0])), q_from_rotvec(np.array([0.5, 0, 0])))
+    acc1, _ = reading(qmul(yaw_before, q1))
+    f.step(10.0, np.zeros(3), acc1)  # 10 s later, tilted by 0.5 rad
+    assert f.counter_dict()["gaps"] == 1
+    err = orientation_errors(f.quaternion[None], qmul(yaw_before, q1)[None])
+    assert np.degrees(err["inclination"][0]) < 1e-6
+    assert np.degrees(err["heading"][0]) < 1e-6
+
+
+@pytest.mark.parametrize("old,new", [({"algorithm": "mukf"}, {"algorithm": "mekf"}),
+                                     ({"algorithm": "mekf"}, {"algorithm": "mukf"}),
+                                     ({"chart": "rv"}, {"chart": "o"}),
+                                     ({"algorithm": "mukf", "chart": "mrp"},
+                                      {"chart": "rp", "chart_update": False})])
+def test_runtime_switch_is_continuous(old: dict, new: dict) -> None:
+    """Switching algorithm, chart or chart update mid-stream keeps the estimate and its
+    covariance: no jump, no re-convergence."""
+    sim = simulate("slow_rotation", duration=10, rate=100, seed=4)
+    f = AttitudeFilter(use_mag=True, **old)
+    g = AttitudeFilter(use_mag=True, **old)
+    half = sim.t.size // 2
+    for k in range(half):
+        for h in (f, g):
+            h.step(0.01 if k else 0.0, sim.gyr[k], sim.acc[k], sim.mag[k])
+    q_before, c_before = f.quaternion, f.covariance
+    f.set_params(**new)
+    assert angle_between(f.quaternion, q_before) < 1e-12
+    np.testing.assert_allclose(f.covariance, c_before, rtol=1e-9, atol=1e-15)
+    for k in range(half, sim.t.size):
+        f.step(0.01, sim.gyr[k], sim.acc[k], sim.mag[k])
+        g.step(0.01, sim.gyr[k], sim.acc[k], sim.mag[k])
+    # after the switch the new filter tracks as well as the unswitched one
+    assert np.degrees(angle_between(f.quaternion, sim.quat[-1])) < 1.0
+    assert np.degrees(angle_between(f.quaternion, g.quaternion)) < 0.5
+
+
+def test_invalid_parameter_change_changes_nothing() -> None:
+    f = AttitudeFilter(chart="mrp")
+    with pytest.raises(ValueError, match="chart must be one of"):
+        f.set_params(chart="euler")
+    with pytest.raises(ValueError, match=r"gyro_noise must be in \["):
+        f.set_params(gyro_noise=-1.0)
+    with pytest.raises(ValueError, match="unknown filter parameter 'gain'"):
+        f.set_params(gain=0.1)
+    assert f.params.chart == "mrp" and f.params.gyro_noise == 0.01
+
+
+def test_magnetometer_arriving_late_sets_heading() -> None:
+    q = q_from_rotvec(np.array([0.1, 0.2, -2.5]))
+    acc, mag = reading(q)
+    f = AttitudeFilter(use_mag=True)
+    for k in range(20):
+        f.step(0.01 if k else 0.0, np.zeros(3), acc)  # no magnetometer yet: heading arbitrary
+    assert not f.heading_initialized
+    f.step(0.01, np.zeros(3), acc, mag)
+    assert f.heading_initialized
+    assert np.degrees(angle_between(f.quaternion, q)) < 0.05
+
+
+def test_given_mag_reference_defines_north() -> None:
+    """With a given reference the heading follows it; here a 10° declination east."""
+    dec = np.radians(10)
+    ref = np.array([np.sin(dec) * 20e-6, np.cos(dec) * 20e-6, -40e-6])
+    q = q_from_rotvec(np.array([0.0, 0.0, 0.3]))
+    R = rotmat(q)
+    acc, mag = R.T @ np.array([0, 0, G]), R.T @ ref
+    f = AttitudeFilter(use_mag=True, mag_reference=list(ref))
+    f.step(0.0, np.zeros(3), acc, mag)
+    assert np.degrees(angle_between(f.quaternion, q)) < 1e-6
+
+
+def test_paper_initialisation_converges() -> None:
+    sim = simulate("static", duration=20, rate=100, seed=5)
+    f = AttitudeFilter(init_mode="paper", use_mag=True,
+                       mag_reference=[0.0, np.cos(np.radians(60)), -np.sin(np.radians(60))])
+    assert f.initialized is False
+    for k in range(sim.t.size):
+        f.step(0.01, sim.gyr[k], sim.acc[k], sim.mag[k])
+    assert np.degrees(angle_between(f.quaternion, sim.quat[-1])) < 1.0
+
+
+def test_paper_init_with_mag_needs_a_reference() -> None:
+    with pytest.raises(ValueError, match="needs mag_reference"):
+        AttitudeFilter(init_mode="paper", use_mag=True)

@@ -1,0 +1,63 @@
+"""The single parameter definition (mkf_ros.core.params) and what is generated from it."""
+
+from __future__ import annotations
+
+import argparse
+
+import pytest
+import yaml
+
+from mkf_ros.cli.options import add_filter_options, filter_overrides
+from mkf_ros.cli.params_cmd import to_markdown, to_yaml
+from mkf_ros.core.params import BY_NAME, PARAMS, FilterParams, filter_params
+
+
+@pytest.mark.parametrize("p", PARAMS, ids=lambda p: p.name)
+def test_definition_is_complete_and_default_valid(p) -> None:  # noqa: ANN001
+    assert p.description and p.type in (bool, int, float, str, list)
+    assert p.validate(p.default) == p.default
+    if p.type in (int, float):
+        assert p.range is not None and p.range[0] <= p.default <= p.range[1]
+        assert p.unit, f"{p.name} has no unit"
+    if p.choices:  # strings are either a closed set or free-form (frame ids)
+        assert p.default in p.choices
+    assert p.scope in ("filter", "node")
+
+
+@pytest.mark.parametrize("p", [p for p in PARAMS if p.type in (int, float)], ids=lambda p: p.name)
+def test_ranges_are_enforced(p) -> None:  # noqa: ANN001
+    lo, hi = p.range
+    with pytest.raises(ValueError, match=p.name):
+        p.validate(hi + abs(hi) + 1)
+    with pytest.raises(ValueError, match=p.name):
+        p.validate(lo - abs(lo) - 1)
+    with pytest.raises(ValueError, match="must be a number"):
+        p.validate("fast")
+
+
+def test_filter_params_mapping() -> None:
+    fp = FilterParams(chart="RV", use_mag="true")
+    assert fp.chart == "rv" and fp["use_mag"] is True and set(fp) == {p.name for p in filter_params()}
+    assert fp.replace(algorithm="mukf").algorithm == "mukf" and fp.algorithm == "mekf"
+
+
+def test_yaml_lists_every_parameter_with_doc() -> None:
+    text = to_yaml(list(BY_NAME.values()), "estimator")
+    data = yaml.safe_load(text)["estimator"]["ros__parameters"]
+    assert set(data) == set(BY_NAME)
+    for p in BY_NAME.values():
+        assert data[p.name] == p.default
+        assert f"# {p.doc()}" in text
+    md = to_markdown(list(BY_NAME.values()))
+    assert all(f"`{name}`" in md for name in BY_NAME)
+
+
+def test_cli_flags_are_generated() -> None:
+    parser = argparse.ArgumentParser()
+    add_filter_options(parser)
+    args = parser.parse_args(["--chart", "mrp", "--no-chart-update", "--gyro-noise", "0.02",
+                              "--mag-reference", "0", "1", "-1"])
+    assert filter_overrides(args) == {"chart": "mrp", "chart_update": False,
+                                      "gyro_noise": 0.02, "mag_reference": [0.0, 1.0, -1.0]}
+    with pytest.raises(SystemExit):
+        parser.parse_args(["--chart", "euler"])
