@@ -111,8 +111,10 @@ def write_bag(sim: SimData, path: str | Path, storage: str = "mcap", *,
     with BagWriter(path, storage, overwrite=overwrite, compress=compress) as w:
         conns = [w.add_topic(s.topic, s.msgtype) for s in order]
         w._w.set_custom_data(CUSTOM_KEY, json.dumps(describe(sim)))
-        which, t, raws = interleave(order)
-        ids = np.array([c.id for c in conns])[which]
+        # at equal times the magnetometer goes first: the estimator then holds it and fuses it
+        # with the IMU sample of that stamp (a first sample initialises with its heading)
+        which, t, raws = interleave([order[1], order[0], order[2]])
+        ids = np.array([conns[1].id, conns[0].id, conns[2].id])[which]
         w.write_batch(ids, t, raws)
     return {s.topic: len(s.log_ns) for s in order}
 

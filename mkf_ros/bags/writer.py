@@ -70,7 +70,7 @@ class BagWriter:
         if storage not in STORAGES:
             raise BagError(f"unknown storage {storage!r} (choose from {', '.join(STORAGES)})")
         if self.path.exists() and not overwrite:
-            raise BagError(f"{self.path} already exists (choose another name or overwrite)")
+            raise BagError(f"{self.path} already exists (use --overwrite to replace it)")
         if self.path.exists() and not _is_bag_dir(self.path):
             raise BagError(f"{self.path} exists and is not a bag; not replacing it")
         parent = self.path.parent

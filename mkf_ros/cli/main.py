@@ -17,6 +17,8 @@ from collections.abc import Sequence
 COMMANDS: dict[str, str] = {
     "demo": "mkf_ros.cli.demo",
     "params": "mkf_ros.cli.params_cmd",
+    "process": "mkf_ros.cli.process",
+    "synth": "mkf_ros.cli.synth",
 }
 
 

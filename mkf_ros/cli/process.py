@@ -1,0 +1,187 @@
+"""``mkf process``: the estimator over a bag, without DDS; accuracy and plots against the truth."""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import sys
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+HELP = "run the estimator over a bag (no DDS), write imu/data, score against ground truth"
+
+#: bags with at least this many messages get progress bars (on a terminal)
+PROGRESS_MIN = 100_000
+
+
+def add_param_options(parser: argparse.ArgumentParser, names: list[str], title: str) -> None:
+    """One ``--name`` flag per parameter in ``names`` (generated from PARAMS)."""
+    from mkf_ros.cli.options import flag
+    from mkf_ros.core.params import BY_NAME
+
+    g = parser.add_argument_group(title)
+    for name in names:
+        p = BY_NAME[name]
+        kw: dict[str, Any] = dict(default=None, dest=p.name,
+                                  help=f"{p.doc()} (default: {p.default})")
+        if p.type is bool:
+            g.add_argument(flag(p), action=argparse.BooleanOptionalAction, **kw)
+        elif p.type is list:
+            g.add_argument(flag(p), type=float, nargs=p.length or "+", metavar="X", **kw)
+        elif p.choices:
+            g.add_argument(flag(p), choices=p.choices, **kw)
+        else:
+            g.add_argument(flag(p), type=p.type, metavar=p.unit.upper() or "X", **kw)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from mkf_ros.bags.process import stream_param_names
+
+    parser.add_argument("bag", metavar="BAG", help="input bag: rosbag2 directory, .mcap, .db3 "
+                        "or ROS 1 .bag")
+    parser.add_argument("--out", required=True, metavar="OUT_BAG", help="output bag (new)")
+    parser.add_argument("--storage", default="mcap", metavar="{mcap,sqlite3}",
+                        help="output storage (default mcap)")
+    parser.add_argument("--overwrite", action="store_true", help="replace an existing OUT_BAG")
+    parser.add_argument("--imu-topic", default="imu/data_raw", metavar="TOPIC")
+    parser.add_argument("--mag-topic", default="imu/mag", metavar="TOPIC")
+    parser.add_argument("--truth-topic", default="imu/ground_truth", metavar="TOPIC",
+                        help="geometry_msgs/QuaternionStamped, sensor → ENU (scored if present)")
+    parser.add_argument("--output-topic", default="imu/data", metavar="TOPIC")
+    parser.add_argument("--copy-input", action="store_true",
+                        help="also copy every input topic into OUT_BAG")
+    parser.add_argument("--plot", metavar="PNG", help="plot file (default: OUT_BAG.png)")
+    parser.add_argument("--no-plot", action="store_true", help="write no plot")
+    parser.add_argument("--skip", type=float, default=0.0, metavar="S",
+                        help="leave the first S seconds out of the scores (default 0)")
+    parser.add_argument("--quiet", action="store_true", help="no progress bars")
+    add_param_options(parser, stream_param_names(), "estimator parameters (as the node's)")
+
+
+def _overrides(args: argparse.Namespace) -> dict[str, Any]:
+    from mkf_ros.bags.process import stream_param_names
+
+    return {n: getattr(args, n) for n in stream_param_names() if getattr(args, n) is not None}
+
+
+class _Bars:
+    """tqdm progress bars on stderr, only for long bags on a terminal."""
+
+    def __init__(self, enabled: bool) -> None:
+        self.enabled = enabled
+        self.bars: list[Any] = []
+
+    def __call__(self, desc: str, total: int) -> Callable[[int], None] | None:
+        if not self.enabled:
+            return None
+        from tqdm import tqdm
+
+        self.close()
+        bar = tqdm(total=total, desc=f"{desc:<6}", leave=False, file=sys.stderr,
+                   unit_scale=True, dynamic_ncols=True, mininterval=0.2)
+        self.bars.append(bar)
+        return bar.update
+
+    def close(self) -> None:
+        for b in self.bars:
+            b.close()
+        self.bars.clear()
+
+
+@contextlib.contextmanager
+def _bars(enabled: bool) -> Iterator[_Bars]:
+    b = _Bars(enabled)
+    try:
+        yield b
+    finally:
+        b.close()
+
+
+def _count_messages(bag: str) -> int:
+    from mkf_ros.bags import BagReader
+
+    with contextlib.suppress(Exception), BagReader(bag) as br:
+        return br.message_count
+    return 0
+
+
+def default_plot_path(out: str | Path) -> Path:
+    return Path(str(out).rstrip("/") + ".png")
+
+
+def run(args: argparse.Namespace) -> int:
+    from mkf_ros.bags import BagError
+    from mkf_ros.bags.process import process_bag
+    from mkf_ros.cli.main import CliError
+
+    if args.storage not in ("mcap", "sqlite3"):
+        raise CliError(f"unknown storage {args.storage!r} (choose from mcap, sqlite3)")
+    out = Path(args.out)
+    if Path(args.bag).resolve() == out.resolve():
+        raise CliError("--out must differ from the input bag")
+    if out.exists() and not args.overwrite:
+        raise CliError(f"{out} already exists (use --overwrite to replace it)")
+    show = not args.quiet and sys.stderr.isatty() and _count_messages(args.bag) >= PROGRESS_MIN
+    try:
+        with _bars(show) as bars:
+            r = process_bag(args.bag, out, _overrides(args), imu_topic=args.imu_topic,
+                            mag_topic=args.mag_topic, truth_topic=args.truth_topic,
+                            output_topic=args.output_topic, storage=args.storage,
+                            overwrite=args.overwrite, copy_input=args.copy_input,
+                            skip=args.skip, progress=bars)
+    except BagError as e:
+        raise CliError(str(e)) from None
+    except ValueError as e:  # an invalid parameter value
+        raise CliError(str(e)) from None
+    report(r, args)
+    return 0
+
+
+def report(r: Any, args: argparse.Namespace) -> None:
+    """Print what was done and how accurate it was."""
+    p = r.params
+    print(f"{args.bag} → {r.out} ({args.storage})")
+    mag = (f", {r.mag_topic} {r.n_mag:,} (fused)" if r.mag_topic else ", no magnetometer")
+    print(f"  input   {r.imu_topic} {r.n_imu:,}{mag}")
+    print(f"  filter  {p['algorithm']}-{p['chart']}, world_frame {p['world_frame']}, "
+          f"use_mag {str(p['use_mag']).lower()}")
+    from mkf_ros.bags import normalize_topic
+
+    print(f"  output  {normalize_topic(args.output_topic)} {r.n_out:,} messages")
+    rej = {k: v for k, v in r.counters.items()
+           if v and k not in ("imu_received", "mag_received", "mag_fused")}
+    if rej:
+        print("  events  " + ", ".join(f"{k} {v}" for k, v in rej.items()))
+    for note in r.notes:
+        print(f"  note    {note}")
+    s = r.scores
+    if s is not None:
+        n = len(s.t)
+        extra = f", first {args.skip:g} s left out" if args.skip else ""
+        print(f"  accuracy against {args.truth_topic} ({n:,} samples{extra}), RMSE in degrees:")
+        print(f"          total {s.rmse['total']:7.3f}   heading {s.rmse['heading']:7.3f}   "
+              f"inclination {s.rmse['inclination']:7.3f}")
+        if s.heading_aligned:
+            print("          (no magnetometer: heading aligned to the truth once, at the start)")
+        for kind, w in s.windows.items():
+            print(f"          during {kind:<14} total {w['total']:7.3f}   heading "
+                  f"{w['heading']:7.3f}   inclination {w['inclination']:7.3f}")
+        if not args.no_plot:
+            from mkf_ros.bags.synth import read_description
+            from mkf_ros.plots import accuracy_figure
+
+            path = Path(args.plot) if args.plot else default_plot_path(r.out)
+            desc = read_description(args.bag) or {}
+            first = s.t[0] - (r.log_s[0] if len(r.log_s) else 0.0)
+            ivs = {k: [(a + first, b + first) for a, b in v]
+                   for k, v in (desc.get("intervals") or {}).items()}
+            title = (f"{Path(args.bag).name}: {p['algorithm'].upper()}-{p['chart'].upper()}, "
+                     f"use_mag {str(p['use_mag']).lower()}")
+            accuracy_figure(path, s.t, s.q_est, s.q_true, s.errors, title=title,
+                            intervals=ivs)
+            print(f"  plot    {path}")
+    tm = r.timings
+    total = sum(tm.values())
+    print(f"  time    {total:.2f} s: read {tm['read']:.2f}, filter {tm['filter']:.2f} "
+          f"({r.n_imu / max(tm['filter'], 1e-9):,.0f} IMU msgs/s), write {tm['write']:.2f}")
