@@ -57,15 +57,22 @@ from mkf_ros.ros.diagnostics import DiagnosticsTracker, Snapshot
 from mkf_ros.ros.parameters import declare_all, to_double, unknown_overrides
 from mkf_ros.stream import StreamAdapter
 
-#: Input QoS: sensor-data policies (best effort, volatile) with a deeper queue than the
-#: profile's 5, so that a burst at 1 kHz is not dropped while a callback runs.
-INPUT_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=50,
-                       reliability=ReliabilityPolicy.BEST_EFFORT,
-                       durability=DurabilityPolicy.VOLATILE)
-#: Output QoS: reliable (what rviz, rosbag and robot_localization expect by default).
-OUTPUT_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=50,
-                        reliability=ReliabilityPolicy.RELIABLE,
-                        durability=DurabilityPolicy.VOLATILE)
+
+def input_qos() -> QoSProfile:
+    """Sensor-data policies (best effort, volatile) with a deeper queue than the profile's 5,
+    so that a burst at 1 kHz is not dropped while a callback runs. A new object per call:
+    QoS overrides are applied to the profile in place."""
+    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=50,
+                      reliability=ReliabilityPolicy.BEST_EFFORT,
+                      durability=DurabilityPolicy.VOLATILE)
+
+
+def output_qos() -> QoSProfile:
+    """Reliable, keep last 50 (what rviz, rosbag and robot_localization expect)."""
+    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=50,
+                      reliability=ReliabilityPolicy.RELIABLE,
+                      durability=DurabilityPolicy.VOLATILE)
+
 
 
 class ParameterError(Exception):
@@ -114,12 +121,12 @@ class EstimatorNode(Node):
         self._out = Imu()
 
         qos_opts = QoSOverridingOptions.with_default_policies
-        self._pub = self.create_publisher(Imu, "imu/data", OUTPUT_QOS,
+        self._pub = self.create_publisher(Imu, "imu/data", output_qos(),
                                           qos_overriding_options=qos_opts())
-        self._sub_imu = self.create_subscription(Imu, "imu/data_raw", self._on_imu, INPUT_QOS,
+        self._sub_imu = self.create_subscription(Imu, "imu/data_raw", self._on_imu, input_qos(),
                                                  qos_overriding_options=qos_opts())
         self._sub_mag = self.create_subscription(MagneticField, "imu/mag", self._on_mag,
-                                                 INPUT_QOS, qos_overriding_options=qos_opts())
+                                                 input_qos(), qos_overriding_options=qos_opts())
         self._diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self._diag = DiagnosticsTracker(f"{self.get_name()}: attitude estimator")
         self._srv_reset = self.create_service(Trigger, "~/reset", self._on_reset)

@@ -1,0 +1,183 @@
+"""The node's interface beyond the estimate: ~/reset, /diagnostics, TF, debug topics, QoS,
+namespaces and the covariance fields of imu/data."""
+
+from __future__ import annotations
+
+import math
+import sys
+import types
+
+import numpy as np
+import pytest
+from geometry_msgs.msg import Vector3Stamped
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rosharness import imu_msg, quat
+from sensor_msgs.msg import Imu
+
+from mkf_ros.core.quaternion import qconj_np
+from mkf_ros.ros.convert import quat_wxyz
+
+pytestmark = pytest.mark.ros
+T0 = 100.0
+OK, WARN = b"\x00", b"\x01"
+
+
+def statuses(h):
+    return [s for d in h.diag for s in d.status if s.name.startswith("estimator")]
+
+
+def values(status) -> dict[str, str]:
+    return {kv.key: kv.value for kv in status.values}
+
+
+def test_reset_service(harness) -> None:
+    h = harness()
+    h.send_imu([T0 + 0.01 * k for k in range(50)], gyr=(0.0, 0.0, 1.0))
+    assert quat(h.out[-1])[3] > 0.2
+    res = h.reset()
+    assert res.success and "re-initialising" in res.message
+    assert not h.est.stream.initialized and h.est.stream.counters["resets"] == 1
+    h.send_imu([T0 + 0.5])
+    np.testing.assert_allclose(quat(h.out[-1]), [1, 0, 0, 0], atol=1e-12)
+
+
+def test_diagnostics_report(harness) -> None:
+    h = harness({"diagnostics_period": 0.25, "estimate_gyro_bias": True})
+    n = 0
+    while not statuses(h) or n < 50:
+        h.send_imu([T0 + 0.01 * n])
+        n += 1
+        h.spin_for(0.01)
+    assert h.spin_until(lambda: len(statuses(h)) >= 2, 3.0)
+    st = statuses(h)[-1]
+    assert st.name == "estimator: attitude estimator" and st.hardware_id == "imu_link"
+    assert st.level == OK, st.message
+    assert st.message == "running, heading relative to the start-up heading"
+    v = values(st)
+    assert float(v["imu rate (Hz)"]) > 10
+    assert v["initialised"] == "true" and v["magnetometer"] == "disabled"
+    assert v["imu topic"] == "/imu/data_raw" and v["algorithm / chart"] == "mekf / rp"
+    sd = [float(x) for x in v["orientation stddev x/y/z, world axes (deg)"].split(" / ")]
+    assert all(0 < x < 5 for x in sd)
+    assert float(v["orientation covariance trace (rad^2)"]) > 0
+    assert "gyro bias stddev (rad/s)" in v
+    assert v["imu_received"] == str(h.est.stream.counters["imu_received"]) or int(
+        v["imu_received"]) <= h.est.stream.counters["imu_received"]
+    for key in ("imu_out_of_order", "acc_implausible", "mag_too_old", "resets"):
+        assert key in v
+
+
+def test_silent_inputs_named_with_resolved_topics(harness, capfd) -> None:
+    h = harness({"diagnostics_period": 0.2, "input_timeout": 0.3, "use_mag": True},
+                namespace="/robot1")
+    assert h.spin_until(lambda: any(s.level == WARN for s in statuses(h)), 3.0)
+    st = [s for s in statuses(h) if s.level == WARN][-1]
+    assert "no data on /robot1/imu/data_raw" in st.message
+    assert "no data on /robot1/imu/mag" in st.message
+    err = capfd.readouterr().err
+    assert "no data on /robot1/imu/data_raw" in err
+
+
+def test_not_initialised_says_why(harness) -> None:
+    h = harness({"diagnostics_period": 0.2})
+    h.send_imu([T0 + 0.01 * k for k in range(10)], acc=(0.0, 0.0, 1.0))  # in g, not m/s²
+    assert h.spin_until(lambda: any("not initialised" in s.message for s in statuses(h)), 3.0)
+    st = next(s for s in statuses(h) if "not initialised" in s.message)
+    assert st.level == WARN
+    assert "accelerometer magnitude 1 m/s² is far from gravity" in st.message
+    assert "units of g" in st.message
+
+
+def fake_tf2(monkeypatch) -> list:
+    sent: list = []
+
+    class TransformBroadcaster:
+        def __init__(self, node) -> None:
+            self.node = node
+
+        def sendTransform(self, t) -> None:
+            sent.append(t)
+
+    mod = types.ModuleType("tf2_ros")
+    mod.TransformBroadcaster = TransformBroadcaster
+    monkeypatch.setitem(sys.modules, "tf2_ros", mod)
+    return sent
+
+
+def test_tf_follows_the_message(harness, monkeypatch) -> None:
+    """publish_tf (at run time): fixed_frame → IMU frame, the message's rotation (yaw offset
+    included), the IMU stamp; reverse_tf broadcasts the inverse, frames swapped."""
+    sent = fake_tf2(monkeypatch)
+    h = harness({"yaw_offset": 0.3, "fixed_frame": "odom"})
+    h.send_imu([T0, T0 + 0.01], gyr=(0.1, 0.0, 0.2), acc=(1.0, 0.5, 9.7))
+    assert sent == []  # default false
+    assert h.set(publish_tf=True)[0].successful
+    h.send_imu([T0 + 0.02])
+    t, m = sent[-1], h.out[-1]
+    assert (t.header.frame_id, t.child_frame_id) == ("odom", "imu_link")
+    assert t.header.stamp == m.header.stamp
+    np.testing.assert_array_equal(quat_wxyz(t.transform.rotation), quat(m))
+    assert h.set(reverse_tf=True)[0].successful
+    h.send_imu([T0 + 0.03])
+    t, m = sent[-1], h.out[-1]
+    assert (t.header.frame_id, t.child_frame_id) == ("imu_link", "odom")
+    np.testing.assert_allclose(quat_wxyz(t.transform.rotation), qconj_np(quat(m)), atol=1e-15)
+
+
+def test_tf_without_tf2_warns(harness, monkeypatch, capfd) -> None:
+    monkeypatch.setitem(sys.modules, "tf2_ros", None)  # import fails
+    h = harness({"publish_tf": True})
+    h.send_imu([T0, T0 + 0.01])
+    assert len(h.out) == 2
+    assert "publish_tf is true but tf2_ros cannot be imported" in capfd.readouterr().err
+
+
+def test_debug_topics(harness) -> None:
+    h = harness({"publish_debug_topics": True, "estimate_gyro_bias": True})
+    rpy, bias = [], []
+    h.cli.create_subscription(Vector3Stamped, "imu/rpy/filtered", rpy.append, 50)
+    h.cli.create_subscription(Vector3Stamped, "imu/gyro_bias", bias.append, 50)
+    assert h.spin_until(lambda: h.est._rpy_pub.get_subscription_count() > 0
+                        and h.est._bias_pub.get_subscription_count() > 0)
+    roll = 0.3
+    h.send_imu([T0 + 0.01 * k for k in range(5)],
+               acc=(0.0, 9.80665 * math.sin(roll), 9.80665 * math.cos(roll)))
+    assert h.spin_until(lambda: len(rpy) == 5 and len(bias) == 5)
+    assert rpy[-1].vector.x == pytest.approx(roll, abs=1e-3)
+    assert rpy[-1].header.frame_id == "imu_link"
+
+
+@pytest.mark.parametrize("publisher_reliability",
+                         [ReliabilityPolicy.BEST_EFFORT, ReliabilityPolicy.RELIABLE])
+def test_default_qos_takes_best_effort_and_reliable(harness, publisher_reliability) -> None:
+    h = harness(reliable=False)
+    assert h.get("qos_overrides./imu/data_raw.subscription.reliability") == ["best_effort"]
+    pub = h.cli.create_publisher(Imu, "imu/data_raw",
+                                 QoSProfile(depth=10, reliability=publisher_reliability))
+    assert h.spin_until(lambda: pub.get_subscription_count() > 0)
+    for k in range(5):
+        pub.publish(imu_msg(T0 + 0.01 * k, (0, 0, 0), (0, 0, 9.8)))
+        h.spin_for(0.02)
+    assert h.spin_until(lambda: len(h.out) == 5)
+
+
+def test_covariances_copied_filled_or_estimated(harness) -> None:
+    h = harness({"angular_velocity_stddev": 0.01, "linear_acceleration_stddev": 0.2})
+    unknown = imu_msg(T0, (0.1, 0.0, 0.0), (0.0, 0.0, 9.8))
+    known = imu_msg(T0 + 0.01, (0.1, 0.0, 0.0), (0.0, 0.0, 9.8))
+    known.angular_velocity_covariance = np.diag([1e-6, 2e-6, 3e-6]).reshape(9)
+    known.linear_acceleration_covariance = np.diag([1e-3, 2e-3, 3e-3]).reshape(9)
+    h.send([unknown, known])
+    a, b = h.out
+    np.testing.assert_allclose(a.angular_velocity_covariance, np.diag([1e-4] * 3).reshape(9))
+    np.testing.assert_allclose(a.linear_acceleration_covariance, np.diag([0.04] * 3).reshape(9))
+    np.testing.assert_array_equal(b.angular_velocity_covariance, known.angular_velocity_covariance)
+    np.testing.assert_array_equal(b.linear_acceleration_covariance,
+                                  known.linear_acceleration_covariance)
+    assert b.angular_velocity.x == 0.1  # the input, as received
+    assert h.set(angular_velocity_source="estimate")[0].successful
+    h.send([imu_msg(T0 + 0.02, (0.1, 0.0, 0.0), (0.0, 0.0, 9.8))])
+    c = h.out[-1]
+    assert c.angular_velocity.x == pytest.approx(h.est.stream.filter.omega[0])
+    cov = np.reshape(c.angular_velocity_covariance, (3, 3))
+    assert np.all(np.linalg.eigvalsh(cov) > 0)  # the filter's rate covariance
