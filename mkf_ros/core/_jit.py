@@ -49,6 +49,11 @@ def _cache_root() -> Path:
 KERNEL_HASH = _kernel_hash()
 
 
+def kernel_cache_dir() -> Path:
+    """Where this version of the kernels is cached (exists once something was compiled)."""
+    return _cache_root() / f"numba-{KERNEL_HASH}"
+
+
 class KernelCacheLocator(caching._SourceFileBackedLocatorMixin, caching._CacheLocator):
     """numba cache locator for mkf_ros kernels (see the module docstring)."""
 
@@ -56,7 +61,7 @@ class KernelCacheLocator(caching._SourceFileBackedLocatorMixin, caching._CacheLo
         self._py_file = py_file
         self._lineno = py_func.__code__.co_firstlineno  # type: ignore[attr-defined]
         rel = Path(py_file).resolve().parent.relative_to(_PACKAGE_DIR)
-        self._cache_path = str(_cache_root() / f"numba-{KERNEL_HASH}" / rel)
+        self._cache_path = str(kernel_cache_dir() / rel)
 
     def get_cache_path(self) -> str:
         return self._cache_path
