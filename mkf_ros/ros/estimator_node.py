@@ -335,14 +335,27 @@ class EstimatorNode(Node):
         self.get_logger().error(self._last_exception, throttle_duration_sec=5.0)
 
 
+USAGE = """\
+usage: estimator [--ros-args [-p NAME:=VALUE] [--params-file FILE] [-r FROM:=TO] ...]
+
+MEKF/MUKF attitude estimator (mkf_ros), a drop-in replacement for imu_filter_madgwick.
+  subscribes  imu/data_raw (sensor_msgs/Imu), imu/mag (sensor_msgs/MagneticField, tesla)
+  publishes   imu/data (sensor_msgs/Imu), /diagnostics; imu/rpy/filtered, imu/gyro_bias
+              with publish_debug_topics; TF with publish_tf
+  service     ~/reset (std_srvs/Trigger)
+examples:
+  estimator --ros-args -p use_mag:=true -p world_frame:=ned
+  estimator --ros-args -r __ns:=/imu_front -r imu/data_raw:=/camera/imu
+  estimator --ros-args --params-file config/estimator.yaml
+parameters (units, ranges, defaults): mkf params --format markdown"""
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Console script ``estimator`` (``ros2 run mkf_ros estimator [--ros-args ...]``)."""
     args = list(sys.argv if argv is None else argv)
     plain = remove_ros_args(args)
     if any(a in ("-h", "--help") for a in plain[1:]):
-        print(__doc__.split("\n\n", 1)[0])
-        print("\nusage: estimator [--ros-args -p NAME:=VALUE --params-file FILE "
-              "-r imu:=NAMESPACE ...]\nparameters: mkf params --format markdown")
+        print(USAGE)
         return 0
     rclpy.init(args=args)
     try:
