@@ -225,6 +225,57 @@ def test_installed_mkf_runs_help(colcon_install: Path) -> None:
     assert proc.stdout.strip(), "mkf --help printed nothing"
 
 
+@pytest.mark.slow
+@pytest.mark.ros
+def test_installed_estimator_runs(colcon_install: Path) -> None:
+    """``ros2 run mkf_ros estimator``: the colcon-installed executable starts, is driven by a
+    separate client process (topics, SetParameters, ~/reset) and stops cleanly on SIGINT.
+
+    The compiled kernels come from the per-user numba cache shared with the source tree
+    (mkf_ros/core/_jit.py keys it on the kernel sources), so this is seconds, not the ~1 min
+    of a cold compile, unless the kernels changed since the last run.
+    """
+    import json
+    import signal
+
+    prefix = colcon_install
+    exe = prefix / "lib" / PKG / "estimator"
+    site = _site_packages(prefix)
+    env = dict(os.environ)  # what `. install/setup.sh` would set
+    env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(site), env.get("PYTHONPATH")]))
+    env["AMENT_PREFIX_PATH"] = os.pathsep.join(
+        filter(None, [str(prefix), env.get("AMENT_PREFIX_PATH")]))
+    help_ = subprocess.run([str(exe), "--help"], cwd=prefix, env=env, capture_output=True,
+                           text=True, timeout=120, check=False)
+    assert help_.returncode == 0 and "imu/data_raw" in help_.stdout, help_.stderr
+    node = subprocess.Popen(
+        [str(exe), "--ros-args", "-r", "__node:=colcon_estimator", "-p", "use_mag:=true",
+         "-p", "qos_overrides./imu/data_raw.subscription.reliability:=reliable",
+         "-p", "qos_overrides./imu/mag.subscription.reliability:=reliable"],
+        cwd=prefix, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        client = subprocess.run(
+            [sys.executable, str(REPO / "test" / "ros" / "proc_client.py"), "/colcon_estimator",
+             "--seconds", "1.0", "--timeout", "200"],
+            cwd=prefix, env=env, capture_output=True, text=True, timeout=240, check=False)
+    finally:
+        node.send_signal(signal.SIGINT)
+        try:
+            _, err = node.communicate(timeout=30)
+        except subprocess.TimeoutExpired:
+            node.kill()
+            _, err = node.communicate()
+    lines = [ln for ln in client.stdout.splitlines() if ln.startswith("{")]
+    assert lines, f"client: {client.stdout}\n{client.stderr}\nestimator: {err[-3000:]}"
+    res = json.loads(lines[-1])
+    assert res["ok"] and res["received"] == res["sent"], f"{res}\n{err[-3000:]}"
+    assert res["set_algorithm"] == [True, ""] and res["reset"][0]
+    assert node.returncode == 0 and "Traceback" not in err, err[-3000:]
+    assert f"{site}" in subprocess.run(
+        [sys.executable, "-c", "import mkf_ros.ros.estimator_node as m; print(m.__file__)"],
+        cwd=prefix, env=env, capture_output=True, text=True, timeout=60).stdout
+
+
 # ---------------------------------------------------------------- (b) package.xml
 
 
