@@ -284,13 +284,14 @@ def process_bag(bag: str | Path, out: str | Path, params: Mapping[str, Any] | No
             truth_name = br.resolve(truth_topic, cdr.QUATERNION_STAMPED.msgtype,
                                     role="ground-truth")
         want = [t for t in (imu_name, mag_name, truth_name) if t]
-        extra = [t for t in br.topics if t not in want] if copy_input else []
-        tick = progress("read", br.work_total(want + extra)) if progress else None
-        batches = br.read(want + extra, tick)
+        extra = list(br.topics) if copy_input else []
+        read = list(dict.fromkeys(want + extra))
+        tick = progress("read", br.work_total(read)) if progress else None
+        batches = br.read(read, tick)
         bag_start = br.start_ns
         in_types = {t: br.topics[t].msgtype for t in extra}
     out_name = normalize_topic(output_topic)
-    if copy_input and out_name in (set(want) | set(extra)):
+    if copy_input and out_name in batches:
         raise BagError(f"output topic {out_name} is also in the input bag; choose another "
                        "--output-topic or drop --copy-input")
     imu_b = batches[imu_name]

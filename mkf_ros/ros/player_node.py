@@ -61,6 +61,8 @@ PARAMS: dict[str, tuple[Any, str]] = {
     "start_offset": (0.0, "s: start this far into the recording"),
     "duration": (0.0, "s: play this long (0 = to the end; synth mode: 60 s)"),
     "loop": (False, "start over at the end (the clock and the stamps jump back)"),
+    "loop_pause": (0.2, "s: wall time between the last message of a pass and the clock "
+                   "jumping back, so that subscribers take the last messages first"),
     "publish_clock": (False, "publish the playback time on /clock"),
     "clock_frequency": (100.0, "Hz: /clock messages per second of wall time"),
     "wait_for_subscribers": (0, "wait until the IMU topic has this many subscribers"),
@@ -197,7 +199,7 @@ class PlayerNode(Node):
         for name, lo in (("rate", 0.0), ("clock_frequency", 0.0)):
             if not p[name] > lo:
                 raise PlayerError(f"{name} must be positive, got {p[name]}")
-        for name in ("start_offset", "duration", "wait_timeout", "start_delay"):
+        for name in ("start_offset", "duration", "wait_timeout", "start_delay", "loop_pause"):
             if p[name] < 0:
                 raise PlayerError(f"{name} must be >= 0, got {p[name]}")
         try:
@@ -327,13 +329,16 @@ class PlayerNode(Node):
             self._publish_clock(now)
             if self._next is None:
                 if p["loop"]:
-                    self.loops += 1
-                    self.get_logger().info(f"end of the recording: loop {self.loops}")
-                    self._start(now)
-                    self._publish_clock(now, force=True)
+                    self.state = "pausing"
+                    self._done_at = now
                 else:
                     self.state = "finishing"
                     self._done_at = now
+        if self.state == "pausing" and now - self._done_at >= p["loop_pause"]:
+            self.loops += 1
+            self.get_logger().info(f"end of the recording: loop {self.loops}")
+            self._start(now)
+            self._publish_clock(now, force=True)
         if self.state == "finishing" and now - self._done_at >= LINGER:
             self.state = "done"
             total = sum(self.published.values())
