@@ -1,0 +1,324 @@
+"""Readers for real IMU recordings with optical ground truth (benchmark only, no ROS).
+
+Each reader takes a dataset folder and returns a list of :class:`Recording`: the sensor arrays
+in the units :func:`mkf_ros.estimate` expects (s, rad/s, m/s², magnetometer in any unit), the
+reference orientation as [w, x, y, z] sensor → world quaternions (NaN rows where the reference
+is invalid or missing) and how the recording must be scored (see :mod:`mkf_ros.scoring`).
+Adding a format is one function ``read_xxx(folder) -> list[Recording]`` in :data:`READERS` and,
+optionally, a content test in :func:`detect_format`.
+
+Formats:
+
+- ``repoimu``: RepoIMU T-stick (Szczęsna et al., ICCVG 2016) semicolon CSV, two header lines,
+  columns time, Vicon quaternion W X Y Z, acc (m/s²), gyro (rad/s), magnetometer (normalised).
+  The Vicon quaternion is relative to the start pose, so scoring needs one constant global
+  alignment. The static trial (no reference) is skipped; ``Test05`` is read but marked
+  ``excluded`` (its reference is unusable: 40–110° errors for every algorithm).
+- ``ese650``: UPenn ESE 650 (2011) ``imu/imuRawK.mat`` raw 10-bit ADC counts and
+  ``vicon/viconRotK.mat`` rotation matrices on the same clock; 6D, inclination only.
+
+The data themselves are not part of this package (no licence stated); the readers only take a
+folder given by the user. ``.mat`` files need SciPy, imported lazily (``requirements/bench.txt``).
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+#: Standard gravity, to convert accelerometer readings in g to m/s².
+G0 = 9.80665
+
+ALL_ERRORS: tuple[str, ...] = ("total", "heading", "inclination")
+
+
+@dataclass
+class Recording:
+    """One recording: sensors, reference and how to score it (one row per IMU sample)."""
+
+    name: str  #: unique within its dataset, e.g. ``TStick_Test02_Trial1`` or ``set01``
+    dataset: str  #: format key in :data:`READERS`
+    t: np.ndarray  #: (N,) s, strictly increasing
+    gyr: np.ndarray  #: (N, 3) rad/s, sensor frame
+    acc: np.ndarray  #: (N, 3) m/s², specific force (+g up at rest)
+    mag: np.ndarray | None  #: (N, 3) any unit, or None (no magnetometer)
+    q_ref: np.ndarray  #: (N, 4) [w, x, y, z] sensor → reference world; NaN rows = invalid
+    #: ``"constant_global"``: score ``G ⊗ q_est`` with G the quaternion average of
+    #: ``q_ref ⊗ q_est⁻¹`` (reference world has an arbitrary constant rotation);
+    #: ``"none"``: compare directly (reference world z is up, heading arbitrary).
+    alignment: str = "none"
+    errors: tuple[str, ...] = ALL_ERRORS  #: error kinds that are meaningful for this recording
+    excluded: bool = False  #: not part of the dataset mean (reported separately)
+    note: str = ""  #: why it is excluded / what is suspect
+    meta: dict = field(default_factory=dict)  #: reader-specific details (biases, counts, ...)
+
+    def __len__(self) -> int:
+        return int(self.t.shape[0])
+
+    @property
+    def valid(self) -> np.ndarray:
+        """(N,) bool: samples with a valid reference."""
+        return np.isfinite(self.q_ref).all(axis=1)
+
+    @property
+    def has_mag(self) -> bool:
+        """True if a magnetometer is present."""
+        return self.mag is not None
+
+    @property
+    def rate(self) -> float:
+        """Median sampling rate in Hz."""
+        return float(1.0 / np.median(np.diff(self.t)))
+
+
+# ----------------------------------------------------------------------------------- helpers
+def quat_from_rotmat(r: np.ndarray) -> np.ndarray:
+    """Quaternions [w, x, y, z] (w ≥ 0) of rotation matrices ``r`` of shape (..., 3, 3), such
+    that ``R(q) = r`` (the matrix maps sensor to world when q does). Shepperd's method: the
+    largest of the four candidate components is taken from the diagonal, the rest from the
+    off-diagonal terms, so it is accurate for every rotation. Non-finite input gives NaN rows."""
+    r = np.asarray(r, dtype=float)
+    shape = r.shape[:-2]
+    m = r.reshape(-1, 3, 3)
+    n = m.shape[0]
+    q = np.full((n, 4), np.nan)
+    ok = np.isfinite(m).all(axis=(1, 2))
+    m = m[ok]
+    tr = np.trace(m, axis1=1, axis2=2)
+    d = np.stack([tr, m[:, 0, 0], m[:, 1, 1], m[:, 2, 2]], axis=1)
+    k = np.argmax(d, axis=1)
+    out = np.empty((m.shape[0], 4))
+    # k = 0: w largest
+    s = np.sqrt(np.maximum(1.0 + tr, 0.0)) * 2.0  # 4w
+    c0 = np.stack([0.25 * s, (m[:, 2, 1] - m[:, 1, 2]), (m[:, 0, 2] - m[:, 2, 0]),
+                   (m[:, 1, 0] - m[:, 0, 1])], axis=1)
+    c0[:, 1:] /= np.where(s > 0, s, 1.0)[:, None]
+    # k = 1: x largest
+    s1 = np.sqrt(np.maximum(1.0 + m[:, 0, 0] - m[:, 1, 1] - m[:, 2, 2], 0.0)) * 2.0  # 4x
+    c1 = np.stack([(m[:, 2, 1] - m[:, 1, 2]), 0.25 * s1, (m[:, 0, 1] + m[:, 1, 0]),
+                   (m[:, 0, 2] + m[:, 2, 0])], axis=1)
+    c1[:, [0, 2, 3]] /= np.where(s1 > 0, s1, 1.0)[:, None]
+    # k = 2: y largest
+    s2 = np.sqrt(np.maximum(1.0 + m[:, 1, 1] - m[:, 0, 0] - m[:, 2, 2], 0.0)) * 2.0  # 4y
+    c2 = np.stack([(m[:, 0, 2] - m[:, 2, 0]), (m[:, 0, 1] + m[:, 1, 0]), 0.25 * s2,
+                   (m[:, 1, 2] + m[:, 2, 1])], axis=1)
+    c2[:, [0, 1, 3]] /= np.where(s2 > 0, s2, 1.0)[:, None]
+    # k = 3: z largest
+    s3 = np.sqrt(np.maximum(1.0 + m[:, 2, 2] - m[:, 0, 0] - m[:, 1, 1], 0.0)) * 2.0  # 4z
+    c3 = np.stack([(m[:, 1, 0] - m[:, 0, 1]), (m[:, 0, 2] + m[:, 2, 0]),
+                   (m[:, 1, 2] + m[:, 2, 1]), 0.25 * s3], axis=1)
+    c3[:, :3] /= np.where(s3 > 0, s3, 1.0)[:, None]
+    for j, c in enumerate((c0, c1, c2, c3)):
+        sel = k == j
+        out[sel] = c[sel]
+    out /= np.linalg.norm(out, axis=1, keepdims=True)
+    out[out[:, 0] < 0] *= -1.0
+    q[ok] = out
+    return q.reshape(*shape, 4)
+
+
+def _valid_rotmats(r: np.ndarray, tol: float = 1e-3) -> np.ndarray:
+    """(M,) bool for rotation matrices (M, 3, 3): finite, orthonormal and det = +1 within tol."""
+    ok = np.isfinite(r).all(axis=(1, 2))
+    rr = np.where(ok[:, None, None], r, np.eye(3))
+    orth = np.abs(np.einsum("nij,nkj->nik", rr, rr) - np.eye(3)).max(axis=(1, 2)) < tol
+    det = np.abs(np.linalg.det(rr) - 1.0) < tol
+    return ok & orth & det
+
+
+def match_nearest(t: np.ndarray, t_ref: np.ndarray, q_ref: np.ndarray,
+                  tol: float) -> tuple[np.ndarray, np.ndarray]:
+    """Reference quaternion for each time in ``t``: the valid (finite) row of ``q_ref`` whose
+    stamp in ``t_ref`` is nearest, if within ``tol`` seconds, else a NaN row. ``t_ref`` need
+    not be sorted and may repeat. Returns the (N, 4) quaternions and the (N,) time offsets
+    ``t_ref[match] − t`` (NaN where unmatched)."""
+    good = np.isfinite(q_ref).all(axis=1) & np.isfinite(t_ref)
+    tr = t_ref[good]
+    qr = q_ref[good]
+    n = t.shape[0]
+    out = np.full((n, 4), np.nan)
+    off = np.full(n, np.nan)
+    if tr.size == 0:
+        return out, off
+    order = np.argsort(tr, kind="stable")
+    tr, qr = tr[order], qr[order]
+    j = np.searchsorted(tr, t)
+    lo = np.clip(j - 1, 0, tr.size - 1)
+    hi = np.clip(j, 0, tr.size - 1)
+    pick = np.where(np.abs(tr[hi] - t) < np.abs(tr[lo] - t), hi, lo)
+    d = tr[pick] - t
+    ok = np.abs(d) <= tol
+    out[ok] = qr[pick[ok]]
+    off[ok] = d[ok]
+    return out, off
+
+
+# ----------------------------------------------------------------------------------- RepoIMU
+REPOIMU_EXCLUDED = {"TStick_Test05": "reference unusable (40-110 deg errors for every algorithm)"}
+REPOIMU_SUSPECT = {"TStick_Test06_Trial1": "suspect reference (~11 deg inclination error for "
+                                           "every algorithm)"}
+
+
+def read_repoimu_csv(path: str | Path) -> Recording:
+    """Read one RepoIMU CSV (two header lines, ``;``-separated, optional trailing ``;``).
+
+    Reference rows whose quaternion norm is not 1 ± 0.01 (e.g. the all-zero rows of the static
+    trial) become NaN. The magnetometer is returned in the file's normalised units."""
+    path = Path(path)
+    a = np.loadtxt(path, delimiter=";", skiprows=2, usecols=range(14), ndmin=2)
+    t = a[:, 0]
+    q = a[:, 1:5].copy()
+    norm = np.linalg.norm(q, axis=1)
+    q[~(np.abs(norm - 1.0) < 0.01)] = np.nan
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    q[q[:, 0] < 0] *= -1.0
+    name = path.stem
+    excluded = next((why for key, why in REPOIMU_EXCLUDED.items() if name.startswith(key)), "")
+    note = excluded or REPOIMU_SUSPECT.get(name, "")
+    return Recording(
+        name=name, dataset="repoimu", t=t, gyr=a[:, 8:11].copy(), acc=a[:, 5:8].copy(),
+        mag=a[:, 11:14].copy(), q_ref=q, alignment="constant_global", errors=ALL_ERRORS,
+        excluded=bool(excluded), note=note, meta={"path": str(path)},
+    )
+
+
+def _repoimu_files(folder: Path) -> list[Path]:
+    for d in (folder, folder / "TStick"):
+        files = sorted(d.glob("TStick_*.csv"))
+        if files:
+            return files
+    return []
+
+
+def read_repoimu(folder: str | Path) -> list[Recording]:
+    """RepoIMU T-stick: every ``TStick_*.csv`` in ``folder`` (or ``folder/TStick``) that has a
+    reference (the static trial has none and is skipped), sorted by name. 9D."""
+    folder = Path(folder)
+    files = _repoimu_files(folder)
+    if not files:
+        raise FileNotFoundError(f"no TStick_*.csv in {folder} (RepoIMU T-stick folder expected)")
+    recs = []
+    for f in files:
+        r = read_repoimu_csv(f)
+        if r.valid.any():
+            recs.append(r)
+    return recs
+
+
+# ----------------------------------------------------------------------------------- ESE650
+ESE650_VREF_MV = 3300.0
+ESE650_FULL_SCALE = 1023.0
+ESE650_ACC_MV_PER_G = 330.0  # ADXL335 at 3.3 V
+ESE650_GYR_MV_PER_DPS = 3.33  # 4x outputs
+#: zero-g levels of the accelerometer after the x, y sign flip (counts)
+ESE650_ACC_ZERO = np.array([-510.8, -501.0, 505.1])
+ESE650_BIAS_SAMPLES = 200  # the board rests ~2 s at the start
+ESE650_MATCH_TOL = 0.006  # s, nearest Vicon frame (Vicon 100 Hz, IMU ~104 Hz)
+
+
+def ese650_convert(vals: np.ndarray, bias_samples: int = ESE650_BIAS_SAMPLES
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Raw ESE650 counts (6, N) → gyro (N, 3) rad/s, acc (N, 3) m/s², gyro bias (3,) counts.
+
+    Row order of ``vals`` is [ax, ay, az, wz, wx, wy]; ax, ay are sign-inverted. Accelerometer
+    ``(flipped − zero_g) · 3300/1023 / 330`` g (then × 9.80665), gyro
+    ``(raw_xyz − bias) · 3300/1023 / (3.33 · 180/π)`` rad/s, with the gyro bias the mean of the
+    first ``bias_samples`` samples (the board rests at the start)."""
+    v = np.asarray(vals, dtype=float)
+    if v.ndim != 2 or v.shape[0] != 6:
+        raise ValueError(f"vals must have shape (6, N), got {v.shape}")
+    acc_raw = np.stack([-v[0], -v[1], v[2]], axis=1)
+    acc = (acc_raw - ESE650_ACC_ZERO) * (ESE650_VREF_MV / ESE650_FULL_SCALE) \
+        / ESE650_ACC_MV_PER_G * G0
+    gyr_raw = v[[4, 5, 3]].T
+    bias = gyr_raw[:bias_samples].mean(axis=0)
+    gyr = (gyr_raw - bias) * (ESE650_VREF_MV / ESE650_FULL_SCALE) \
+        / (ESE650_GYR_MV_PER_DPS * 180.0 / np.pi)
+    return gyr, acc, bias
+
+
+def _loadmat(path: Path) -> dict:
+    try:
+        from scipy.io import loadmat
+    except ImportError as e:  # pragma: no cover - bench-only dependency
+        raise ImportError("reading .mat files needs scipy (pip install -r "
+                          "requirements/bench.txt, or ./run bench ...)") from e
+    return loadmat(str(path))
+
+
+def read_ese650_set(imu_path: str | Path, vicon_path: str | Path, name: str = "",
+                    tol: float = ESE650_MATCH_TOL) -> Recording:
+    """One ESE650 set: raw IMU counts converted to SI, Vicon matrices (body → world) converted
+    to quaternions, invalid frames dropped, and each IMU sample given the nearest valid Vicon
+    frame within ``tol`` seconds (no interpolation: the Vicon stamps jitter by a few ms, so
+    interpolating between them gains nothing; unmatched samples get NaN)."""
+    imu = _loadmat(Path(imu_path))
+    vic = _loadmat(Path(vicon_path))
+    vals = np.asarray(imu["vals"])
+    ts = np.asarray(imu["ts"], dtype=float).ravel()
+    gyr, acc, bias = ese650_convert(vals)
+    rots = np.moveaxis(np.asarray(vic["rots"], dtype=float), -1, 0)  # (M, 3, 3)
+    tv = np.asarray(vic["ts"], dtype=float).ravel()
+    good = _valid_rotmats(rots)
+    qv = np.full((rots.shape[0], 4), np.nan)
+    qv[good] = quat_from_rotmat(rots[good])
+    q_ref, off = match_nearest(ts, tv, qv, tol)
+    # strictly increasing IMU stamps: drop (rare) repeated or backward ones
+    keep = np.concatenate([[True], ts[1:] > np.maximum.accumulate(ts)[:-1]])
+    return Recording(
+        name=name or Path(imu_path).stem, dataset="ese650", t=ts[keep] - ts[0], gyr=gyr[keep],
+        acc=acc[keep], mag=None, q_ref=q_ref[keep], alignment="none", errors=("inclination",),
+        meta={"gyro_bias_counts": bias.tolist(), "vicon_frames": int(rots.shape[0]),
+              "vicon_invalid": int((~good).sum()), "t0_unix": float(ts[0]),
+              "matched": int(np.isfinite(off[keep]).sum()), "dropped_imu": int((~keep).sum()),
+              "imu_path": str(imu_path)},
+    )
+
+
+def read_ese650(folder: str | Path) -> list[Recording]:
+    """ESE650: every set K with both ``imu/imuRawK.mat`` and ``vicon/viconRotK.mat`` (1–10 in
+    the course data; 11–13 have no Vicon and are skipped), sorted by K, named ``setKK``."""
+    folder = Path(folder)
+    sets = []
+    for p in (folder / "imu").glob("imuRaw*.mat"):
+        m = re.fullmatch(r"imuRaw(\d+)", p.stem)
+        if m and (folder / "vicon" / f"viconRot{m.group(1)}.mat").is_file():
+            sets.append(int(m.group(1)))
+    if not sets:
+        raise FileNotFoundError(f"no imu/imuRawK.mat with vicon/viconRotK.mat in {folder} "
+                                "(ESE650 folder expected)")
+    return [read_ese650_set(folder / "imu" / f"imuRaw{k}.mat",
+                            folder / "vicon" / f"viconRot{k}.mat", name=f"set{k:02d}")
+            for k in sorted(sets)]
+
+
+# ----------------------------------------------------------------------------------- registry
+READERS: dict[str, Callable[[Path], list[Recording]]] = {
+    "repoimu": read_repoimu,
+    "ese650": read_ese650,
+}
+
+
+def detect_format(folder: str | Path) -> str:
+    """The :data:`READERS` key for a dataset folder, decided by its content."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise FileNotFoundError(f"{folder} is not a directory")
+    if any((folder / "imu").glob("imuRaw*.mat")) and any((folder / "vicon").glob("viconRot*.mat")):
+        return "ese650"
+    if _repoimu_files(folder):
+        return "repoimu"
+    raise ValueError(f"cannot tell the format of {folder}: expected TStick_*.csv (RepoIMU) or "
+                     f"imu/imuRawK.mat + vicon/viconRotK.mat (ESE650); known: {', '.join(READERS)}")
+
+
+def read_dataset(folder: str | Path, fmt: str | None = None) -> tuple[str, list[Recording]]:
+    """Read a dataset folder with the reader of ``fmt`` (auto-detected if None)."""
+    fmt = fmt or detect_format(folder)
+    if fmt not in READERS:
+        raise ValueError(f"unknown dataset format {fmt!r}; known: {', '.join(READERS)}")
+    return fmt, READERS[fmt](Path(folder))
