@@ -18,6 +18,7 @@ COMMANDS: dict[str, str] = {
     "demo": "mkf_ros.cli.demo",
     "params": "mkf_ros.cli.params_cmd",
     "process": "mkf_ros.cli.process",
+    "study": "mkf_ros.cli.study",
     "synth": "mkf_ros.cli.synth",
 }
 
