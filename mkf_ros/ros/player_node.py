@@ -65,7 +65,10 @@ PARAMS: dict[str, tuple[Any, str]] = {
                    "jumping back, so that subscribers take the last messages first"),
     "publish_clock": (False, "publish the playback time on /clock"),
     "clock_frequency": (100.0, "Hz: /clock messages per second of wall time"),
-    "wait_for_subscribers": (0, "wait until the IMU topic has this many subscribers"),
+    "wait_for_subscribers": (0, "wait until each topic of wait_topics has this many "
+                             "subscribers"),
+    "wait_topics": (Parameter.Type.STRING_ARRAY, "topics to wait for (default: the "
+                    "sensor_msgs/Imu topics)"),
     "wait_timeout": (30.0, "s: give up waiting and start anyway"),
     "start_delay": (0.0, "s: pause between the subscribers matching and the first message"),
     "exit_when_done": (True, "shut the node down after the last message (no loop)"),
@@ -224,8 +227,17 @@ class PlayerNode(Node):
             self.published[topic] = 0
         if not self.pubs:
             raise PlayerError("nothing to publish (no topic with an installed message type)")
-        imu = [t for t, m in self.source.topics.items() if m == cdr.IMU.msgtype and t in self.pubs]
-        self._wait_pub = self.pubs[imu[0]] if imu else next(iter(self.pubs.values()))
+        if p["wait_topics"]:
+            by_name = {t.lstrip("/"): t for t in self.pubs}
+            missing = [w for w in p["wait_topics"] if w.strip().lstrip("/") not in by_name]
+            if missing:
+                raise PlayerError(f"wait_topics: {missing[0]} is not published (topics: "
+                                  f"{', '.join(self.pubs)})")
+            wait = [by_name[w.strip().lstrip("/")] for w in p["wait_topics"]]
+        else:
+            wait = [t for t, m in self.source.topics.items()
+                    if m == cdr.IMU.msgtype and t in self.pubs] or list(self.pubs)[:1]
+        self._wait_pubs = [self.pubs[t] for t in wait]
         self._clock_pub = None
         if p["publish_clock"]:
             from rosgraph_msgs.msg import Clock as ClockMsg
@@ -302,11 +314,12 @@ class PlayerNode(Node):
         p = self.p
         if self.state == "waiting":
             n = p["wait_for_subscribers"]
-            if n > 0 and self._wait_pub.get_subscription_count() < n:
+            lacking = [w.topic_name for w in self._wait_pubs if w.get_subscription_count() < n]
+            if n > 0 and lacking:
                 if now - self._t_wait < p["wait_timeout"]:
                     return
                 self.get_logger().warning(
-                    f"no {n} subscriber(s) on {self._wait_pub.topic_name} after "
+                    f"fewer than {n} subscriber(s) on {', '.join(lacking)} after "
                     f"{p['wait_timeout']:g} s; starting anyway")
             self.state = "delay"
             self._t_wait = now

@@ -216,6 +216,8 @@ def test_bad_parameters(ros_context: Any, tmp_path: Path, bag: Path) -> None:
         make(scenario="x")
     with pytest.raises(PlayerError, match="scenario_params"):
         make(scenario_params=["acc_peak"])
+    with pytest.raises(PlayerError, match="wait_topics: imu/nope is not published"):
+        make(wait_topics=["imu/nope"])
 
 
 def _run_player(*ros_args: str) -> subprocess.CompletedProcess:
