@@ -93,7 +93,7 @@ def estimate(
 
     Args:
         gyr: (N, 3) angular velocity in rad/s, body frame, or None (no gyroscope).
-        acc: (N, 3) specific force (+g up at rest), any unit (m/s² by convention).
+        acc: (N, 3) specific force in m/s² (+g up at rest).
         mag: (N, 3) magnetic field, any unit, or None. Giving it implies ``use_mag=True``
             unless ``use_mag`` is passed.
         dt: sample period in seconds, or

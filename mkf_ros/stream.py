@@ -233,7 +233,6 @@ class StreamAdapter:
     def _derive(self) -> None:
         n, f = self._node, self.filter.params
         self._const_dt = float(n["constant_dt"])
-        self._mag_bias = np.array([n["mag_bias_x"], n["mag_bias_y"], n["mag_bias_z"]])
         q_w = FROM_ENU[f.world_frame]
         psi = float(n["yaw_offset"] - n["declination"])
         qz = np.array([math.cos(psi / 2), 0.0, 0.0, math.sin(psi / 2)])
@@ -405,13 +404,13 @@ class StreamAdapter:
         m = self._vec(mag, "mag")
         if m is None:
             return
-        m = m - self._mag_bias
+        # hard/soft-iron calibration (mag_bias_*, mag_soft_iron) is applied by the core filter
         norm = math.hypot(*m)
         self.mag_norm = norm
         if not 0.0 < norm < math.inf:
             self.counters["mag_invalid"] += 1
             return
-        m = m / norm  # the filter uses the direction only
+        # the raw field goes to the filter: it calibrates it and checks magnitude and dip
         self.last_mag_stamp = stamp
         if self._const_dt > 0.0:  # stamps are not trusted: fuse at the current time
             if self._t is None:

@@ -29,24 +29,36 @@ from mkf_ros.core.linalg import congruence, eye, mm
 from mkf_ros.core.mekf import (
     mekf_apply,
     mekf_gyro_update,
+    mekf_heading_update,
     mekf_predict,
+    mekf_rate_update,
     mekf_vector_update,
     transport_covariance,
 )
-from mkf_ros.core.mukf import NOISE_MODES, mukf_step
+from mkf_ros.core.mukf import B_HEADING, B_VEC0, B_VEC1, NOISE_MODES, mukf_step_ext
 from mkf_ros.core.params import ALGORITHMS, FilterParams
-from mkf_ros.core.quaternion import qmul, qnormalize, rotate, rotmat
+from mkf_ros.core.quaternion import qmul, qnormalize, rotate, rotate_inv, rotmat
 
 # --- layout of the configuration vector --------------------------------------------------------
 C_ALGO, C_CHART, C_CU, C_USE_MAG, C_NX = 0, 1, 2, 3, 4
 C_RW, C_RA, C_QA, C_RM, C_QM, C_QW, C_QB, C_B0 = 5, 6, 7, 8, 9, 10, 11, 12
 C_W0, C_MUKF_NOISE, C_PAPER, C_MAXDT, C_MREF_GIVEN = 13, 14, 15, 16, 17
 C_MREF = 18  # 3 values: given magnetic reference, ENU, unit
-C_SIZE = 21
+C_MAG_MODE, C_GRAVITY = 21, 22
+C_ACC_TOL, C_ACC_GATE, C_ACC_RECOVER = 23, 24, 25
+C_MAG_TOL, C_DIP_TOL, C_MAG_GATE, C_MAG_RECOVER = 26, 27, 28, 29
+C_REST, C_REST_GYR, C_REST_ACC, C_REST_TIME, C_REST_VAR = 30, 31, 32, 33, 34
+C_MAG_HI = 35  # 3 values: hard-iron offset, sensor units
+C_MAG_SI = 38  # 9 values: soft-iron matrix, row-major
+C_SIZE = 47
+MAG_HEADING, MAG_VECTOR = 0, 1
 
 # --- layout of the state vector ----------------------------------------------------------------
 S_QC, S_E, S_W, S_B, S_MREF, S_MSUM = 0, 4, 7, 10, 13, 16  # q̄_c(4) ē(3) ω̄(3) b̄(3) m_ref m_sum
-S_SIZE = 19
+S_MNORM = 19  # learned magnitude of the (calibrated) field
+# s since the last accepted acc; s a plausible field has disagreed (χ²); s at rest
+S_T_ACC, S_T_MAG, S_T_REST = 20, 21, 22
+S_SIZE = 23
 NX_MAX = 9
 
 # --- noise matrices derived from the configuration (built once per parameter set) -------------
@@ -62,9 +74,13 @@ COUNTER_NAMES = (
     "acc_missing", "acc_invalid",
     "mag_missing", "mag_invalid",
     "gaps", "update_failed", "before_init",
+    "acc_rejected_norm", "acc_rejected_chi2", "mag_rejected_norm", "mag_rejected_dip",
+    "mag_rejected_chi2", "rest_updates",
 )
 K_SAMPLES, K_GYR_MISSING, K_GYR_INVALID, K_ACC_MISSING, K_ACC_INVALID = 0, 1, 2, 3, 4
 K_MAG_MISSING, K_MAG_INVALID, K_GAPS, K_UPDATE_FAILED, K_BEFORE_INIT = 5, 6, 7, 8, 9
+K_ACC_REJ_NORM, K_ACC_REJ_CHI2, K_MAG_REJ_NORM, K_MAG_REJ_DIP, K_MAG_REJ_CHI2 = 10, 11, 12, 13, 14
+K_REST = 15
 K_SIZE = len(COUNTER_NAMES)
 
 UP = np.array((0.0, 0.0, 1.0))  # world up in ENU: what a resting accelerometer measures
@@ -151,31 +167,45 @@ def _set_world_attitude_cov(st: np.ndarray, P: np.ndarray, nx: int, var_tilt: fl
 
 
 @jit
+def _inflate_world(st: np.ndarray, P: np.ndarray, var_tilt: float, var_yaw: float) -> None:
+    """Add uncertainty about the world axes (tilt about x and y, yaw about z) to ``P_ee``: used
+    when a sensor has been rejected for so long that the estimate itself is suspect."""
+    R = rotmat(st[S_QC:S_QC + 4])
+    for i in range(3):
+        for j in range(3):
+            P[i, j] += (var_tilt * (R[0, i] * R[0, j] + R[1, i] * R[1, j])
+                        + var_yaw * R[2, i] * R[2, j])
+
+
+@jit
 def _mag_yaw_var(cfg: np.ndarray, ref: np.ndarray) -> float:
     h = max(np.sqrt(ref[0] * ref[0] + ref[1] * ref[1]), 0.05)  # horizontal share of the field
     return (cfg[C_RM] + cfg[C_QM]) / (h * h)
 
 
 @jit
-def _learn_mag_ref(cfg: np.ndarray, st: np.ndarray, fl: np.ndarray, m_body: np.ndarray) -> None:
-    """Learn the dip of the Earth field: average ``R(q̂) m`` over the first samples and keep its
-    (north, up) components, since north is *defined* by the field's horizontal part."""
+def _learn_mag_ref(cfg: np.ndarray, st: np.ndarray, fl: np.ndarray, m_body: np.ndarray,
+                   m_norm: float) -> None:
+    """Learn the Earth field from the first accepted samples: the magnitude, and the dip from
+    the average of ``R(q̂) m`` keeping its (north, up) components — north is *defined* by the
+    field's horizontal part. A given ``mag_reference`` fixes the direction; the magnitude is
+    still learned (any unit)."""
+    if fl[F_MCOUNT] >= MAG_REF_SAMPLES:
+        return
+    n = fl[F_MCOUNT]
+    st[S_MNORM] = (st[S_MNORM] * n + m_norm) / (n + 1)
+    fl[F_MCOUNT] = n + 1
     if cfg[C_MREF_GIVEN] > 0:
         st[S_MREF:S_MREF + 3] = cfg[C_MREF:C_MREF + 3]
         return
-    if fl[F_MCOUNT] >= MAG_REF_SAMPLES:
-        return
-    m = rotate(st[S_QC:S_QC + 4], m_body)
-    st[S_MSUM:S_MSUM + 3] += m
-    fl[F_MCOUNT] += 1
+    st[S_MSUM:S_MSUM + 3] += rotate(st[S_QC:S_QC + 4], m_body)
     s = st[S_MSUM:S_MSUM + 3]
-    ref = np.array((0.0, np.sqrt(s[0] * s[0] + s[1] * s[1]), s[2]))
-    st[S_MREF:S_MREF + 3] = _unit(ref)
+    st[S_MREF:S_MREF + 3] = _unit(np.array((0.0, np.sqrt(s[0] * s[0] + s[1] * s[1]), s[2])))
 
 
 @jit
 def _heading_init(cfg: np.ndarray, st: np.ndarray, P: np.ndarray, fl: np.ndarray,
-                  m_body: np.ndarray) -> None:
+                  m_body: np.ndarray, m_norm: float) -> None:
     """Closed-form heading from a magnetometer sample; the yaw variance then reflects it."""
     recentre(cfg, st, P)
     nx = int(cfg[C_NX])
@@ -184,20 +214,22 @@ def _heading_init(cfg: np.ndarray, st: np.ndarray, P: np.ndarray, fl: np.ndarray
     else:
         m = rotate(st[S_QC:S_QC + 4], m_body)
         ref = _unit(np.array((0.0, np.sqrt(m[0] * m[0] + m[1] * m[1]), m[2])))
-        st[S_MSUM:S_MSUM + 3] = 0.0
-        fl[F_MCOUNT] = 0
+    st[S_MSUM:S_MSUM + 3] = 0.0
+    st[S_MNORM] = 0.0
+    fl[F_MCOUNT] = 0
     rot = heading_correction(st[S_QC:S_QC + 4], m_body, ref)
     st[S_QC:S_QC + 4] = qnormalize(qmul(rot, st[S_QC:S_QC + 4]))
     st[S_MREF:S_MREF + 3] = ref
     _set_world_attitude_cov(st, P, nx, 0.0, _mag_yaw_var(cfg, ref), True)
     fl[F_HEADING] = 1
-    _learn_mag_ref(cfg, st, fl, m_body)
+    st[S_T_MAG] = 0.0
+    _learn_mag_ref(cfg, st, fl, m_body, m_norm)
 
 
 @jit
 def _align(cfg: np.ndarray, st: np.ndarray, P: np.ndarray, fl: np.ndarray,
            gyr: np.ndarray, has_g: bool, acc: np.ndarray, m_body: np.ndarray,
-           has_m: bool) -> None:
+           m_norm: float, has_m: bool) -> None:
     """Closed-form initialisation (or re-alignment after a gap) from one sample."""
     nx = int(cfg[C_NX])
     q = align_tilt(acc)
@@ -216,8 +248,10 @@ def _align(cfg: np.ndarray, st: np.ndarray, P: np.ndarray, fl: np.ndarray,
     fl[F_INIT] = 1
     fl[F_EVER] = 1
     fl[F_HEADING] = 0
+    st[S_T_ACC] = 0.0
+    st[S_T_REST] = 0.0
     if has_m:
-        _heading_init(cfg, st, P, fl, m_body)
+        _heading_init(cfg, st, P, fl, m_body, m_norm)
 
 
 @jit
@@ -235,6 +269,7 @@ def _paper_init(cfg: np.ndarray, st: np.ndarray, P: np.ndarray, fl: np.ndarray) 
         for i in range(6, 9):
             P[i, i] = cfg[C_B0]
     st[S_MREF:S_MREF + 3] = cfg[C_MREF:C_MREF + 3]
+    st[S_T_ACC] = st[S_T_MAG] = st[S_T_REST] = 0.0
     fl[F_INIT] = 1
     fl[F_EVER] = 1
     fl[F_HEADING] = 1
@@ -253,24 +288,58 @@ def build_noise(cfg: np.ndarray) -> np.ndarray:
 
 
 @jit
+def calibrate_mag(cfg: np.ndarray, mag: np.ndarray) -> np.ndarray:
+    """Hard- and soft-iron correction ``m = S (m_raw − h)`` (extension; sensor units)."""
+    v = np.empty(3)
+    for i in range(3):
+        v[i] = mag[i] - cfg[C_MAG_HI + i]
+    out = np.empty(3)
+    for i in range(3):
+        out[i] = (cfg[C_MAG_SI + 3 * i] * v[0] + cfg[C_MAG_SI + 3 * i + 1] * v[1]
+                  + cfg[C_MAG_SI + 3 * i + 2] * v[2])
+    return out
+
+
+@jit
+def _mag_plausible(cfg: np.ndarray, st: np.ndarray, fl: np.ndarray, cnt: np.ndarray,
+                   R: np.ndarray, m_body: np.ndarray, m_norm: float) -> bool:
+    """Field magnitude and dip against the learned reference (extension); counted if not."""
+    if fl[F_MCOUNT] < 10:
+        return True  # reference still being learned
+    if abs(m_norm / st[S_MNORM] - 1.0) > cfg[C_MAG_TOL]:
+        cnt[K_MAG_REJ_NORM] += 1
+        return False
+    mz = R[2, 0] * m_body[0] + R[2, 1] * m_body[1] + R[2, 2] * m_body[2]
+    dip = np.arcsin(max(-1.0, min(1.0, mz)))
+    dip_ref = np.arcsin(max(-1.0, min(1.0, st[S_MREF + 2])))
+    if abs(dip - dip_ref) > cfg[C_DIP_TOL]:
+        cnt[K_MAG_REJ_DIP] += 1
+        return False
+    return True
+
+
+@jit
 def sensor_step(cfg: np.ndarray, nz: np.ndarray, st: np.ndarray, P: np.ndarray,
                 fl: np.ndarray, cnt: np.ndarray, dt: float, gyr: np.ndarray, acc: np.ndarray,
                 mag: np.ndarray) -> None:
-    """Process one sample: any of ``gyr`` (rad/s), ``acc`` (any unit, +g up at rest) and
-    ``mag`` (any unit) may be NaN (missing). ``dt`` is the time since the previous sample."""
+    """Process one sample: any of ``gyr`` (rad/s), ``acc`` (m/s², +g up at rest) and ``mag``
+    (any unit) may be NaN (missing). ``dt`` is the time since the previous sample."""
     cnt[K_SAMPLES] += 1
+    use_mag = cfg[C_USE_MAG] > 0
     gs = _classify(gyr, False)
     as_ = _classify(acc, True)
-    ms = _classify(mag, True) if cfg[C_USE_MAG] > 0 else 1
+    m_cal = calibrate_mag(cfg, mag) if use_mag else mag
+    ms = _classify(m_cal, True) if use_mag else 1
     if gs > 0:
         cnt[K_GYR_MISSING if gs == 1 else K_GYR_INVALID] += 1
     if as_ > 0:
         cnt[K_ACC_MISSING if as_ == 1 else K_ACC_INVALID] += 1
-    if cfg[C_USE_MAG] > 0 and ms > 0:
+    if use_mag and ms > 0:
         cnt[K_MAG_MISSING if ms == 1 else K_MAG_INVALID] += 1
     has_g, has_a, has_m = gs == 0, as_ == 0, ms == 0
     g = gyr if has_g else np.zeros(3)
-    m_body = _unit(mag) if has_m else np.zeros(3)
+    m_norm = np.sqrt(m_cal[0] ** 2 + m_cal[1] ** 2 + m_cal[2] ** 2) if has_m else 0.0
+    m_body = _unit(m_cal) if has_m else np.zeros(3)
 
     if fl[F_INIT] > 0 and dt > cfg[C_MAXDT]:
         cnt[K_GAPS] += 1
@@ -279,7 +348,7 @@ def sensor_step(cfg: np.ndarray, nz: np.ndarray, st: np.ndarray, P: np.ndarray,
         if cfg[C_PAPER] > 0:
             _paper_init(cfg, st, P, fl)
         elif has_a:
-            _align(cfg, st, P, fl, g, has_g, acc, m_body, has_m)
+            _align(cfg, st, P, fl, g, has_g, acc, m_body, m_norm, has_m)
             return
         else:
             cnt[K_BEFORE_INIT] += 1
@@ -288,24 +357,81 @@ def sensor_step(cfg: np.ndarray, nz: np.ndarray, st: np.ndarray, P: np.ndarray,
     nx = int(cfg[C_NX])
     chart = int(cfg[C_CHART])
     if has_m and fl[F_HEADING] == 0:
-        _heading_init(cfg, st, P, fl, m_body)
+        _heading_init(cfg, st, P, fl, m_body, m_norm)
         has_m = False  # this sample set the heading; do not count it twice
     qc = st[S_QC:S_QC + 4]
     w = st[S_W:S_W + 3]
     b = st[S_B:S_B + 3]
+    st[S_T_ACC] += dt
+    if st[S_T_MAG] > 0.0:  # inside a period of disagreement with a plausible field
+        st[S_T_MAG] += dt
+
+    # accelerometer: magnitude test; the excess over gravity also widens the disturbance
     a_body = _unit(acc) if has_a else np.zeros(3)
+    acc_gate = cfg[C_ACC_GATE] if cfg[C_ACC_GATE] > 0 else np.inf
+    a_excess = 0.0
+    if has_a:
+        a_excess = np.sqrt(acc[0] ** 2 + acc[1] ** 2 + acc[2] ** 2) / cfg[C_GRAVITY] - 1.0
+        if st[S_T_ACC] > cfg[C_ACC_RECOVER]:
+            # rejected for too long: the estimate is suspect. Widen the tilt by the measured
+            # discrepancy and take this sample whatever the gates say.
+            up = rotate_inv(st[S_QC:S_QC + 4], UP)
+            ang = np.arccos(max(-1.0, min(1.0, up[0] * a_body[0] + up[1] * a_body[1]
+                                          + up[2] * a_body[2])))
+            _inflate_world(st, P, ang * ang, 0.0)
+            acc_gate = np.inf
+        elif abs(a_excess) > cfg[C_ACC_TOL]:
+            cnt[K_ACC_REJ_NORM] += 1
+            has_a = False
+    Qa = nz[N_QA].copy()
+    for i in range(3):
+        Qa[i, i] += a_excess * a_excess
+    # rest detection: the body is still → zero-rate pseudo-measurement sharpens the bias
+    rest = False
+    if cfg[C_REST] > 0 and has_g and has_a:
+        wr = (g[0] - b[0]) ** 2 + (g[1] - b[1]) ** 2 + (g[2] - b[2]) ** 2
+        if wr < cfg[C_REST_GYR] ** 2 and abs(a_excess) * cfg[C_GRAVITY] < cfg[C_REST_ACC]:
+            st[S_T_REST] += dt
+            rest = st[S_T_REST] >= cfg[C_REST_TIME]
+        else:
+            st[S_T_REST] = 0.0
+    heading = int(cfg[C_MAG_MODE]) == MAG_HEADING
+    mag_gate = cfg[C_MAG_GATE] if cfg[C_MAG_GATE] > 0 else np.inf
+    if cfg[C_PAPER] > 0:  # the paper's start has no prior to gate against
+        acc_gate = mag_gate = np.inf
+    # magnetometer: a field whose magnitude or dip is off is disturbed — skip it, and it also
+    # ends any period of disagreement (that is evidence of disturbance, not of a wrong heading)
+    if has_m and not _mag_plausible(cfg, st, fl, cnt, rotmat(qc), m_body, m_norm):
+        has_m = False
+        st[S_T_MAG] = 0.0
+    elif has_m and cfg[C_PAPER] <= 0 and st[S_T_MAG] > cfg[C_MAG_RECOVER]:
+        # a plausible field has disagreed with the estimate for this long, without a break:
+        # the heading is suspect; take it from the field in closed form, as at start-up
+        _heading_init(cfg, st, P, fl, m_body, m_norm)
+        has_m = False
     ok = True
+    acc_nis = 0.0
+    mag_nis = 0.0
     if int(cfg[C_ALGO]) == 0:  # MEKF: predict, one block per sensor, one move to the manifold
         mekf_predict(qc, w, P, nx, dt, nz[N_QW], nz[N_QB])
         R = rotmat(qc)
         dx = np.zeros(nx)
         if has_a:
-            ok &= mekf_vector_update(P, nx, dx, R, a_body, UP, nz[N_RA], nz[N_QA], np.inf) >= 0
+            acc_nis = mekf_vector_update(P, nx, dx, R, a_body, UP, nz[N_RA], Qa, acc_gate)
         if has_m:
-            ok &= mekf_vector_update(P, nx, dx, R, m_body, st[S_MREF:S_MREF + 3], nz[N_RM],
-                                     nz[N_QM], np.inf) >= 0
+            if heading:
+                h = np.sqrt(st[S_MREF] ** 2 + st[S_MREF + 1] ** 2)
+                href = np.array((st[S_MREF] / h, st[S_MREF + 1] / h, 0.0))
+                mag_nis = mekf_heading_update(P, nx, dx, R, m_body, href,
+                                              _mag_yaw_var(cfg, st[S_MREF:S_MREF + 3]), mag_gate)
+            else:
+                mag_nis = mekf_vector_update(P, nx, dx, R, m_body, st[S_MREF:S_MREF + 3],
+                                             nz[N_RM], nz[N_QM], mag_gate)
         if has_g:
             ok &= mekf_gyro_update(P, nx, dx, w, b, g, nz[N_RW], np.inf) >= 0
+        if rest:
+            ok &= mekf_rate_update(P, nx, dx, w, b, np.zeros(3), eye(3, cfg[C_REST_VAR]), False,
+                                   np.inf) >= 0
         mekf_apply(chart, cfg[C_CU] > 0, qc, w, b, P, nx, dx)
     else:  # MUKF: stacked measurement through the sigma points
         vm = np.zeros((2, 3))
@@ -313,20 +439,42 @@ def sensor_step(cfg: np.ndarray, nz: np.ndarray, st: np.ndarray, P: np.ndarray,
         use_v = np.zeros(2, dtype=np.bool_)
         Rv = np.empty((2, 3, 3))
         Qv = np.empty((2, 3, 3))
-        Rv[0], Qv[0], Rv[1], Qv[1] = nz[N_RA], nz[N_QA], nz[N_RM], nz[N_QM]
-        use_v[0], use_v[1] = has_a, has_m
+        Rv[0], Qv[0], Rv[1], Qv[1] = nz[N_RA], Qa, nz[N_RM], nz[N_QM]
+        use_v[0], use_v[1] = has_a, has_m and not heading
         vm[0], vref[0] = a_body, UP
+        href = np.zeros(3)
         if has_m:
             vm[1], vref[1] = m_body, st[S_MREF:S_MREF + 3]
-        ok = mukf_step(chart, cfg[C_CU] > 0, int(cfg[C_MUKF_NOISE]), cfg[C_W0], qc,
-                       st[S_E:S_E + 3], w, b, P, nx, dt, nz[N_QW], nz[N_QB], vm, vref, Rv, Qv,
-                       use_v, g, has_g, nz[N_RW])
-    if not ok:
+            h = np.sqrt(st[S_MREF] ** 2 + st[S_MREF + 1] ** 2)
+            href[0], href[1] = st[S_MREF] / h, st[S_MREF + 1] / h
+        gates = np.array((acc_gate, mag_gate, mag_gate, np.inf))
+        nis = np.zeros(4)
+        ok = mukf_step_ext(chart, cfg[C_CU] > 0, int(cfg[C_MUKF_NOISE]), cfg[C_W0], qc,
+                           st[S_E:S_E + 3], w, b, P, nx, dt, nz[N_QW], nz[N_QB], vm, vref, Rv,
+                           Qv, use_v, g, has_g, nz[N_RW], m_body, href, has_m and heading,
+                           _mag_yaw_var(cfg, st[S_MREF:S_MREF + 3]), rest, cfg[C_REST_VAR],
+                           gates, nis)
+        acc_nis = nis[B_VEC0] if has_a else 0.0
+        mag_nis = nis[B_HEADING] if heading else nis[B_VEC1]
+    if not ok or acc_nis < 0 or mag_nis < 0:
         cnt[K_UPDATE_FAILED] += 1
         for i in range(nx):  # regularise so that the next step can factorise again
             P[i, i] += 1e-9
-    elif has_m:
-        _learn_mag_ref(cfg, st, fl, m_body)
+        return
+    if rest:
+        cnt[K_REST] += 1
+    if has_a:
+        if acc_nis > acc_gate:
+            cnt[K_ACC_REJ_CHI2] += 1
+        else:
+            st[S_T_ACC] = 0.0
+    if has_m:
+        if mag_nis > mag_gate:
+            cnt[K_MAG_REJ_CHI2] += 1
+            st[S_T_MAG] = max(st[S_T_MAG], 1e-12)  # start (or continue) the disagreement clock
+        else:
+            st[S_T_MAG] = 0.0
+            _learn_mag_ref(cfg, st, fl, m_body, m_norm)
 
 
 @jit
@@ -393,6 +541,25 @@ def build_cfg(p: FilterParams) -> np.ndarray:
     cfg[C_MUKF_NOISE] = NOISE_MODES.index(p.mukf_noise_scaling)
     cfg[C_PAPER] = float(p.init_mode == "paper")
     cfg[C_MAXDT] = p.max_dt
+    cfg[C_MAG_MODE] = MAG_HEADING if p.mag_mode == "heading" else MAG_VECTOR
+    cfg[C_GRAVITY] = g
+    cfg[C_ACC_TOL] = p.acc_norm_tolerance
+    cfg[C_ACC_GATE] = p.acc_gate
+    cfg[C_ACC_RECOVER] = p.acc_recovery_time
+    cfg[C_MAG_TOL] = p.mag_norm_tolerance
+    cfg[C_DIP_TOL] = p.mag_dip_tolerance
+    cfg[C_MAG_GATE] = p.mag_gate
+    cfg[C_MAG_RECOVER] = p.mag_recovery_time
+    cfg[C_REST] = float(p.rest_detection)
+    cfg[C_REST_GYR] = p.rest_gyro_threshold
+    cfg[C_REST_ACC] = p.rest_acc_threshold
+    cfg[C_REST_TIME] = p.rest_time
+    cfg[C_REST_VAR] = p.rest_rate_stddev**2
+    cfg[C_MAG_HI:C_MAG_HI + 3] = (p.mag_bias_x, p.mag_bias_y, p.mag_bias_z)
+    si = np.asarray(p.mag_soft_iron, dtype=float)
+    if abs(np.linalg.det(si.reshape(3, 3))) < 1e-12:
+        raise ValueError("mag_soft_iron must be an invertible 3x3 matrix (row-major, 9 numbers)")
+    cfg[C_MAG_SI:C_MAG_SI + 9] = si
     ref = np.asarray(p.mag_reference, dtype=float)
     n = float(np.linalg.norm(ref))
     if n > 0.0:

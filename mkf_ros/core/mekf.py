@@ -167,23 +167,99 @@ def mekf_vector_update(
 
 
 @jit
+def mekf_rate_update(
+    P: np.ndarray, nx: int, dx: np.ndarray, w: np.ndarray, b: np.ndarray, wm: np.ndarray,
+    Rw: np.ndarray, with_bias: bool, gate: float,
+) -> float:
+    """A rate measurement: the gyro (eq. 23, ``ȳ = ω̄⁻ + b̄``, ``H = [0, I, I]``, or ``[0, I]``
+    without bias) or, with ``with_bias=False``, the zero-rate pseudo-measurement of rest
+    detection (``ȳ = ω̄⁻``, ``H = [0, I, 0]``)."""
+    bias = with_bias and nx == 9
+    r = np.empty(3)
+    PHt = np.empty((nx, 3))
+    for i in range(3):
+        r[i] = wm[i] - w[i] - dx[3 + i] - ((b[i] + dx[6 + i]) if bias else
+                                            (b[i] if with_bias else 0.0))
+    for i in range(nx):
+        for j in range(3):
+            PHt[i, j] = P[i, 3 + j] + (P[i, 6 + j] if bias else 0.0)
+    S = np.empty((3, 3))
+    for i in range(3):
+        for j in range(3):
+            S[i, j] = PHt[3 + i, j] + (PHt[6 + i, j] if bias else 0.0) + Rw[i, j]
+    return _block_update(P, nx, dx, PHt, S, r, gate)
+
+
+@jit
 def mekf_gyro_update(
     P: np.ndarray, nx: int, dx: np.ndarray, w: np.ndarray, b: np.ndarray, wm: np.ndarray,
     Rw: np.ndarray, gate: float,
 ) -> float:
     """The gyro (eq. 23): ``ȳ = ω̄⁻ + b̄``, ``H = [0, I, I]`` (``[0, I]`` without bias)."""
-    r = np.empty(3)
-    PHt = np.empty((nx, 3))
-    for i in range(3):
-        r[i] = wm[i] - w[i] - b[i] - dx[3 + i] - (dx[6 + i] if nx == 9 else 0.0)
+    return mekf_rate_update(P, nx, dx, w, b, wm, Rw, True, gate)
+
+
+@jit
+def heading_residual(R: np.ndarray, m_body: np.ndarray, ref: np.ndarray) -> tuple[float, float]:
+    """The rotation ψ about the world's vertical that brings the horizontal part of the measured
+    field ``R(q) m`` onto the horizontal reference, and the horizontal share ``h`` of the field
+    (extension: magnetometer for heading only)."""
+    mx = R[0, 0] * m_body[0] + R[0, 1] * m_body[1] + R[0, 2] * m_body[2]
+    my = R[1, 0] * m_body[0] + R[1, 1] * m_body[1] + R[1, 2] * m_body[2]
+    psi = np.arctan2(mx * ref[1] - my * ref[0], mx * ref[0] + my * ref[1])
+    return psi, np.sqrt(mx * mx + my * my)
+
+
+@jit
+def mekf_heading_update(
+    P: np.ndarray, nx: int, dx: np.ndarray, R: np.ndarray, m_body: np.ndarray, ref: np.ndarray,
+    var: float, gate: float,
+) -> float:
+    """Magnetometer for heading only (extension). Measurement ``0 = ψ(q) + n`` with
+    ``ψ(q̄ * δ(e)) ≈ ψ(q̄) − uᵀe``, ``u = R(q̄)ᵀ ẑ`` (the world vertical in body axes), so
+    ``H = −uᵀ``, ``S = uᵀ P_ee u + var``. The attitude part of the gain is projected onto ``u``:
+    the magnetometer turns the estimate about the vertical only and can never tilt it (a wrong
+    dip, a disturbed field); the covariance uses the Joseph form, valid for any gain:
+    ``P ← (I − K H) P (I − K H)ᵀ + K var Kᵀ``. Returns the NIS (−1 if ``S ≤ 0``)."""
+    psi, _ = heading_residual(R, m_body, ref)
+    u0, u1, u2 = R[2, 0], R[2, 1], R[2, 2]  # R(q̄)ᵀ ẑ
+    r = -psi + (u0 * dx[0] + u1 * dx[1] + u2 * dx[2])  # 0 − h(x̄ + Δx), h = ψ̄ − uᵀ Δe
+    Pu = np.empty(nx)
     for i in range(nx):
-        for j in range(3):
-            PHt[i, j] = P[i, 3 + j] + (P[i, 6 + j] if nx == 9 else 0.0)
-    S = np.empty((3, 3))
-    for i in range(3):
-        for j in range(3):
-            S[i, j] = PHt[3 + i, j] + (PHt[6 + i, j] if nx == 9 else 0.0) + Rw[i, j]
-    return _block_update(P, nx, dx, PHt, S, r, gate)
+        Pu[i] = P[i, 0] * u0 + P[i, 1] * u1 + P[i, 2] * u2  # P Hᵀ = −P u
+    S = u0 * Pu[0] + u1 * Pu[1] + u2 * Pu[2] + var
+    if not S > 0.0:
+        return -1.0
+    nis = r * r / S
+    if nis > gate:
+        return nis
+    K = np.empty(nx)
+    for i in range(nx):
+        K[i] = -Pu[i] / S
+    ku = u0 * K[0] + u1 * K[1] + u2 * K[2]
+    K[0], K[1], K[2] = u0 * ku, u1 * ku, u2 * ku  # projection onto the vertical
+    for i in range(nx):
+        dx[i] += K[i] * r
+    # Joseph form with A = I − K H = I + K uᵀ (on the attitude columns)
+    A = np.eye(nx)
+    for i in range(nx):
+        A[i, 0] += K[i] * u0
+        A[i, 1] += K[i] * u1
+        A[i, 2] += K[i] * u2
+    AP = np.zeros((nx, nx))
+    for i in range(nx):
+        for k in range(nx):
+            a = A[i, k]
+            if a != 0.0:
+                for j in range(nx):
+                    AP[i, j] += a * P[k, j]
+    for i in range(nx):
+        for j in range(nx):
+            s_ = K[i] * var * K[j]
+            for k in range(nx):
+                s_ += AP[i, k] * A[j, k]
+            P[i, j] = s_
+    return nis
 
 
 @jit

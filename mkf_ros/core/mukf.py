@@ -16,6 +16,7 @@ import numpy as np
 from mkf_ros.core._jit import jit
 from mkf_ros.core.charts import from_chart_at, from_chart_t, saturate, saturate_t, to_chart_t
 from mkf_ros.core.linalg import cho_solve, cholesky, mtv, symmetrize
+from mkf_ros.core.mekf import heading_residual
 from mkf_ros.core.quaternion import (
     q_omega_t,
     qconj_mul_t,
@@ -56,6 +57,33 @@ def mukf_step(
 
     Returns False (state untouched) if a factorisation fails.
     """
+    gates = np.full(4, np.inf)
+    nis = np.zeros(4)
+    return mukf_step_ext(chart, chart_update, noise_mode, w0, qc, ebar, w, b, P, nx, dt, Qw, Qb,
+                         vm, vref, Rv, Qv, use_v, wm, use_w, Rw, np.zeros(3), np.zeros(3), False,
+                         0.0, False, 0.0, gates, nis)
+
+
+# measurement blocks of mukf_step_ext, in row order; index into its `gates` / `nis` arrays
+B_VEC0, B_VEC1, B_HEADING, B_GYRO = 0, 1, 2, 3
+
+
+@jit
+def mukf_step_ext(
+    chart: int, chart_update: bool, noise_mode: int, w0: float,
+    qc: np.ndarray, ebar: np.ndarray, w: np.ndarray, b: np.ndarray, P: np.ndarray, nx: int,
+    dt: float, Qw: np.ndarray, Qb: np.ndarray,
+    vm: np.ndarray, vref: np.ndarray, Rv: np.ndarray, Qv: np.ndarray, use_v: np.ndarray,
+    wm: np.ndarray, use_w: bool, Rw: np.ndarray,
+    hm: np.ndarray, href: np.ndarray, use_h: bool, var_h: float,
+    use_z: bool, var_z: float, gates: np.ndarray, nis: np.ndarray,
+) -> bool:
+    """:func:`mukf_step` with the real-sensor extensions: a magnetometer for heading only
+    (``hm``: body field, ``href``: horizontal world reference, the pseudo-measurement
+    ``0 = ψ(q) + n`` of :func:`mkf_ros.core.mekf.mekf_heading_update`, its gain projected onto
+    the vertical, Joseph-form covariance), the zero-rate pseudo-measurement ``0 = ω + n`` of rest
+    detection, and a χ² gate per block (vector 0, vector 1, heading, gyro; a block whose
+    ``rᵀ P_yy⁻¹ r`` exceeds its gate is left out; ``nis`` receives every block's value)."""
     # 0. reset variant: re-centre at the estimate, keep P
     if not chart_update:
         qc[:] = from_chart_at(chart, qc, ebar)
@@ -69,7 +97,8 @@ def mukf_step(
     for k in range(use_v.shape[0]):
         if use_v[k]:
             nvec += 1
-    m = 3 * nvec + (3 if use_w else 0)
+    # measurement rows: vectors (3 each), heading (1), gyro (3), zero rate (3)
+    m = 3 * nvec + (1 if use_h else 0) + (3 if use_w else 0) + (3 if use_z else 0)
 
     # 1. augment: x̄ᵃ = (ē, ω̄[, b̄], w̄_ω = 0, w̄_v = 0 …), Pᵃ = blockdiag(P, Q_ωᵃ, Q_v …), N = dim
     # 2. sigma points X_0 = x̄ᵃ, X_j, X_{N+j} = x̄ᵃ ± c L[:, j], c = √(N/(1 − W_0)),
@@ -131,9 +160,19 @@ def mukf_step(
                 for i in range(3):
                     Ys[s, row + i] = y[i]
                 row += 3
+        if use_h:  # heading residual ψ(q_j⁻), unwrapped around the central point's
+            psi, _ = heading_residual(rotmat(Qs[s]), hm, href)
+            if s > 0:
+                psi = Ys[0, row] + np.arctan2(np.sin(psi - Ys[0, row]), np.cos(psi - Ys[0, row]))
+            Ys[s, row] = psi
+            row += 1
         if use_w:  # gyro: ω_j⁻ + b_j
             for i in range(3):
                 Ys[s, row + i] = Ws[s, i] + Bs[s, i]
+            row += 3
+        if use_z:  # rest: ω_j⁻
+            for i in range(3):
+                Ys[s, row + i] = Ws[s, i]
     # 4. hemisphere alignment with the propagated sigma point 0
     for s in range(1, ns):
         dot = Qs[s, 0] * Qs[0, 0] + Qs[s, 1] * Qs[0, 1] + Qs[s, 2] * Qs[0, 2] + Qs[s, 3] * Qs[0, 3]
@@ -182,8 +221,13 @@ def mukf_step(
     for i in range(m):
         for jj in range(i):
             Pyy[jj, i] = Pyy[i, jj]
+    # measurement noise, innovations and the row range of every block
     R0 = rotmat(Qs[0])
+    inn = np.empty(m)
+    first = np.full(4, -1)
+    size = np.zeros(4, dtype=np.int64)
     row = 0
+    kv = 0
     for k in range(use_v.shape[0]):
         if use_v[k]:  # R_v + R(q_0⁻)ᵀ Q_v R(q_0⁻): the disturbance sigma pairs, summed exactly
             for i in range(3):
@@ -193,32 +237,94 @@ def mukf_step(
                         for bb in range(3):
                             qb += R0[a, i] * Qv[k, a, bb] * R0[bb, jj]
                     Pyy[row + i, row + jj] += Rv[k, i, jj] + qb
+                inn[row + i] = vm[k, i] - ym[row + i]
+            first[B_VEC0 + kv], size[B_VEC0 + kv] = row, 3
+            kv += 1
             row += 3
+    if use_h:
+        Pyy[row, row] += var_h
+        inn[row] = -ym[row]
+        first[B_HEADING], size[B_HEADING] = row, 1
+        row += 1
     if use_w:
-        Pyy[row:row + 3, row:row + 3] += Rw
-    # 7. update
+        for i in range(3):
+            for jj in range(3):
+                Pyy[row + i, row + jj] += Rw[i, jj]
+            inn[row + i] = wm[i] - ym[row + i]
+        first[B_GYRO], size[B_GYRO] = row, 3
+        row += 3
+    if use_z:
+        for i in range(3):
+            Pyy[row + i, row + i] += var_z
+            inn[row + i] = -ym[row + i]
+        row += 3
+    # χ² gate per block: keep the rows of the blocks that pass
+    keep = np.ones(m, dtype=np.bool_)
+    for blk in range(4):
+        if first[blk] < 0:
+            continue
+        r0, nb = first[blk], size[blk]
+        Lb, okb = cholesky(Pyy[r0:r0 + nb, r0:r0 + nb].copy())
+        if not okb:
+            return False
+        z = cho_solve(Lb, inn[r0:r0 + nb].copy().reshape(nb, 1))
+        v = 0.0
+        for i in range(nb):
+            v += inn[r0 + i] * z[i, 0]
+        nis[blk] = v
+        if v > gates[blk]:
+            for i in range(nb):
+                keep[r0 + i] = False
+    idx = np.nonzero(keep)[0]
+    ma = idx.size
+    # 7. update with the kept rows: K = P_xy P_yy⁻¹, Δx = K (y − ȳ)
     upd = np.zeros(nx)
-    if m > 0:
-        Ly, ok = cholesky(Pyy)
+    if ma > 0:
+        Pyy_a = np.empty((ma, ma))
+        Pxy_a = np.empty((nx, ma))
+        inn_a = np.empty(ma)
+        for a in range(ma):
+            inn_a[a] = inn[idx[a]]
+            for bb in range(ma):
+                Pyy_a[a, bb] = Pyy[idx[a], idx[bb]]
+            for i in range(nx):
+                Pxy_a[i, a] = Pxy[i, idx[a]]
+        Ly, ok = cholesky(Pyy_a)
         if not ok:
             return False
-        Kt = cho_solve(Ly, Pxy.T.copy())  # Kᵀ = P_yy⁻¹ P_xyᵀ
-        inn = np.empty(m)
-        row = 0
-        for k in range(use_v.shape[0]):
-            if use_v[k]:
-                inn[row:row + 3] = vm[k] - ym[row:row + 3]
-                row += 3
-        if use_w:
-            inn[row:row + 3] = wm - ym[row:row + 3]
-        upd = mtv(Kt, inn)
-        # P ← P_xx − K P_yy Kᵀ = P_xx − P_xy Kᵀ
-        for i in range(nx):
-            for jj in range(nx):
-                s_ = 0.0
-                for p in range(m):
-                    s_ += Pxy[i, p] * Kt[p, jj]
-                Pxx[i, jj] -= s_
+        Kt = cho_solve(Ly, Pxy_a.T.copy())  # Kᵀ = P_yy⁻¹ P_xyᵀ
+        hrow = -1
+        if use_h and keep[first[B_HEADING]]:
+            for a in range(ma):
+                if idx[a] == first[B_HEADING]:
+                    hrow = a
+        if hrow >= 0:  # heading turns about the vertical only: project its attitude gain
+            u0, u1, u2 = R0[2, 0], R0[2, 1], R0[2, 2]  # world vertical in the new chart's axes
+            ku = u0 * Kt[hrow, 0] + u1 * Kt[hrow, 1] + u2 * Kt[hrow, 2]
+            Kt[hrow, 0], Kt[hrow, 1], Kt[hrow, 2] = u0 * ku, u1 * ku, u2 * ku
+        upd = mtv(Kt, inn_a)
+        if hrow >= 0:  # Joseph form, valid for any gain: P − K P_xyᵀ − P_xy Kᵀ + K P_yy Kᵀ
+            KPyy = np.zeros((nx, ma))
+            for i in range(nx):
+                for a in range(ma):
+                    s_ = 0.0
+                    for bb in range(ma):
+                        s_ += Kt[bb, i] * Pyy_a[bb, a]
+                    KPyy[i, a] = s_
+            for i in range(nx):
+                for jj in range(nx):
+                    s_ = 0.0
+                    for a in range(ma):
+                        s_ += (-Kt[a, i] * Pxy_a[jj, a] - Pxy_a[i, a] * Kt[a, jj]
+                               + KPyy[i, a] * Kt[a, jj])
+                    Pxx[i, jj] += s_
+        else:  # P ← P_xx − K P_yy Kᵀ = P_xx − P_xy Kᵀ
+            for i in range(nx):
+                for jj in range(nx):
+                    s_ = 0.0
+                    for a in range(ma):
+                        s_ += Pxy_a[i, a] * Kt[a, jj]
+                    Pxx[i, jj] -= s_
     symmetrize(Pxx)
     qc[:] = qm
     ebar[:] = saturate(chart, upd[0:3])

@@ -138,12 +138,58 @@ PARAMS: tuple[Param, ...] = (
     _P("rate_process_noise", float, 10.0, "Power spectral density Q_w of the angular "
        "acceleration driving the constant-rate model (§4.2)", unit="rad^2/s^3",
        range=(1e-9, 1e9), group="noise"),
-    _P("estimate_gyro_bias", bool, False, "Estimate a gyro bias in the state (extension)",
+    _P("estimate_gyro_bias", bool, True, "Estimate a gyro bias in the state (extension)",
        group="noise"),
     _P("gyro_bias_noise", float, 1e-4, "Random walk of the gyro bias (sqrt of its PSD)",
        unit="rad/s/sqrt(s)", range=(0.0, 1.0), group="noise"),
     _P("gyro_bias_stddev", float, 0.02, "Initial uncertainty of the gyro bias", unit="rad/s",
        range=(1e-9, 1.0), group="noise"),
+    # --- disturbances and calibration (extensions for real sensors) --------------------------
+    _P("acc_norm_tolerance", float, 0.15, "Accelerometer samples whose magnitude differs from "
+       "gravity by more than this fraction are not fused (the excess also widens the "
+       "disturbance of every sample)", unit="1", range=(0.0, 1000.0), group="robustness"),
+    _P("acc_gate", float, 16.3, "Chi-square gate on the accelerometer innovation (3 degrees of "
+       "freedom; 16.3 = 0.1% false rejection); 0 = off", unit="1", range=(0.0, 1e6),
+       group="robustness"),
+    _P("acc_recovery_time", float, 1.0, "After this long without an accepted accelerometer "
+       "sample, the next one is fused regardless of the gates", unit="s", range=(0.0, 3600.0),
+       group="robustness"),
+    _P("mag_mode", str, "heading", "'heading': the magnetometer corrects heading only and can "
+       "never tilt the estimate (extension); 'vector': the paper's full vector measurement",
+       choices=("heading", "vector"), group="robustness"),
+    _P("mag_norm_tolerance", float, 0.1, "Magnetometer samples whose magnitude differs from the "
+       "learned field by more than this fraction are not fused", unit="1", range=(0.0, 1000.0),
+       group="robustness"),
+    _P("mag_dip_tolerance", float, 0.1745, "Magnetometer samples whose dip angle differs from "
+       "the learned field's by more than this are not fused", unit="rad", range=(0.0, 3.1416),
+       group="robustness"),
+    _P("mag_gate", float, 10.8, "Chi-square gate on the magnetometer innovation (1 degree of "
+       "freedom in heading mode; 10.8 = 0.1% false rejection); 0 = off", unit="1",
+       range=(0.0, 1e6), group="robustness"),
+    _P("mag_recovery_time", float, 10.0, "After this long without an accepted magnetometer "
+       "sample, the chi-square gate is suspended (magnitude and dip checks stay)", unit="s",
+       range=(0.0, 3600.0), group="robustness"),
+    _P("rest_detection", bool, True, "Detect rest (gyro minus bias and accelerometer excess "
+       "below thresholds for rest_time) and fuse a zero angular velocity, which sharpens the "
+       "gyro bias", group="robustness"),
+    _P("rest_gyro_threshold", float, 0.05, "Rest: bias-corrected gyro magnitude below this",
+       unit="rad/s", range=(0.0, 10.0), group="robustness"),
+    _P("rest_acc_threshold", float, 0.3, "Rest: accelerometer magnitude within this of gravity",
+       unit="m/s^2", range=(0.0, 100.0), group="robustness"),
+    _P("rest_time", float, 1.0, "Rest: both conditions held for this long", unit="s",
+       range=(0.0, 3600.0), group="robustness"),
+    _P("rest_rate_stddev", float, 0.005, "Standard deviation of the zero-rate measurement at "
+       "rest", unit="rad/s", range=(1e-6, 1.0), group="robustness"),
+    _P("mag_bias_x", float, 0.0, "Hard-iron offset subtracted from the magnetometer x reading "
+       "(same unit as the magnetometer: T for ROS)", unit="mag unit", range=(-1e6, 1e6),
+       group="calibration"),
+    _P("mag_bias_y", float, 0.0, "Hard-iron offset subtracted from the magnetometer y reading",
+       unit="mag unit", range=(-1e6, 1e6), group="calibration"),
+    _P("mag_bias_z", float, 0.0, "Hard-iron offset subtracted from the magnetometer z reading",
+       unit="mag unit", range=(-1e6, 1e6), group="calibration"),
+    _P("mag_soft_iron", list, [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0], "Soft-iron "
+       "matrix S (row-major) applied after the hard-iron offset: m = S (m_raw - bias)",
+       length=9, range=(-1e6, 1e6), group="calibration"),
     # --- initialisation and time -------------------------------------------------------------
     _P("init_mode", str, "align", "'align': closed-form attitude from the first accelerometer "
        "(+ magnetometer) sample; 'paper': identity with P0 = 100 I as in the paper's study",
@@ -169,12 +215,6 @@ PARAMS: tuple[Param, ...] = (
     _P("acc_magnitude_tolerance", float, 0.5, "Accelerometer samples whose magnitude differs "
        "from gravity by more than this fraction are not fused (the gyro still is)", unit="1",
        range=(0.01, 1000.0), scope="node", group="node: input and time"),
-    _P("mag_bias_x", float, 0.0, "Hard-iron offset subtracted from the magnetometer x reading",
-       unit="T", range=(-10.0, 10.0), scope="node", group="node: input and time"),
-    _P("mag_bias_y", float, 0.0, "Hard-iron offset subtracted from the magnetometer y reading",
-       unit="T", range=(-10.0, 10.0), scope="node", group="node: input and time"),
-    _P("mag_bias_z", float, 0.0, "Hard-iron offset subtracted from the magnetometer z reading",
-       unit="T", range=(-10.0, 10.0), scope="node", group="node: input and time"),
     # --- node: output -----------------------------------------------------------------------------
     _P("angular_velocity_source", str, "input", "angular_velocity published in imu/data: the "
        "input gyro as received, the input minus the estimated gyro bias, or the filter's "
