@@ -36,7 +36,7 @@ SKIP = 100  # the first second: convergence from the first-sample alignment
 
 
 @pytest.fixture(scope="module", params=["static", "slow_rotation", "wiener"])
-def case(request):  # noqa: ANN001, ANN201
+def case(request):
     sim = simulate(request.param, duration=60, rate=100, seed=3, gyro_noise=SIGMA,
                    acc_noise=SIGMA * 9.80665, mag_noise=SIGMA * 50e-6)
     triad = np.array([align_triad(a, m)[0] for a, m in zip(sim.acc, sim.mag, strict=True)])
@@ -48,7 +48,7 @@ def case(request):  # noqa: ANN001, ANN201
 
 @pytest.mark.parametrize("algorithm", ["mekf", "mukf"])
 @pytest.mark.parametrize("chart", ["o", "rp", "mrp", "rv"])
-def test_9d_beats_memoryless_alignment(case, algorithm: str, chart: str) -> None:  # noqa: ANN001
+def test_9d_beats_memoryless_alignment(case, algorithm: str, chart: str) -> None:
     name, sim, base9, _ = case
     r = mkf_ros.estimate(sim.gyr, sim.acc, sim.mag, timestamps=sim.t, algorithm=algorithm,
                          chart=chart, **PARAMS)
@@ -60,7 +60,7 @@ def test_9d_beats_memoryless_alignment(case, algorithm: str, chart: str) -> None
 @pytest.mark.parametrize("variant", ["mekf", "mukf-consistent", "mukf-published",
                                      "mukf-integrated"])
 @pytest.mark.parametrize("chart", ["o", "rp", "mrp", "rv"])
-def test_6d_inclination(case, variant: str, chart: str) -> None:  # noqa: ANN001
+def test_6d_inclination(case, variant: str, chart: str) -> None:
     name, sim, _, base6 = case
     algorithm, _, noise = variant.partition("-")
     r = mkf_ros.estimate(sim.gyr, sim.acc, timestamps=sim.t, algorithm=algorithm, chart=chart,

@@ -26,7 +26,7 @@ from mkf_ros.sim import simulate
 
 
 @numba.njit(cache=False)
-def _run_checked(cfg, nz, dts, gyr, acc, mag):  # noqa: ANN001, ANN202
+def _run_checked(cfg, nz, dts, gyr, acc, mag):
     st = np.zeros(S_SIZE)
     st[S_QC] = 1.0
     P = np.zeros((NX_MAX, NX_MAX))
@@ -51,7 +51,7 @@ def _run_checked(cfg, nz, dts, gyr, acc, mag):  # noqa: ANN001, ANN202
 
 
 @pytest.fixture(scope="module")
-def stream():  # noqa: ANN201
+def stream():
     # 1000 s at 100 Hz of the paper's Wiener motion (Q_ω = 1), gyro bias, 20 Hz magnetometer
     return simulate("wiener", duration=1000, rate=100, seed=11, gyro_bias=(0.01, -0.02, 0.005),
                     mag_rate=20)
@@ -61,7 +61,7 @@ def stream():  # noqa: ANN201
 @pytest.mark.parametrize("algorithm", ["mekf", "mukf"])
 @pytest.mark.parametrize("chart", ["o", "rp", "mrp", "rv"])
 @pytest.mark.parametrize("cu", [True, False])
-def test_long_run_invariants(stream, algorithm: str, chart: str, cu: bool) -> None:  # noqa: ANN001
+def test_long_run_invariants(stream, algorithm: str, chart: str, cu: bool) -> None:
     n = stream.t.size
     assert n >= 100_000
     cfg = build_cfg(FilterParams(algorithm=algorithm, chart=chart, chart_update=cu, use_mag=True,

@@ -79,7 +79,7 @@ def test_kernel_equals_joint_update(nx: int, chart: str, cu: bool) -> None:
         wm = w + rng.normal(size=3) * 0.1
         Rw = 1e-4 * np.eye(3)
         qr, Pr = mekf_predict_ref(q, w, P0, nx, dt, Qw, Qb)
-        qr, wr, br, Pr = mekf_update_ref(chart_id(chart), cu, qr, w, b, Pr, nx, vms, vrefs, Rvs,
+        qr, _, _, Pr = mekf_update_ref(chart_id(chart), cu, qr, w, b, Pr, nx, vms, vrefs, Rvs,
                                          Qvs, wm, Rw)
         qk, wk, bk = q.copy(), w.copy(), b.copy()
         Pk = np.zeros((9, 9))
@@ -103,7 +103,7 @@ def test_any_subset_of_sensors() -> None:
     Rv = np.array([1e-3 * np.eye(3)])
     for use_v, use_w in ([False], True), ([True], False):
         k = 1 if use_v[0] else 0
-        qr, wr, br, Pr = mekf_update_ref(1, True, q, w, b, P0, 6, [vm[0]][:k], [vr[0]][:k],
+        qr, _, _, Pr = mekf_update_ref(1, True, q, w, b, P0, 6, [vm[0]][:k], [vr[0]][:k],
                                          [Rv[0]][:k], [Rv[0]][:k], w + 0.1 if use_w else None,
                                          1e-4 * np.eye(3))
         qk, wk, bk = q.copy(), w.copy(), b.copy()

@@ -13,7 +13,7 @@ from mkf_ros.core.params import BY_NAME, PARAMS, FilterParams, filter_params
 
 
 @pytest.mark.parametrize("p", PARAMS, ids=lambda p: p.name)
-def test_definition_is_complete_and_default_valid(p) -> None:  # noqa: ANN001
+def test_definition_is_complete_and_default_valid(p) -> None:
     assert p.description and p.type in (bool, int, float, str, list)
     assert p.validate(p.default) == p.default
     if p.type in (int, float):
@@ -25,7 +25,7 @@ def test_definition_is_complete_and_default_valid(p) -> None:  # noqa: ANN001
 
 
 @pytest.mark.parametrize("p", [p for p in PARAMS if p.type in (int, float)], ids=lambda p: p.name)
-def test_ranges_are_enforced(p) -> None:  # noqa: ANN001
+def test_ranges_are_enforced(p) -> None:
     lo, hi = p.range
     with pytest.raises(ValueError, match=p.name):
         p.validate(hi + abs(hi) + 1)
@@ -37,7 +37,8 @@ def test_ranges_are_enforced(p) -> None:  # noqa: ANN001
 
 def test_filter_params_mapping() -> None:
     fp = FilterParams(chart="RV", use_mag="true")
-    assert fp.chart == "rv" and fp["use_mag"] is True and set(fp) == {p.name for p in filter_params()}
+    assert fp.chart == "rv" and fp["use_mag"] is True
+    assert set(fp) == {p.name for p in filter_params()}
     assert fp.replace(algorithm="mukf").algorithm == "mukf" and fp.algorithm == "mekf"
 
 

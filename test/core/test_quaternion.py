@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+from core_strategies import unit_quaternions, vectors
 from hypothesis import given, settings
 
 from mkf_ros.core.quaternion import (
@@ -19,7 +20,6 @@ from mkf_ros.core.quaternion import (
     rotmat_np,
     skew,
 )
-from core_strategies import unit_quaternions, vectors
 
 
 def test_hamilton_units() -> None:

@@ -102,7 +102,7 @@ def test_heading_mode_does_not_pull_inclination(algorithm: str) -> None:
 @pytest.mark.parametrize("algorithm", ALGOS)
 def test_hard_and_soft_iron_calibration(algorithm: str) -> None:
     sim = simulate("slow_rotation", duration=40, rate=100, seed=8)
-    S = np.array([[1.1, 0.05, 0.0], [0.05, 0.9, 0.02], [0.0, 0.02, 1.05]])  # soft iron (m = S m_raw')
+    S = np.array([[1.1, 0.05, 0.0], [0.05, 0.9, 0.02], [0.0, 0.02, 1.05]])  # soft iron
     h = np.array([30e-6, -20e-6, 10e-6])  # hard iron
     raw = np.linalg.solve(S, sim.mag.T).T + h  # what a distorted sensor reports
     cal = dict(mag_bias_x=h[0], mag_bias_y=h[1], mag_bias_z=h[2], mag_soft_iron=list(S.ravel()))
