@@ -10,11 +10,11 @@ from mkf_ros.sim import simulate
 
 
 @pytest.fixture(scope="module")
-def sim():  # noqa: ANN201
+def sim():
     return simulate("slow_rotation", duration=5, rate=100, seed=0)
 
 
-def test_result_shapes_and_contents(sim) -> None:  # noqa: ANN001
+def test_result_shapes_and_contents(sim) -> None:
     r = mkf_ros.estimate(sim.gyr, sim.acc, sim.mag, dt=0.01, estimate_gyro_bias=True)
     n = sim.t.size
     assert r.quat.shape == (n, 4) and r.cov.shape == (n, 3, 3) and r.omega.shape == (n, 3)
@@ -26,13 +26,13 @@ def test_result_shapes_and_contents(sim) -> None:  # noqa: ANN001
     np.testing.assert_allclose(r.omega[-1], sim.omega[-1], atol=0.05)
 
 
-def test_timestamps_equal_dt(sim) -> None:  # noqa: ANN001
+def test_timestamps_equal_dt(sim) -> None:
     a = mkf_ros.estimate(sim.gyr, sim.acc, dt=0.01)
     b = mkf_ros.estimate(sim.gyr, sim.acc, timestamps=100.0 + sim.t)
     np.testing.assert_allclose(a.quat, b.quat, atol=1e-12)
 
 
-def test_nan_rows_are_missing_samples(sim) -> None:  # noqa: ANN001
+def test_nan_rows_are_missing_samples(sim) -> None:
     """An asynchronous 10 Hz magnetometer is expressed with NaN rows."""
     mag = sim.mag.copy()
     mag[np.arange(mag.shape[0]) % 10 != 0] = np.nan

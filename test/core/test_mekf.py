@@ -79,7 +79,7 @@ def test_kernel_equals_joint_update(nx: int, chart: str, cu: bool) -> None:
         wm = w + rng.normal(size=3) * 0.1
         Rw = 1e-4 * np.eye(3)
         qr, Pr = mekf_predict_ref(q, w, P0, nx, dt, Qw, Qb)
-        qr, _, _, Pr = mekf_update_ref(chart_id(chart), cu, qr, w, b, Pr, nx, vms, vrefs, Rvs,
+        qr, wr, br, Pr = mekf_update_ref(chart_id(chart), cu, qr, w, b, Pr, nx, vms, vrefs, Rvs,
                                          Qvs, wm, Rw)
         qk, wk, bk = q.copy(), w.copy(), b.copy()
         Pk = np.zeros((9, 9))
