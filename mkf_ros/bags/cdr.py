@@ -105,12 +105,20 @@ def _decode_rows(rows: np.ndarray, layout: Layout, topic: str) -> tuple[np.ndarr
     return _stamp_ns(sec, nsec), frame, fields
 
 
-def decode(raws: Sequence[bytes], layout: Layout, topic: str = "") -> Decoded:
-    """Decode raw CDR messages (as stored in a bag) of one of :data:`LAYOUTS`.
+def decode(raws: Sequence[bytes] | np.ndarray, layout: Layout, topic: str = "") -> Decoded:
+    """Decode raw CDR messages (as stored in a bag) of one of :data:`LAYOUTS`: a sequence of
+    bytes, or an (N, L) uint8 array of equal-length messages.
 
     Raises :class:`CdrError` for anything that does not fit the layout (a different message
     type, a truncated message, big-endian data).
     """
+    if isinstance(raws, np.ndarray):
+        if raws.ndim != 2 or raws.dtype != np.uint8:
+            raise TypeError("decode: expected an (N, L) uint8 array")
+        if raws.shape[0] == 0:
+            return decode([], layout, topic)
+        stamp, frame, fields = _decode_rows(raws, layout, topic)
+        return Decoded(stamp, [frame], fields, raws)
     n = len(raws)
     names = [name for name, _ in layout.fields]
     if n == 0:

@@ -54,6 +54,7 @@ class ChunkRef:
     compressed_size: int
     uncompressed_size: int
     channels: frozenset[int]  #: channels that have messages in this chunk (from the index)
+    index: dict[int, int]  #: channel → file offset of its message index record
 
 
 class _Buf:
@@ -141,15 +142,16 @@ class McapFile:
             elif op == OP_CHUNK_INDEX:
                 t0, t1, off, ln = r.take("<QQQQ")
                 nmap = r.take("<I")
-                ids = frozenset(struct.unpack_from("<H", r.d, r.p + i)[0]
-                                for i in range(0, nmap, 10))
+                index = dict(struct.unpack_from("<HQ", r.d, r.p + i)
+                             for i in range(0, nmap, 10))
+                ids = frozenset(index)
                 r.p += nmap
                 r.take("<Q")  # message index length
                 comp = r.string()
                 csize, usize = r.take("<QQ")
                 if off + ln > size:
                     raise McapError("chunk beyond the end of the file (truncated?)")
-                self.chunks.append(ChunkRef(t0, t1, off, ln, comp, csize, usize, ids))
+                self.chunks.append(ChunkRef(t0, t1, off, ln, comp, csize, usize, ids, index))
             elif op == OP_STATISTICS:
                 r.p = 8 + 2 + 4 * 4 + 16
                 n = r.take("<I")
@@ -191,58 +193,110 @@ class McapFile:
             raise McapError(f"chunk at offset {c.offset}: checksum mismatch")
         return data
 
-    def read(self, channel_ids: set[int], progress: Any = None
-             ) -> dict[int, tuple[np.ndarray, list[bytes]]]:
-        """All messages of ``channel_ids``: per channel (log times in ns, raw data), each in
-        log-time order. ``progress`` (optional) is called with the number of bytes done."""
-        out_t: dict[int, list[np.ndarray]] = {c: [] for c in channel_ids}
-        out_d: dict[int, list[bytes]] = {c: [] for c in channel_ids}
+    def _indexed_offsets(self, f: BinaryIO, c: ChunkRef, ch: int) -> np.ndarray | None:
+        """Offsets in the chunk of channel ``ch``'s messages, from its message index record
+        (None if the chunk has no index for it)."""
+        pos = c.index.get(ch)
+        if pos is None:
+            return None
+        f.seek(pos)
+        head = f.read(15)
+        if len(head) != 15 or head[0] != OP_MESSAGE_INDEX:
+            raise McapError(f"no message index at offset {pos} (corrupt index)")
+        _, ln, cid, nbytes = struct.unpack("<BQHI", head)
+        if cid != ch or nbytes % 16 or nbytes + 6 != ln:
+            raise McapError(f"corrupt message index at offset {pos}")
+        pairs = np.frombuffer(f.read(nbytes), dtype="<u8")
+        if pairs.size * 8 != nbytes:
+            raise McapError(f"message index at offset {pos} is truncated")
+        return pairs.reshape(-1, 2)[:, 1].astype(np.int64)
+
+    @staticmethod
+    def _walk(data: bytes) -> np.ndarray:
+        """Offsets of every message record in a chunk (when there is no message index)."""
         next_len = struct.Struct("<Q").unpack_from
+        pos: list[int] = []
+        add = pos.append
+        p, end = 0, len(data) - 9
+        while p <= end:
+            add(p)
+            p += 9 + next_len(data, p + 1)[0]
+        if p != end + 9:
+            raise McapError("record overruns its chunk")
+        s = np.asarray(pos, np.int64)
+        return s[np.frombuffer(data, np.uint8)[s] == OP_MESSAGE]
+
+    def read(self, channel_ids: set[int], progress: Any = None
+             ) -> dict[int, tuple[np.ndarray, np.ndarray | list[bytes]]]:
+        """All messages of ``channel_ids``: per channel (log times in ns, messages), in
+        log-time order. Messages are an (N, L) uint8 array when they all have one length L,
+        else a list of bytes. ``progress`` (optional) is called with bytes done."""
+        from numpy.lib.stride_tricks import sliding_window_view
+
+        parts: dict[int, list[tuple[np.ndarray, np.ndarray | list[bytes]]]] = {
+            c: [] for c in channel_ids}
         with self.path.open("rb") as f:
             for c in self.chunks:
-                if not (c.channels & channel_ids) and c.channels:
+                want = channel_ids & c.channels if c.channels else channel_ids
+                if not want:
                     if progress:
                         progress(c.length)
                     continue
                 data = self._chunk_records(f, c)
-                pos: list[int] = []
-                add = pos.append
-                p, end = 0, len(data) - 9
-                while p <= end:  # the one per-record Python loop
-                    add(p)
-                    p += 9 + next_len(data, p + 1)[0]
-                if p != end + 9:
-                    raise McapError(f"chunk at offset {c.offset}: record overruns the chunk")
                 arr = np.frombuffer(data, np.uint8)
-                s = np.asarray(pos, np.int64)
-                s = s[arr[s] == OP_MESSAGE]
-                if s.size == 0:
-                    continue
-                head = arr[s[:, None] + np.arange(1, 23)].copy()  # length, channel, seq, log
-                ln = head[:, 0:8].view("<u8")[:, 0].astype(np.int64)
-                cid = head[:, 8:10].view("<u2")[:, 0]
-                logt = head[:, 14:22].view("<u8")[:, 0].astype(np.int64)
-                a_all = s + 9 + 22
-                b_all = s + 9 + ln
-                for ch in channel_ids:
-                    sel = np.flatnonzero(cid == ch)
-                    if sel.size == 0:
+                walked = None
+                for ch in want:
+                    offs = self._indexed_offsets(f, c, ch)
+                    if offs is None:
+                        if walked is None:
+                            walked = self._walk(data)
+                        offs = walked
+                    if offs.size == 0:
                         continue
-                    out_t[ch].append(logt[sel])
-                    out_d[ch].extend([data[a:b] for a, b in zip(a_all[sel].tolist(),
-                                                               b_all[sel].tolist(), strict=True)])
+                    if offs.min() < 0 or offs.max() + MSG_HEAD > len(data):
+                        raise McapError(f"chunk at offset {c.offset}: index points outside it")
+                    head = arr[offs[:, None] + np.arange(MSG_HEAD)].copy()
+                    ln = head[:, 1:9].view("<u8")[:, 0].astype(np.int64)
+                    cid = head[:, 9:11].view("<u2")[:, 0]
+                    if walked is not None and offs is walked:
+                        keep = cid == ch
+                        offs, head, ln, cid = offs[keep], head[keep], ln[keep], cid[keep]
+                    if ((head[:, 0] != OP_MESSAGE).any() or (cid != ch).any() or (ln < 22).any()
+                            or (offs + 9 + ln > len(data)).any()):
+                        raise McapError(f"chunk at offset {c.offset}: corrupt message records")
+                    logt = head[:, 15:23].view("<u8")[:, 0].astype(np.int64)
+                    size = ln - 22
+                    if offs.size and (size == size[0]).all() and size[0] > 0:
+                        rows = sliding_window_view(arr, int(size[0]))[offs + MSG_HEAD]
+                        parts[ch].append((logt, rows))
+                    else:
+                        parts[ch].append((logt, [data[a:a + n] for a, n in zip(
+                            (offs + MSG_HEAD).tolist(), size.tolist(), strict=True)]))
                 if progress:
                     progress(c.length)
-        res: dict[int, tuple[np.ndarray, list[bytes]]] = {}
-        for ch in channel_ids:
-            t = np.concatenate(out_t[ch]) if out_t[ch] else np.zeros(0, np.int64)
-            d = out_d[ch]
-            if t.size > 1 and (np.diff(t) < 0).any():
-                order = np.argsort(t, kind="stable")
-                t = t[order]
-                d = [d[i] for i in order.tolist()]
-            res[ch] = (t, d)
-        return res
+        return {ch: _concat(p) for ch, p in parts.items()}
+
+
+def _concat(parts: list[tuple[np.ndarray, np.ndarray | list[bytes]]]
+            ) -> tuple[np.ndarray, np.ndarray | list[bytes]]:
+    """Join per-chunk pieces of one channel, in log-time order (stable)."""
+    if not parts:
+        return np.zeros(0, np.int64), []
+    t = np.concatenate([p[0] for p in parts])
+    uniform = all(isinstance(p[1], np.ndarray) for p in parts) and len(
+        {p[1].shape[1] for p in parts}) == 1  # type: ignore[union-attr]
+    if uniform:
+        data: np.ndarray | list[bytes] = (parts[0][1] if len(parts) == 1 else
+                                          np.concatenate([p[1] for p in parts]))
+    else:
+        data = [x for p in parts for x in (
+            p[1] if isinstance(p[1], list) else [r.tobytes() for r in p[1]])]
+    if t.size > 1 and (np.diff(t) < 0).any():
+        order = np.argsort(t, kind="stable")
+        t = t[order]
+        data = data[order] if isinstance(data, np.ndarray) else [data[i] for i in
+                                                                 order.tolist()]
+    return t, data
 
 
 # ------------------------------------------------------------------ writing

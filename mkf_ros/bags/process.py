@@ -74,7 +74,8 @@ class ProcessResult:
     notes: list[str]
 
 
-def _decode(raws: list[bytes], layout: cdr.Layout, topic: str, path: Path) -> cdr.Decoded:
+def _decode(raws: np.ndarray | list[bytes], layout: cdr.Layout, topic: str,
+            path: Path) -> cdr.Decoded:
     try:
         return cdr.decode(raws, layout, topic)
     except cdr.CdrError as e:
@@ -167,7 +168,7 @@ def run_stream(adapter: Any, imu: cdr.Decoded, imu_log: np.ndarray, mag: cdr.Dec
                    linacc=stack(res_a, 3), linacc_cov=stack(res_ac, 9))
 
 
-def encode_outputs(imu: cdr.Decoded, raws: list[bytes], out: Outputs) -> np.ndarray | list[bytes]:
+def encode_outputs(imu: cdr.Decoded, batch: Any, out: Outputs) -> np.ndarray | list[bytes]:
     """``imu/data`` messages: the input messages with the estimate written in (header kept)."""
     q = out.quat
     values = dict(orientation=np.column_stack([q[:, 1], q[:, 2], q[:, 3], q[:, 0]]),
@@ -179,6 +180,7 @@ def encode_outputs(imu: cdr.Decoded, raws: list[bytes], out: Outputs) -> np.ndar
         cdr.set_fields(rows, cdr.IMU, **values)
         return rows
     res: list[bytes] = []  # several frame_id lengths: patch each message
+    raws = batch.raws
     for j, i in enumerate(out.index.tolist()):
         row = np.frombuffer(raws[i], np.uint8)[None, :].copy()
         cdr.set_fields(row, cdr.IMU, **{k: v[j] for k, v in values.items()})
@@ -297,12 +299,12 @@ def process_bag(bag: str | Path, out: str | Path, params: Mapping[str, Any] | No
     imu_b = batches[imu_name]
     if len(imu_b) == 0:
         raise BagError(f"IMU topic {imu_name} in {bag} has no messages")
-    imu = _decode(imu_b.raws, cdr.IMU, imu_name, bag)
+    imu = _decode(imu_b.data, cdr.IMU, imu_name, bag)
     mag = mag_b = None
     if mag_name:
         mag_b = batches[mag_name]
-        mag = _decode(mag_b.raws, cdr.MAGNETIC_FIELD, mag_name, bag)
-    truth = _decode(batches[truth_name].raws, cdr.QUATERNION_STAMPED, truth_name, bag) \
+        mag = _decode(mag_b.data, cdr.MAGNETIC_FIELD, mag_name, bag)
+    truth = _decode(batches[truth_name].data, cdr.QUATERNION_STAMPED, truth_name, bag) \
         if truth_name else None
     tm["read"] = time.perf_counter() - t0
 
@@ -313,14 +315,14 @@ def process_bag(bag: str | Path, out: str | Path, params: Mapping[str, Any] | No
     tm["filter"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    data = encode_outputs(imu, imu_b.raws, outs)
+    data = encode_outputs(imu, imu_b, outs)
     out_log = imu_b.log_ns[outs.index]
     with BagWriter(out, storage, overwrite=overwrite) as w:
         conn = w.add_topic(out_name, cdr.IMU.msgtype)
         w.write_batch(conn, out_log, data)
         for t in extra:
             c = w.add_topic(t, in_types[t])
-            w.write_batch(c, batches[t].log_ns, batches[t].raws)
+            w.write_batch(c, batches[t].log_ns, batches[t].data)
     tm["write"] = time.perf_counter() - t0
 
     out_stamp = imu.stamp_ns[outs.index]

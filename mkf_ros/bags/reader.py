@@ -30,15 +30,32 @@ class TopicInfo:
     count: int
 
 
-@dataclass
 class Batch:
-    """All messages of one topic: log (receive) times in ns and raw ROS 2 CDR, in log order."""
+    """All messages of one topic in log order: log (receive) times in ns and the raw ROS 2
+    CDR messages, as ``rows`` (an (N, L) uint8 array, when all have one length) and/or
+    ``raws`` (a list of bytes; made from ``rows`` on first use)."""
 
-    log_ns: np.ndarray
-    raws: list[bytes]
+    def __init__(self, log_ns: np.ndarray, data: np.ndarray | list[bytes]) -> None:
+        self.log_ns = log_ns
+        self.rows: np.ndarray | None = data if isinstance(data, np.ndarray) else None
+        self._raws: list[bytes] | None = None if isinstance(data, np.ndarray) else data
+
+    @property
+    def raws(self) -> list[bytes]:
+        if self._raws is None:
+            from mkf_ros.bags.cdr import split_rows
+
+            assert self.rows is not None
+            self._raws = split_rows(self.rows)
+        return self._raws
+
+    @property
+    def data(self) -> np.ndarray | list[bytes]:
+        """``rows`` if available (cheapest to decode and write), else ``raws``."""
+        return self.rows if self.rows is not None else self.raws
 
     def __len__(self) -> int:
-        return len(self.raws)
+        return len(self.log_ns)
 
 
 def _typestore() -> Any:
@@ -234,9 +251,10 @@ class BagReader:
 
     def _read_mcap(self, topics: list[str], progress: Callable[[int], None] | None
                    ) -> dict[str, Batch]:
-        from mkf_ros.bags.mcap import McapError, McapFile
+        from mkf_ros.bags.mcap import McapError, McapFile, _concat
 
-        parts: dict[str, list[tuple[np.ndarray, list[bytes]]]] = {t: [] for t in topics}
+        parts: dict[str, list[tuple[np.ndarray, np.ndarray | list[bytes]]]] = {
+            t: [] for t in topics}
         for f in self._files:
             try:
                 mf = McapFile(f)
@@ -246,7 +264,7 @@ class BagReader:
                 raise BagError(f"cannot read bag {self.path}: {f.name}: {e}") from None
             for cid, (t, d) in got.items():
                 parts[mf.channels[cid].topic].append((t, d))
-        return {t: _merge(p) for t, p in parts.items()}
+        return {t: Batch(*_concat(p)) for t, p in parts.items()}
 
     def _read_sqlite(self, topics: list[str], progress: Callable[[int], None] | None
                      ) -> dict[str, Batch]:
@@ -257,10 +275,14 @@ class BagReader:
                 ids = {row[0]: row[1] for row in db.execute("SELECT id, name FROM topics")
                        if row[1] in parts}
                 for tid, name in ids.items():
-                    rows = db.execute("SELECT timestamp, data FROM messages WHERE topic_id = ? "
-                                      "ORDER BY timestamp, id", (tid,)).fetchall()
+                    rows = db.execute("SELECT timestamp, data FROM messages WHERE topic_id = ?",
+                                      (tid,)).fetchall()  # rowid order; sorted stably below
                     t = np.fromiter((r[0] for r in rows), dtype=np.int64, count=len(rows))
-                    parts[name].append((t, [r[1] for r in rows]))
+                    d = [r[1] for r in rows]
+                    if t.size > 1 and (np.diff(t) < 0).any():
+                        order = np.argsort(t, kind="stable")
+                        t, d = t[order], [d[i] for i in order.tolist()]
+                    parts[name].append((t, d))
                     if progress:
                         progress(len(rows))
             finally:
