@@ -28,7 +28,13 @@ def _writer_class() -> type:
     from mkf_ros.bags.mcap import McapStorageWriter
 
     class FastSqlite3Writer(Sqlite3Writer):  # type: ignore[misc]
-        """rosbags' sqlite3 storage plus one ``executemany`` per batch."""
+        """rosbags' sqlite3 storage plus one ``executemany`` per batch. No journal and no
+        fsync: the bag is built under a temporary name and only renamed when complete."""
+
+        def __init__(self, path: Path, compression: Any) -> None:
+            super().__init__(path, compression)
+            self.conn.execute("PRAGMA synchronous=OFF")
+            self.conn.execute("PRAGMA journal_mode=OFF")
 
         def write_batch(self, cids: np.ndarray, ts: np.ndarray,
                         data: np.ndarray | list[bytes]) -> None:
