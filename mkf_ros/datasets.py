@@ -71,8 +71,8 @@ class Recording:
 
     @property
     def rate(self) -> float:
-        """Median sampling rate in Hz."""
-        return float(1.0 / np.median(np.diff(self.t)))
+        """Mean sampling rate in Hz, (N − 1) / (t[-1] − t[0])."""
+        return float((len(self.t) - 1) / (self.t[-1] - self.t[0]))
 
 
 # ----------------------------------------------------------------------------------- helpers
