@@ -27,7 +27,7 @@ SAMPLINGS: tuple[str, ...] = ("sigma", "variance")  # true noise: σ- or varianc
 NO_SCALING = "-"
 
 #: Trajectories per work unit (fixed, so that resumed runs cut the same chunks).
-CHUNK = 10
+CHUNK = 5
 
 
 @dataclass(frozen=True)
@@ -106,10 +106,12 @@ def chunks(n_s: int) -> list[tuple[int, int]]:
     return [(t0, min(t0 + CHUNK, n_s)) for t0 in range(0, n_s, CHUNK)]
 
 
-# Cost model for the progress bar and the ETA only (relative units ≈ µs); refined at run time.
-_CONV_MEAN = {2.0: (40000, 8000), 5.0: (8000, 4000), 10.0: (3000, 2000), 50.0: (800, 800),
-              100.0: (800, 1000), 500.0: (1500, 2000), 1000.0: (2500, 3000)}
-_T_UPDATE = (1.0, 4.0)  # MEKF, MUKF (relative)
+# Cost model for the progress bar and its ETA only, in MEKF updates: mean convergence-phase
+# length per rate (MEKF, MUKF; measured in a --quick run) and the MUKF/MEKF time per update.
+_CONV_MEAN = {2.0: (35000, 6000), 5.0: (8500, 2000), 10.0: (2400, 1300), 50.0: (650, 1600),
+              100.0: (1050, 2250), 500.0: (2450, 2800), 1000.0: (2700, 3300)}
+_T_UPDATE = (1.0, 6.0)  # MEKF, MUKF
+SUBSTEP_COST = 2.0  # truth simulation (100 sub-steps) per update
 
 
 def unit_cost(group: Sequence[Cell], n_traj: int) -> float:
@@ -124,9 +126,6 @@ def unit_cost(group: Sequence[Cell], n_traj: int) -> float:
         c += (n_updates(rate) + conv[k]) * _T_UPDATE[k]
     c += n_updates(rate) * SUBSTEP_COST
     return c * n_traj
-
-
-SUBSTEP_COST = 100 * 0.02  # truth simulation per update, same units
 
 
 def specs_array(group: Sequence[Cell]) -> tuple[np.ndarray, np.ndarray, list[tuple]]:

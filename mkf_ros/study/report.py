@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from mkf_ros.study import config as cfg
-from mkf_ros.study import runner
+from mkf_ros.study import runner, sim
 from mkf_ros.study.config import Cell
 from mkf_ros.study.sim import OK
 from mkf_ros.study.stats import K_CI, REL_TOL, paired_difference
@@ -339,6 +339,11 @@ def compare_paired(parts: runner.Parts, n_s: int, a: Cell,
     return paired_difference(xa["err"], xb["err"], xa["status"] == OK, xb["status"] == OK)
 
 
+def _finite(*rows: Row | None) -> bool:
+    """All rows exist and have a mean (a cell where no run converged has none)."""
+    return all(r is not None and np.isfinite(r.mu) for r in rows)
+
+
 def _separated(a: Row, b: Row) -> int:
     """−1 if a is better (lower, intervals apart), +1 if b is, 0 if the intervals overlap."""
     if a.hi < b.lo:
@@ -369,7 +374,7 @@ def q_charts(t: Table, parts: runner.Parts, n_s: int) -> Verdict | None:
                     if rate < MIN_RATE:
                         continue
                     rows = [t.get(f, c, u, r, rate, s) for c in cfg.CHARTS]
-                    if any(x is None for x in rows):
+                    if not _finite(*rows):
                         continue
                     groups += 1
                     mus = np.array([x.mu for x in rows])
@@ -419,7 +424,7 @@ def q_filters(t: Table, speed: dict | None) -> Verdict | None:
                     if rate < MIN_RATE:
                         continue
                     a, b = t.get("mekf", c, u, r, rate), t.get("mukf", c, u, r, rate, "published")
-                    if a is None or b is None:
+                    if not _finite(a, b):
                         continue
                     n += 1
                     s = _separated(a, b)
@@ -434,7 +439,7 @@ def q_filters(t: Table, speed: dict | None) -> Verdict | None:
           f"{mukf_better}, no difference in {n - mekf_better - mukf_better}."]
     hi = [t.get("mukf", "rp", "cu", 1e-2, rate, "published") for rate in (100.0, 500.0, 1000.0)]
     me = [t.get("mekf", "rp", "cu", 1e-2, rate) for rate in (100.0, 500.0, 1000.0)]
-    if all(x is not None for x in hi + me):
+    if _finite(*hi, *me):
         ev.append("MUKF plateau at R = 1e-2 (RP, CU, 100/500/1000 Hz): "
                   + "/".join(f"{x.mu:.1f}" for x in hi) + "° vs MEKF "
                   + "/".join(f"{x.mu:.2f}" for x in me) + "° (paper: ≈19° vs 3.5/1.5/1.1°).")
@@ -444,7 +449,7 @@ def q_filters(t: Table, speed: dict | None) -> Verdict | None:
     cons = [(r, rate, t.get("mukf", "rp", "cu", r, rate, "consistent"),
              t.get("mukf", "rp", "cu", r, rate, "published"), t.get("mekf", "rp", "cu", r, rate))
             for r in cfg.RS for rate in cfg.RATES_HZ if rate >= MIN_RATE]
-    cons = [x for x in cons if all(v is not None for v in x[2:])]
+    cons = [x for x in cons if _finite(*x[2:])]
     if cons:
         better = sum(_separated(c, p) == -1 for _, _, c, p, _ in cons)
         vs_mekf = sum(_separated(m, c) == -1 for _, _, c, _, m in cons)
@@ -466,7 +471,7 @@ def q_update(t: Table, parts: runner.Parts, n_s: int) -> Verdict | None:
                     if rate < MIN_RATE:
                         continue
                     a, b = t.get(f, c, "cu", r, rate, s), t.get(f, c, "reset", r, rate, s)
-                    if a is None or b is None:
+                    if not _finite(a, b):
                         continue
                     n += 1
                     sep += _separated(a, b) != 0
@@ -500,7 +505,7 @@ def agreement_stats(t: Table, min_rate: float = MIN_RATE) -> dict:
     for f in cfg.FILTERS:
         sub = [r for r in rows if r.cell.filter == f]
         out[f] = (sum(r.agrees for r in sub), len(sub))
-    rel = np.array([r.rel for r in rows if r.rel is not None])
+    rel = np.array([r.rel for r in rows if r.rel is not None and np.isfinite(r.rel)])
     out["median_abs_rel"] = float(np.median(np.abs(rel))) if rel.size else float("nan")
     out["median_rel"] = float(np.median(rel)) if rel.size else float("nan")
     return out
@@ -517,7 +522,7 @@ def explain(t: Table, r: Row) -> str:
     peers = [t.get(c.filter, ch, u, c.r, c.rate_hz, c.mukf_scaling, c.sampling)
              for ch in cfg.CHARTS for u in cfg.UPDATES]
     pubs = [p.pub for p in peers if p is not None and p.pub is not None]
-    ours = [p.mu for p in peers if p is not None]
+    ours = [p.mu for p in peers if _finite(p)]
     if len(pubs) >= 4:
         lo, hi = min(pubs), max(pubs)
         if lo <= r.mu <= hi:
@@ -531,7 +536,10 @@ def explain(t: Table, r: Row) -> str:
                 notes.append(f"all 8 variants here are shifted alike (ours {m_ours:.3g}° vs "
                              f"paper {m_pub:.3g}° on average, {100 * shift:+.0f}%): a "
                              "level difference, not a variant effect")
-    if r.non_converged:
+    if r.n_used == 0:
+        notes.append(f"no run reached {sim.THETA_E0_DEG:g}° within the convergence cap: a "
+                     "failure to converge, not a statistical disagreement (see non_converged)")
+    elif r.non_converged:
         notes.append(f"{r.non_converged} non-converged runs excluded")
     if c.rate_hz <= 10.0:
         notes.append("low-rate regime: wide error distribution "
@@ -540,9 +548,53 @@ def explain(t: Table, r: Row) -> str:
 
 
 # --------------------------------------------------------------------------- summary
+def _pct(x: float | None) -> str:
+    return f"{100 * x:+.0f}%" if x is not None and np.isfinite(x) else "–"
+
+
+def sampling_section(t: Table) -> list[str]:
+    """§8 item 11: the same cells with σ-uniform and variance-uniform true-noise levels."""
+    pairs = []
+    for r in t.rows.values():
+        c = r.cell
+        if c.sampling != "variance":
+            continue
+        s = t.get(c.filter, c.chart, c.update, c.r, c.rate_hz, c.mukf_scaling, "sigma")
+        if _finite(r, s):
+            pairs.append((s, r))
+    if not pairs:
+        return []
+    ratio = np.array([v.mu / s.mu for s, v in pairs if s.cell.rate_hz >= MIN_RATE])
+    pub = [(s, v) for s, v in pairs if v.pub is not None and v.cell.rate_hz >= MIN_RATE
+           and v.cell.mukf_scaling in (cfg.NO_SCALING, "published")]
+    out = ["## True-noise sampling: σ-uniform vs variance-uniform (§8 item 11)\n"]
+    if ratio.size:
+        out.append(f"{len(pairs)} cells were run with both readings. At ≥ {MIN_RATE:g} Hz the "
+                   f"variance-uniform (literal) reading gives errors {np.median(ratio):.2f}× "
+                   f"the σ-uniform ones (median; range {ratio.min():.2f}–{ratio.max():.2f}).")
+    if pub:
+        out.append(f" Against the published values: σ-uniform agrees in "
+                   f"{sum(s.agrees for s, _ in pub)} of {len(pub)} of these cells, "
+                   f"variance-uniform in {sum(v.agrees for _, v in pub)} (median difference "
+                   f"{_pct(float(np.median([s.rel for s, _ in pub])))} vs "
+                   f"{_pct(float(np.median([v.rel for _, v in pub])))}).")
+    out.append("\n")
+    out.append("| cell | σ-uniform | variance-uniform | paper |")
+    out.append("|---|---|---|---:|")
+    for s, v in sorted(pairs, key=lambda p: p[0].cell.sort_key()):
+        c = s.cell
+        out.append(f"| {c.filter.upper()} {c.chart.upper()} {c.update} R={c.r:.0e} "
+                   f"{c.rate_hz:g} Hz | {_fmt_row(s)} | {_fmt_row(v)} | "
+                   f"{'–' if s.pub is None else f'{s.pub:g}'} |")
+    out.append("")
+    return out
+
+
 def _fmt_row(r: Row | None) -> str:
     if r is None:
         return "–"
+    if not np.isfinite(r.mu):
+        return f"no converged run ({r.non_converged}/{r.n_s} non-converged)"
     return f"{r.mu:.3g} [{r.lo:.3g}, {r.hi:.3g}]"
 
 
@@ -572,8 +624,10 @@ def summary_markdown(out: Path, figs: dict[str, Path | None], fig_prefix: str = 
       "sees the same truth and the same measurement noise (scaled by √R); the convergence "
       "phase replays one fixed measurement stream per trajectory.")
     if runs:
-        a(f"- Wall time: {total / 60:.1f} min over {len(runs)} run(s) on "
-          f"{max(x['workers'] for x in runs)} worker(s).")
+        cpu = sum(x.get("cpu_s", 0.0) for x in runs)
+        a(f"- Time: {total / 60:.1f} min wall over {len(runs)} run(s) on "
+          f"{max(x['workers'] for x in runs)} worker(s); {cpu / 60:.1f} min of simulation CPU "
+          f"time (summed over the workers).")
     if cmds:
         a("- Command(s):\n")
         a("```sh\n" + "\n".join(cmds) + "\n```")
@@ -640,13 +694,13 @@ def summary_markdown(out: Path, figs: dict[str, Path | None], fig_prefix: str = 
     cons = [(r, rate, t.get("mukf", "rp", "cu", r, rate, "published"),
              t.get("mukf", "rp", "cu", r, rate, "consistent"))
             for r in cfg.RS for rate in cfg.RATES_HZ]
-    cons = [x for x in cons if x[2] is not None and x[3] is not None]
+    cons = [x for x in cons if _finite(x[2], x[3])]
     if cons:
         a("## MUKF: consistent Q_ω·Δt scaling vs the published Q_ω·Δt² (§8 item 3)\n")
         allc = [(p, c) for p in t.rows.values() for c in [t.get(
             "mukf", p.cell.chart, p.cell.update, p.cell.r, p.cell.rate_hz, "consistent",
             p.cell.sampling)] if p.cell.filter == "mukf" and p.cell.mukf_scaling == "published"
-            and c is not None and p.cell.rate_hz >= MIN_RATE]
+            and _finite(p, c) and p.cell.rate_hz >= MIN_RATE]
         if allc:
             ratios = np.array([c.mu / p.mu for p, c in allc])
             better = sum(_separated(c, p) == -1 for p, c in allc)
@@ -670,9 +724,10 @@ def summary_markdown(out: Path, figs: dict[str, Path | None], fig_prefix: str = 
             for r in sorted(dis, key=lambda r: r.cell.sort_key()):
                 c = r.cell
                 a(f"| {c.filter.upper()} {c.chart.upper()} {c.update} R={c.r:.0e} "
-                  f"{c.rate_hz:g} Hz | {_fmt_row(r)} | {r.pub:g} | {100 * (r.rel or 0):+.0f}% | "
+                  f"{c.rate_hz:g} Hz | {_fmt_row(r)} | {r.pub:g} | {_pct(r.rel)} | "
                   f"{explain(t, r)} |")
             a("")
+    L.extend(sampling_section(t))
     if speed:
         from mkf_ros.study.speed import Speed, format_table
 
@@ -692,7 +747,8 @@ def summary_markdown(out: Path, figs: dict[str, Path | None], fig_prefix: str = 
 
 
 def write_report(out: Path | str, docs: Path | str | None = None) -> list[Path]:
-    """Figures and ``summary.md`` in ``out`` (and, with ``docs``, README.md + figures there)."""
+    """Figures and ``summary.md`` in ``out``; with ``docs`` also ``README.md`` (the summary),
+    ``figures/`` and ``cells.csv`` there."""
     out = Path(out)
     meta = runner.read_meta(out)
     n_s = int(meta["n_s"])
@@ -717,7 +773,8 @@ def write_report(out: Path | str, docs: Path | str | None = None) -> list[Path]:
                 shutil.copyfile(p, docs / FIG_DIR / f".{p.name}.tmp")
                 (docs / FIG_DIR / f".{p.name}.tmp").replace(docs / FIG_DIR / p.name)
         runner.atomic_write_text(docs / "README.md", text)
-        written.append(docs / "README.md")
+        runner.atomic_write_bytes(docs / runner.CSV_NAME, (out / runner.CSV_NAME).read_bytes())
+        written += [docs / "README.md", docs / runner.CSV_NAME]
     return written
 
 

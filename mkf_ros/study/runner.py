@@ -74,6 +74,7 @@ class RunReport:
     already: int = 0  # selected cells that were complete before
     pending: int = 0  # selected cells still incomplete (interrupted)
     elapsed_s: float = 0.0
+    cpu_s: float = 0.0  # CPU seconds of the finished units, summed over the workers
     interrupted: bool = False
 
 
@@ -274,9 +275,10 @@ def run_unit(unit: Unit) -> dict[str, np.ndarray]:
 
 
 def _timed_unit(unit: Unit) -> tuple[Unit, dict[str, np.ndarray], float]:
-    t = time.perf_counter()
+    """Run a unit; also return the CPU seconds it took (robust to a busy machine)."""
+    t = time.process_time()
     res = run_unit(unit)
-    return unit, res, time.perf_counter() - t
+    return unit, res, time.process_time() - t
 
 
 def _ignore_sigint() -> None:
@@ -295,14 +297,17 @@ def warm_up() -> None:
 
 def plan(cells: Sequence[Cell], n_s: int, seed: int, cap: int, parts: Parts,
          done: Iterable[str]) -> list[Unit]:
-    """The work units still needed for ``cells`` (ascending rate, so low rates finish first)."""
+    """The work units still needed for ``cells``: the groups of one (sampling, rate) in order of
+    decreasing cost per trajectory, so that the last units are cheap and both workers finish
+    together (longest-processing-time-first)."""
     done = set(done)
     groups: dict[tuple[str, float], list[Cell]] = {}
     for c in cells:
         if c.key not in done:
             groups.setdefault((c.sampling, c.rate_hz), []).append(c)
     units = []
-    for (sampling, rate), group in sorted(groups.items(), key=lambda kv: (kv[0][1], kv[0][0])):
+    order = sorted(groups.items(), key=lambda kv: (-cfg.unit_cost(kv[1], 1), kv[0]))
+    for (sampling, rate), group in order:
         for t0, t1 in cfg.chunks(n_s):
             need = tuple(c for c in group if not parts.has(c.key, t0))
             if need:
@@ -348,7 +353,8 @@ def run_study(
                               " {postfix}", desc="mkf study", dynamic_ncols=True)
         bar.set_postfix_str(f"cells {len(rows.keys() & selected.keys())}/{len(selected)}")
 
-    def finish(unit: Unit, res: dict[str, np.ndarray]) -> None:
+    def finish(unit: Unit, res: dict[str, np.ndarray], cpu: float) -> None:
+        report.cpu_s += cpu
         parts.write(unit, res)
         new = [c for c in unit.cells if c.key in pending and parts.complete(c.key, n_s)]
         for c in new:
@@ -368,13 +374,13 @@ def run_study(
             warm_up()
         if workers <= 1 or len(units) <= 1:
             for u in units:
-                finish(*_timed_unit(u)[:2])
+                finish(*_timed_unit(u))
         else:
             ctx = mp.get_context("fork")  # kernels compiled above are inherited
             pool = ctx.Pool(min(workers, len(units)), initializer=_ignore_sigint)
             try:
-                for unit, res, _ in pool.imap_unordered(_timed_unit, units, chunksize=1):
-                    finish(unit, res)
+                for unit, res, cpu in pool.imap_unordered(_timed_unit, units, chunksize=1):
+                    finish(unit, res, cpu)
                 pool.close()
             except BaseException:
                 pool.terminate()
@@ -390,7 +396,7 @@ def run_study(
         report.pending = len(pending)
         meta.setdefault("runs", []).append({
             "started": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
-            "elapsed_s": round(report.elapsed_s, 1),
+            "elapsed_s": round(report.elapsed_s, 1), "cpu_s": round(report.cpu_s, 1),
             "workers": workers, "units": len(units), "cells_finished": len(report.finished),
             "cells_selected": len(selected), "interrupted": report.interrupted,
             "command": command})

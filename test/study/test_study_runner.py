@@ -14,7 +14,7 @@ from mkf_ros.study.stats import K_CI
 
 SMALL = dict(filters=["mekf"], charts=["rp"], updates=["cu", "reset"], rs=[1e-4],
              rates=[50.0])
-N_S = 13  # two work units (chunks of 10 and 3)
+N_S = 7  # two work units (chunks of 5 and 2)
 
 
 def _csv(path: Path) -> list[dict[str, str]]:
