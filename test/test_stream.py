@@ -11,6 +11,7 @@ import math
 import numpy as np
 import pytest
 
+from mkf_ros.core.frames import FROM_ENU
 from mkf_ros.core.quaternion import qconj_np, qmul_np, rotmat_np
 from mkf_ros.metrics import orientation_errors, rmse_deg
 from mkf_ros.sim import simulate
@@ -322,6 +323,28 @@ def test_yaw_offset_and_declination_rotate_about_world_up() -> None:
         assert angle == pytest.approx(0.5 - 0.2, abs=1e-9), frame
         r = rotmat_np(d)
         np.testing.assert_allclose(b.orientation_cov, r @ a.orientation_cov @ r.T, atol=1e-15)
+
+
+def test_world_frames_differ_exactly_by_the_frame_change(rec) -> None:
+    """The same stream in ENU, NED and NWU: ``q_W = q_{W←ENU} ⊗ q_ENU`` and the covariance
+    about world axes transforms with the same rotation (the heading included)."""
+    outs = {}
+    for frame in ("enu", "ned", "nwu"):
+        s = StreamAdapter(use_mag=True, world_frame=frame)
+        o = []
+        for k in range(0, 800, 2):
+            o.append(s.on_imu(T0 + rec.t[k], rec.gyr[k], rec.acc[k]))
+            if k % 4 == 0:
+                s.on_mag(T0 + rec.t[k], rec.mag[k])
+        outs[frame] = o
+    for frame in ("ned", "nwu"):
+        qf = FROM_ENU[frame]
+        r = rotmat_np(qf)
+        for a, b in zip(outs["enu"], outs[frame], strict=True):
+            want = qmul_np(qf, a.quat_wxyz)
+            np.testing.assert_allclose(b.quat_wxyz, want * np.sign(want[0]), atol=1e-12)
+            np.testing.assert_allclose(b.orientation_cov, r @ a.orientation_cov @ r.T,
+                                       atol=1e-15)
 
 
 def test_orientation_stddev_override_and_gravity_removal() -> None:

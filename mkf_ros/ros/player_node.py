@@ -54,7 +54,7 @@ LINGER = 0.5  # s, kept alive after the last message so that reliable delivery c
 #: name → (default, description); the ROS parameters of the node
 PARAMS: dict[str, tuple[Any, str]] = {
     "bag": ("", "bag to replay (directory, .mcap, .db3 or ROS 1 .bag); empty = synth mode"),
-    "topics": (Parameter.Type.STRING_ARRAY, "topics to publish (default: all)"),
+    "topics": (Parameter.Type.STRING_ARRAY, "topics to publish; empty = all"),
     "relative_topics": (False, "publish recorded names without the leading '/' so that the "
                         "node's namespace applies"),
     "rate": (1.0, "playback speed factor"),
@@ -67,8 +67,8 @@ PARAMS: dict[str, tuple[Any, str]] = {
     "clock_frequency": (100.0, "Hz: /clock messages per second of wall time"),
     "wait_for_subscribers": (0, "wait until each topic of wait_topics has this many "
                              "subscribers"),
-    "wait_topics": (Parameter.Type.STRING_ARRAY, "topics to wait for (default: the "
-                    "sensor_msgs/Imu topics)"),
+    "wait_topics": (Parameter.Type.STRING_ARRAY, "topics to wait for; empty = the "
+                    "sensor_msgs/Imu topics"),
     "wait_timeout": (30.0, "s: give up waiting and start anyway"),
     "start_delay": (0.0, "s: pause between the subscribers matching and the first message"),
     "exit_when_done": (True, "shut the node down after the last message (no loop)"),

@@ -5,6 +5,7 @@ services the way ``ros2 topic pub`` / ``ros2 param set`` would (from another nod
 from __future__ import annotations
 
 import math
+import os
 import time
 from collections.abc import Callable, Sequence
 from typing import Any
@@ -81,7 +82,13 @@ class Harness:
         self.cli.create_subscription(DiagnosticArray, "/diagnostics", self.diag.append, 10)
         self.pub_imu = self.cli.create_publisher(Imu, "imu/data_raw", QOS)
         self.pub_mag = self.cli.create_publisher(MagneticField, "imu/mag", QOS)
-        self.ex = SingleThreadedExecutor(context=ctx)
+        # MKF_TEST_EXECUTOR=events runs the whole node suite under the EventsExecutor too
+        if os.environ.get("MKF_TEST_EXECUTOR") == "events":
+            from rclpy.experimental import EventsExecutor
+
+            self.ex = EventsExecutor(context=ctx)
+        else:
+            self.ex = SingleThreadedExecutor(context=ctx)
         self.ex.add_node(self.est)
         self.ex.add_node(self.cli)
         self.params = AsyncParameterClient(self.cli, self.est.get_fully_qualified_name())

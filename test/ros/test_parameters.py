@@ -32,7 +32,7 @@ def alt_value(p: Param) -> Any:
     if p.type is str:
         return next(c for c in p.choices if c != p.default) if p.choices else "test_frame"
     if p.type is list:
-        return [0.0, 1.0, -1.0][: p.length or 3]
+        return [float(x) * 1.1 + 0.01 * (i % 2) for i, x in enumerate(p.default)]
     lo, hi = p.range if p.range else (-math.inf, math.inf)
     for v in (p.default * 2, p.default / 2, (lo + hi) / 2, hi, lo):
         if v != p.default and lo <= v <= hi and math.isfinite(v):

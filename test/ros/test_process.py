@@ -62,14 +62,28 @@ def check_session(res: dict, err: str, rc: int) -> None:
     assert "Traceback" not in err
 
 
-def test_console_script_with_client_process(tmp_path) -> None:
+@pytest.mark.parametrize("executor", ["events", "single"])
+def test_console_script_with_client_process(tmp_path, executor: str) -> None:
     exe = console_script("estimator")
     env = dict(os.environ, RCUTILS_CONSOLE_OUTPUT_FORMAT="[{severity}] [{name}]: {message}")
-    cmd = [str(exe), "--ros-args", "-p", "use_mag:=true",
+    cmd = [str(exe), f"--executor={executor}", "--ros-args", "-p", "use_mag:=true",
            "-p", "qos_overrides./imu/data_raw.subscription.reliability:=reliable",
            "-p", "qos_overrides./imu/mag.subscription.reliability:=reliable"]
     res, err, rc = run_node_and_client(cmd, env, "/estimator", cwd=tmp_path)
     check_session(res, err, rc)
+    assert f"spinning with the {executor} executor" in err
+
+
+def test_console_script_bad_arguments(tmp_path) -> None:
+    exe = console_script("estimator")
+    for args, msg in ((["--executor=multi"], "executor must be one of events, single"),
+                      (["--use-mag"], "unknown argument '--use-mag'")):
+        p = subprocess.run([str(exe), *args], env=dict(os.environ), cwd=tmp_path,
+                           capture_output=True, text=True, timeout=60)
+        assert p.returncode == 2 and msg in p.stderr, p.stderr
+    h = subprocess.run([str(exe), "--help"], env=dict(os.environ), cwd=tmp_path,
+                       capture_output=True, text=True, timeout=60)
+    assert h.returncode == 0 and "imu/data_raw" in h.stdout and "~/reset" in h.stdout
 
 
 def test_console_script_bad_parameter_is_one_line(tmp_path) -> None:

@@ -1,0 +1,110 @@
+"""Fast path for the node: ``sensor_msgs/Imu`` and ``MagneticField`` as serialized CDR bytes.
+
+At 1 kHz the Python message objects cost more than the filter: deserialising an Imu builds
+six nested objects and three arrays, and publishing one serialises them again. The node
+therefore subscribes with ``raw=True`` and reads the fixed layout with :mod:`struct`, and
+publishes ``imu/data`` as bytes: the input's header bytes followed by the 37 doubles of the
+estimate. Only little-endian plain CDR (encapsulation ``00 01``, what every ROS 2 RMW on
+x86/ARM sends) is handled here; anything else returns None and the node falls back to
+``rclpy.serialization`` and message objects.
+
+Layout (offsets after the 4-byte encapsulation header, doubles 8-aligned):
+``int32 sec, uint32 nanosec, uint32 len, char frame_id[len]`` (NUL included), then
+Imu: orientation (x, y, z, w), orientation_covariance[9], angular_velocity (3),
+angular_velocity_covariance[9], linear_acceleration (3), linear_acceleration_covariance[9];
+MagneticField: magnetic_field (3), magnetic_field_covariance[9].
+"""
+
+from __future__ import annotations
+
+import struct
+
+import numpy as np
+
+from mkf_ros.stream import StreamOutput, covariance_out
+
+_HEAD = struct.Struct("<iII")
+_LE = b"\x00\x01"
+IMU_DOUBLES = 37
+MAG_DOUBLES = 12
+# offsets into the Imu doubles
+Q, QC, W, WC, A, AC = 0, 4, 13, 16, 25, 28
+_NOT_REPORTED = np.zeros(9)
+_NOT_REPORTED[0] = -1.0
+
+
+class RawHeader:
+    """The parsed header of a serialized message and a view of its doubles."""
+
+    __slots__ = ("d", "frame_id", "nanosec", "prefix", "sec", "stamp")
+
+    def __init__(self, buf: bytes, n_doubles: int) -> None:
+        sec, nsec, n = _HEAD.unpack_from(buf, 4)
+        end = 16 + n
+        off = 4 + ((end - 4 + 7) & ~7)
+        if n == 0 or len(buf) < off + 8 * n_doubles:
+            raise ValueError(f"truncated message ({len(buf)} bytes)")
+        self.sec, self.nanosec = sec, nsec
+        self.stamp = sec + nsec * 1e-9
+        self.frame_id = buf[16:end - 1].decode("utf-8", "replace")
+        self.prefix = buf[:off]  # encapsulation + header + padding, reused for the output
+        self.d = np.frombuffer(buf, "<f8", n_doubles, off)
+
+
+def parse(buf: bytes, n_doubles: int) -> RawHeader | None:
+    """Parse little-endian plain CDR; None for any other encapsulation."""
+    if buf[:2] != _LE:
+        return None
+    return RawHeader(buf, n_doubles)
+
+
+def imu_arrays(h: RawHeader) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """``(gyr, acc)`` of a parsed Imu; a field whose covariance[0] is -1 is None."""
+    d = h.d
+    return (None if d[WC] == -1.0 else d[W:W + 3]), (None if d[AC] == -1.0 else d[A:A + 3])
+
+
+class ImuEncoder:
+    """Builds the serialized ``imu/data`` message from the input's bytes and an estimate,
+    with the same rules as :func:`mkf_ros.ros.convert.fill_imu`."""
+
+    def __init__(self) -> None:
+        self._out = np.zeros(IMU_DOUBLES, dtype="<f8")
+        self._cache: dict[tuple[bytes, float], np.ndarray] = {}
+
+    def _cov(self, cov_in: np.ndarray, stddev: float, add: np.ndarray | None) -> np.ndarray:
+        if add is not None:
+            return covariance_out(cov_in, stddev, add)
+        key = (cov_in.tobytes(), stddev)  # drivers send the same covariance every time
+        c = self._cache.get(key)
+        if c is None:
+            if len(self._cache) > 64:
+                self._cache.clear()
+            c = self._cache[key] = covariance_out(cov_in, stddev)
+        return c
+
+    def encode(self, h: RawHeader, est: StreamOutput, angular_velocity_stddev: float,
+               linear_acceleration_stddev: float) -> bytes:
+        d, o = h.d, self._out
+        q = est.quat_wxyz
+        o[0], o[1], o[2], o[3] = q[1], q[2], q[3], q[0]
+        o[QC:QC + 9] = est.orientation_cov.reshape(9)
+        w = est.angular_velocity
+        if w is None:
+            o[W:W + 3] = 0.0
+            o[WC:WC + 9] = _NOT_REPORTED
+        else:
+            o[W:W + 3] = w
+            if est.angular_velocity_cov is not None:
+                o[WC:WC + 9] = est.angular_velocity_cov.reshape(9)
+            else:
+                o[WC:WC + 9] = self._cov(d[WC:WC + 9], angular_velocity_stddev,
+                                         est.angular_velocity_cov_add)
+        a = est.linear_acceleration
+        if a is None:
+            o[A:A + 3] = 0.0
+            o[AC:AC + 9] = _NOT_REPORTED
+        else:
+            o[A:A + 3] = a
+            o[AC:AC + 9] = self._cov(d[AC:AC + 9], linear_acceleration_stddev, None)
+        return h.prefix + o.tobytes()
