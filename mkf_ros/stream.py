@@ -14,7 +14,9 @@ Time rules (stamps in seconds, the IMU stream sets the filter's clock):
   :data:`MAX_BACKWARDS` out-of-order samples in a row, reset the filter and start over from it.
 * ``dt > max_dt`` (a gap): the filter re-aligns roll and pitch from this sample's accelerometer
   (heading from the next magnetometer sample with ``use_mag``, otherwise the heading held
-  before the gap) instead of integrating a stale rate across the gap.
+  before the gap) instead of integrating a stale rate across the gap. Until the magnetometer
+  fixes the heading (or a reset), the published yaw variance is that of an unknown angle,
+  :data:`YAW_UNKNOWN_VAR`: the sensor may have turned by anything during the gap.
 * Magnetometer samples are fused asynchronously, at their own stamp, never gating the IMU:
   a sample newer than the filter's time is held until the IMU stream reaches its stamp and is
   then fused there (predict to it, update, continue); a sample up to ``mag_max_delay`` older is
@@ -54,6 +56,10 @@ MAX_PENDING_MAG = 32
 MIN_STEP = 1e-9
 #: A magnetometer stamp this close to an IMU stamp is fused in the same filter step.
 SAME_STAMP = 1e-6
+#: Published yaw variance (rad²) while the heading is unknown: after a gap the filter keeps
+#: the heading it had, but the sensor may have turned by any angle meanwhile (uniform on ±π).
+YAW_UNKNOWN_VAR = math.pi**2 / 3.0
+_K_GAPS = FILTER_COUNTERS.index("gaps")
 
 #: Reasons a sample (or part of one) was dropped, rejected or caused a reset; see module doc.
 COUNTER_REASONS: dict[str, str] = {
@@ -244,6 +250,7 @@ class StreamAdapter:
     # --- state -----------------------------------------------------------------------------
     def _clear_time(self) -> None:
         self._t: float | None = None  # stamp of the filter state (= last accepted IMU stamp)
+        self._yaw_lost = False  # a gap: heading unknown until the magnetometer fixes it
         self._backwards = 0
         self._pending: list[tuple[float, int, np.ndarray]] = []  # (stamp, seq, mag) sorted
         self._seq = 0
@@ -352,10 +359,13 @@ class StreamAdapter:
 
         mag = self._take_pending(t_new, dt)
         f = self.filter
+        gaps = f.counters[_K_GAPS]
         if self._t is None or self._const_dt > 0.0:
             f.step(dt, g, a, mag)
         else:
             f.step(t_new - self._t, g, a, mag)
+        if f.counters[_K_GAPS] != gaps:
+            self._yaw_lost = True
         if mag is not None:
             self.counters["mag_fused"] += 1
         self._t = t_new
@@ -476,6 +486,12 @@ class StreamAdapter:
             cov = self._r_off @ cov @ self._r_off.T
             if q[0] < 0.0:
                 q = -q
+        if self._yaw_lost:
+            if f.heading_initialized:
+                self._yaw_lost = False
+            elif cov[2, 2] < YAW_UNKNOWN_VAR:
+                cov = cov.copy()
+                cov[2, 2] = YAW_UNKNOWN_VAR  # world z is vertical in ENU, NED and NWU
         sd = n["orientation_stddev"]
         if sd > 0.0:
             cov = np.diag([sd * sd] * 3)

@@ -236,6 +236,31 @@ def test_gap_realigns_and_keeps_publishing() -> None:
     assert roll == pytest.approx(0.3, abs=1e-6)  # taken from this sample, not integrated
 
 
+@pytest.mark.parametrize("use_mag", [False, True])
+def test_gap_makes_the_published_yaw_uncertain(use_mag: bool) -> None:
+    """After a gap the heading held from before is a guess: yaw σ = that of a uniform angle
+    (104°) until the magnetometer fixes it again; tilt is re-aligned from the accelerometer."""
+    s = StreamAdapter(use_mag=use_mag, max_dt=0.5)
+    mag = [0.0, 20e-6, -40e-6]
+    for k in range(100):
+        out = s.on_imu(T0 + 0.01 * k, Z, G)
+        if use_mag and k % 2 == 0:
+            s.on_mag(T0 + 0.01 * k, mag)
+    assert math.degrees(math.sqrt(out.orientation_cov[2, 2])) < 5.0
+    out = s.on_imu(T0 + 5.0, Z, G)  # 4 s without data
+    assert out.orientation_cov[2, 2] == pytest.approx(math.pi ** 2 / 3)
+    assert math.degrees(math.sqrt(out.orientation_cov[0, 0])) < 10.0
+    out = feed(s, 10, t0=T0 + 5.01)[-1]
+    assert out.orientation_cov[2, 2] == pytest.approx(math.pi ** 2 / 3)
+    if use_mag:
+        s.on_mag(T0 + 5.1, mag)
+        out = s.on_imu(T0 + 5.11, Z, G)
+        assert math.degrees(math.sqrt(out.orientation_cov[2, 2])) < 10.0  # one sample's worth
+    s.reset()
+    out = feed(s, 2, t0=T0 + 10.0)[-1]
+    assert out.orientation_cov[2, 2] < 0.01
+
+
 def test_bad_stamps_dropped_constant_dt_ignores_them() -> None:
     s = StreamAdapter()
     assert s.on_imu(0.0, Z, G) is None
