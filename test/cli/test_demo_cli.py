@@ -29,9 +29,12 @@ def test_demo_runs_end_to_end(tmp_path: Path) -> None:
     assert "estimator │ [INFO] [estimator]:" in out and "player │ [INFO] [player]:" in out
     # live lines, then the summary
     assert len(re.findall(r"^\s+\d+\.\ds\s+[\d,]+\s", out, re.M)) >= 3
-    m = re.search(r"The player published ([\d,]+) IMU messages; the estimator answered "
-                  r"([\d,]+) of them", out)
-    assert m and m.group(1) == m.group(2) == "801", out[-2000:]
+    m = re.search(r"The player published ([\d,]+) IMU messages; the estimator received "
+                  r"([\d,]+) and answered ([\d,]+) of them", out)
+    assert m, out[-2000:]
+    published, received, answered = (int(g.replace(",", "")) for g in m.groups())
+    assert published == 801 and answered == received  # every message in, one estimate out
+    assert received >= 0.8 * published  # best-effort input may drop a few on a busy machine
     m = re.search(r"RMSE, after the first second\s+([\d.]+)\s+([\d.]+)\s+([\d.]+)", out)
     assert m and float(m.group(1)) < 1.22, out[-2000:]  # bound: see test_player_roundtrip.py
     assert png.is_file() and png.read_bytes()[:4] == b"\x89PNG"
