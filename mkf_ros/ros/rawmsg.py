@@ -60,8 +60,9 @@ def parse(buf: bytes, n_doubles: int) -> RawHeader | None:
 
 def imu_arrays(h: RawHeader) -> tuple[np.ndarray | None, np.ndarray | None]:
     """``(gyr, acc)`` of a parsed Imu; a field whose covariance[0] is -1 is None."""
-    d = h.d
-    return (None if d[WC] == -1.0 else d[W:W + 3]), (None if d[AC] == -1.0 else d[A:A + 3])
+    d = h.d  # a read-only view of the message: copy, or numba compiles a read-only variant
+    return (None if d[WC] == -1.0 else d[W:W + 3].copy()), (
+        None if d[AC] == -1.0 else d[A:A + 3].copy())
 
 
 class ImuEncoder:
