@@ -78,7 +78,6 @@ def output_qos() -> QoSProfile:
                       durability=DurabilityPolicy.VOLATILE)
 
 
-
 class ParameterError(Exception):
     """An invalid start-up parameter (reported as one line; the node does not start)."""
 

@@ -100,5 +100,8 @@ def unknown_overrides(node: Node) -> dict[str, str]:
     for name in overrides:
         if node.has_parameter(name):
             continue
-        out[name] = FOREIGN_HINTS.get(name, "not a parameter of this node (typo?)")
+        hint = FOREIGN_HINTS.get(name, "not a parameter of this node (typo?)")
+        if name == "gain" and "madgwick_beta" in BY_NAME:
+            hint += " (with algorithm madgwick: madgwick_beta)"
+        out[name] = hint
     return out
