@@ -83,6 +83,10 @@ def accuracy_figure(path: str | Path, t: np.ndarray, q_est: np.ndarray, q_true: 
                            label=label if (ax is axes[0] and kind not in shaded) else None)
             shaded.add(kind)
     axes[0].legend(loc="upper right", fontsize=8, ncol=2)
+    if "gimbal_lock" in (intervals or {}):
+        axes[1].text(0.01, 0.03, "at pitch ±90° (shaded) roll and yaw are undefined, only their "
+                     "sum or difference is: the errors on top are computed on quaternions",
+                     transform=axes[1].transAxes, fontsize=7.5, color="0.3")
     if title:
         fig.suptitle(title, fontsize=11)
     tmp = path.with_name(f".{path.name}.tmp{os.getpid()}{path.suffix}")

@@ -170,7 +170,7 @@ class _Demo:
             "-p", f"imu_rate:={a.rate!r}", "-p", f"mag_rate:={a.mag_rate!r}",
             "-p", f"seed:={a.seed}", "-p", "wait_for_subscribers:=1",
             "-p", "wait_topics:=[imu/data_raw, imu/mag, imu/ground_truth]",
-            "-p", "start_delay:=0.5"]
+            "-p", "start_delay:=1.0"]
         self.say("  the same by hand, in two terminals (on a ROS install: ros2 run mkf_ros "
                  "estimator|player ...):")
         self.say("    " + shlex.join([Path(est_cmd[0]).name, *est_cmd[1:]]))
