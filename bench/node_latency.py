@@ -139,6 +139,7 @@ def cpu_seconds(pid: int) -> float:
 def estimator_cmd(args: argparse.Namespace) -> list[str]:
     exe = Path(sys.executable).parent / "estimator"
     base = [str(exe)] if exe.is_file() else [sys.executable, "-m", "mkf_ros.ros.estimator_node"]
+    base.append(f"--executor={args.executor}")
     params = {
         "use_mag": "true", "algorithm": args.algorithm, "diagnostics_period": "1.0",
         "qos_overrides./imu/data_raw.subscription.reliability": args.qos,
@@ -155,6 +156,10 @@ def main() -> int:
     ap.add_argument("--algorithm", choices=("mekf", "mukf"), default="mekf")
     ap.add_argument("--qos", choices=("reliable", "best_effort"), default="reliable",
                     help="estimator input QoS (default input QoS of the node: best_effort)")
+    ap.add_argument("--nice", type=int, default=0,
+                    help="niceness of the three processes (negative needs root): measure on a "
+                         "machine that other jobs keep busy")
+    ap.add_argument("--executor", choices=("events", "single"), default="events")
     ap.add_argument("_role", nargs="?", help=argparse.SUPPRESS)
     ap.add_argument("--rate", type=float, help=argparse.SUPPRESS)
     ap.add_argument("--out", help=argparse.SUPPRESS)
@@ -168,10 +173,13 @@ def main() -> int:
 
     import numpy as np
 
+    if args.nice:
+        os.nice(args.nice)  # inherited by the three child processes
     env = dict(os.environ)
     tmp = Path(tempfile.mkdtemp(prefix="mkf_ros-bench-"))
     print(f"ROS_DOMAIN_ID={env['ROS_DOMAIN_ID']} ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST, "
-          f"{os.cpu_count()} cores; estimator: {args.algorithm}, use_mag, input QoS {args.qos}",
+          f"{os.cpu_count()} cores, load average {os.getloadavg()[0]:.1f}, nice {args.nice}; "
+          f"estimator: {args.algorithm}, use_mag, input QoS {args.qos}, {args.executor} executor",
           flush=True)
     est = subprocess.Popen(estimator_cmd(args), env=env, stdout=subprocess.DEVNULL,
                            stderr=open(tmp / "estimator.log", "w"))  # noqa: SIM115
@@ -189,6 +197,10 @@ def main() -> int:
         time.sleep(0.2)
     phases = []
     try:
+        # warm-up, not reported: discovery of the reliable endpoints, first-call costs
+        subprocess.run([sys.executable, str(HERE), "_publish", "--rate", "100", "--seconds",
+                        "1", "--mag-rate", str(args.mag_rate)], env=env, capture_output=True,
+                       timeout=120, check=True)
         for rate in args.rates:
             cpu0, w0 = cpu_seconds(est.pid), time.monotonic()
             p = subprocess.run([sys.executable, str(HERE), "_publish", "--rate", str(rate),

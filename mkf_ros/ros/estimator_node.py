@@ -10,7 +10,7 @@ Topics (relative names: remap ``imu:=...`` to move them together, REP-145):
   tesla), best-effort, keep last 50 (matches reliable and best-effort publishers); both are
   overridable with ``qos_overrides.<topic>.subscription.*``. The magnetometer is fused
   asynchronously and never gates the IMU;
-* publishes ``imu/data`` (sensor_msgs/Imu, reliable, keep last 50) once initialised, one
+* publishes ``imu/data`` (sensor_msgs/Imu, reliable, keep last 100) once initialised, one
   message per accepted IMU message, with its header; ``/diagnostics`` (DiagnosticArray);
   ``imu/rpy/filtered`` and ``imu/gyro_bias`` with ``publish_debug_topics``; TF with
   ``publish_tf`` when tf2_ros is importable;
@@ -63,17 +63,17 @@ from mkf_ros.stream import StreamAdapter
 
 
 def input_qos() -> QoSProfile:
-    """Sensor-data policies (best effort, volatile) with a deeper queue than the profile's 5,
-    so that a burst at 1 kHz is not dropped while a callback runs. A new object per call:
-    QoS overrides are applied to the profile in place."""
-    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=50,
+    """Sensor-data policies (best effort, volatile) with a deeper queue than the profile's 5
+    (200: 0.2 s at 1 kHz), so that a burst, or the node being descheduled on a busy machine,
+    does not drop samples. A new object per call: QoS overrides modify it in place."""
+    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=200,
                       reliability=ReliabilityPolicy.BEST_EFFORT,
                       durability=DurabilityPolicy.VOLATILE)
 
 
 def output_qos() -> QoSProfile:
-    """Reliable, keep last 50 (what rviz, rosbag and robot_localization expect)."""
-    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=50,
+    """Reliable, keep last 100 (what rviz, rosbag and robot_localization expect)."""
+    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
                       reliability=ReliabilityPolicy.RELIABLE,
                       durability=DurabilityPolicy.VOLATILE)
 
