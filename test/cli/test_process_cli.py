@@ -251,3 +251,39 @@ def test_existing_output(tmp_path: Path, good: Path, capsys: pytest.CaptureFixtu
     with BagReader(tmp_path / "o2") as br:
         assert set(br.topics) == {"/imu/data", "/imu/data_raw", "/imu/mag",
                                   "/imu/ground_truth"}
+
+
+def test_progress_bars_and_ros1_input(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    """Long bags get tqdm bars (forced on here); a ROS 1 bag is processed like a ROS 2 one."""
+    rosbag1 = pytest.importorskip("rosbags.rosbag1")
+    typesys = pytest.importorskip("rosbags.typesys")
+    from mkf_ros.bags.synth import sim_streams
+    from mkf_ros.cli.process import _Bars
+
+    sim = simulate("static", duration=2.0, rate=100.0, seed=1)
+    st = sim_streams(sim)
+    ts1 = typesys.get_typestore(typesys.Stores.ROS1_NOETIC)
+    ts2 = typesys.get_typestore(typesys.Stores.ROS2_JAZZY)
+    path = tmp_path / "old.bag"
+    with rosbag1.Writer(path) as w:
+        conns = {}
+        for key in ("imu", "truth"):
+            s = st[key]
+            conns[key] = w.add_connection(s.topic, s.msgtype, typestore=ts1)
+        events = sorted((int(t), key, i) for key in ("imu", "truth")
+                        for i, t in enumerate(st[key].log_ns.tolist()))
+        for t, key, i in events:
+            s = st[key]
+            m = ts2.deserialize_cdr(bytes(s.rows[i]), s.msgtype)
+            h = ts1.types["std_msgs/msg/Header"](seq=i, stamp=m.header.stamp,
+                                                  frame_id=m.header.frame_id)
+            fields = [getattr(m, f) for f in m.__dataclass_fields__ if f not in
+                      ("header", "__msgtype__")]
+            w.write(conns[key], t, ts1.serialize_ros1(ts1.types[s.msgtype](h, *fields),
+                                                      s.msgtype))
+    bars = _Bars(True)
+    r = process_bag(path, tmp_path / "out", progress=bars)
+    bars.close()
+    assert r.n_out == 201 and r.scores is not None and r.scores.rmse["inclination"] < 0.5
+    err = capsys.readouterr().err
+    assert "read" in err and "filter" in err
