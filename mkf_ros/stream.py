@@ -296,7 +296,9 @@ class StreamAdapter:
         if v is None:
             self.counters[kind + "_missing"] += 1
             return None
-        a = np.asarray(v, dtype=float).reshape(-1)
+        # a fresh C-contiguous writable copy: a read-only or strided view would make numba
+        # compile another variant of the kernels in the middle of the stream
+        a = np.array(v, dtype=float).reshape(-1)
         if a.shape != (3,):
             raise ValueError(f"{kind} sample must have 3 components, got shape {np.shape(v)}")
         c = _classify(a, kind != "gyr")

@@ -212,9 +212,11 @@ PARAMS: tuple[Param, ...] = (
     _P("mag_max_delay", float, 0.1, "A magnetometer sample up to this much older than the "
        "latest IMU sample is still fused (rotated forward by the estimated rate); older ones "
        "are dropped", unit="s", range=(0.0, 10.0), scope="node", group="node: input and time"),
-    _P("acc_magnitude_tolerance", float, 0.5, "Accelerometer samples whose magnitude differs "
-       "from gravity by more than this fraction are not fused (the gyro still is)", unit="1",
-       range=(0.01, 1000.0), scope="node", group="node: input and time"),
+    _P("acc_magnitude_tolerance", float, 0.5, "Plausibility check before the filter: "
+       "accelerometer samples whose magnitude differs from gravity by more than this fraction "
+       "(gravity removed? units of g?) never reach the filter, not even to initialise; the "
+       "filter's acc_norm_tolerance gates the rest", unit="1", range=(0.01, 1000.0),
+       scope="node", group="node: input and time"),
     # --- node: output -----------------------------------------------------------------------------
     _P("angular_velocity_source", str, "input", "angular_velocity published in imu/data: the "
        "input gyro as received, the input minus the estimated gyro bias, or the filter's "
