@@ -86,13 +86,34 @@ COUNTER_REASONS: dict[str, str] = {
     "resets": "filter resets (all causes; see last_reset_reason)",
     "resets_time_jump": "resets because the IMU stamps jumped back",
 }
+#: The filter's own counters that the adapter reports too (the others, samples and
+#: missing/invalid vectors, the adapter counts itself before the filter sees a sample).
+_FILTER_SKIP = {"samples", "gyr_missing", "gyr_invalid", "acc_missing", "acc_invalid",
+                "mag_missing", "mag_invalid", "before_init", "gaps", "update_failed"}
+FILTER_REPORTED = tuple(n for n in FILTER_COUNTERS if n not in _FILTER_SKIP)
+_FILTER_REASONS = {
+    "acc_rejected_norm": "accelerometer samples not fused: magnitude (acc_norm_tolerance)",
+    "acc_rejected_chi2": "accelerometer samples not fused: innovation gate (acc_gate)",
+    "mag_rejected_norm": "magnetometer samples not fused: magnitude (mag_norm_tolerance)",
+    "mag_rejected_dip": "magnetometer samples not fused: dip angle (mag_dip_tolerance)",
+    "mag_rejected_chi2": "magnetometer samples not fused: innovation gate (mag_gate)",
+    "rest_updates": "zero-rate updates at rest (rest_detection)",
+}
+COUNTER_REASONS.update({n: _FILTER_REASONS.get(n, f"filter counter {n}")
+                        for n in FILTER_REPORTED})
+_FILTER_SYNCED = {"gaps", "update_failed", *FILTER_REPORTED}
 
-#: Counters that mean data was lost or rejected (what diagnostics warn about).
+#: Counters that mean data was lost or rejected: diagnostics warn whenever one grows.
 REJECTIONS = (
     "imu_duplicate", "imu_out_of_order", "imu_bad_stamp", "gyr_invalid", "acc_invalid",
-    "acc_implausible", "mag_invalid", "mag_too_old", "mag_ahead", "mag_overflow",
-    "update_failed", "output_nonfinite",
+    "mag_invalid", "mag_too_old", "mag_ahead", "mag_overflow", "update_failed",
+    "output_nonfinite",
 )
+#: Rejections that are normal in moderation (motion, magnetic disturbances): diagnostics warn
+#: when they hit most samples of a period. Counter → the counter of the samples it refers to.
+GATED = {"acc_implausible": "imu_received",
+         **{n: ("imu_received" if n.startswith("acc_") else "mag_received")
+            for n in FILTER_REPORTED if "_rejected_" in n}}
 
 
 @dataclass(slots=True)
@@ -286,7 +307,7 @@ class StreamAdapter:
         fc = self.filter.counters
         d = fc - self._filter_seen
         for i, name in enumerate(FILTER_COUNTERS):
-            if name in ("gaps", "update_failed") and d[i] > 0:
+            if d[i] > 0 and name in _FILTER_SYNCED:
                 self.counters[name] += int(d[i])
         self._filter_seen = fc.copy()
 

@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
 
-from mkf_ros.stream import COUNTER_REASONS, REJECTIONS
+from mkf_ros.stream import COUNTER_REASONS, GATED, REJECTIONS
 
 OK, WARN, ERROR = DiagnosticStatus.OK, DiagnosticStatus.WARN, DiagnosticStatus.ERROR
 #: A plausible Earth field magnitude range (T); outside it the unit is probably not tesla.
@@ -96,10 +96,10 @@ class DiagnosticsTracker:
                  "heading is not magnetometer-referenced")
         if delta.get("imu_received", 0) > 0 and not s.initialized:
             warn("receiving IMU data but not initialised: " + self._why_not_init(s, delta))
-        n_imu = max(delta.get("imu_received", 0), 1)
         dropped = {k: delta.get(k, 0) for k in REJECTIONS if delta.get(k, 0) > 0}
-        if dropped.get("acc_implausible", 0) <= n_imu // 2:
-            dropped.pop("acc_implausible", None)  # dynamic motion: normal in moderation
+        for k, ref in GATED.items():  # motion, magnetic disturbances: normal in moderation
+            if delta.get(k, 0) > max(delta.get(ref, 0), 1) // 2:
+                dropped[k] = delta[k]
         if dropped:
             warn("dropped/rejected in the last period: "
                  + ", ".join(f"{v} {k}" for k, v in dropped.items()))

@@ -72,3 +72,22 @@ def test_exceptions_are_errors() -> None:
     d.status(snap(1.0))
     st = d.status(snap(2.0, exceptions=2, last_exception="imu callback: KeyError: 'x'"))
     assert st.level == ERROR and "KeyError" in st.message
+
+
+def test_filter_gates_warn_when_they_reject_most_samples() -> None:
+    """Magnetometer gate rejections (a magnetic disturbance) warn only when they hit most of
+    the period's magnetometer samples."""
+    from mkf_ros.stream import GATED
+
+    mag_gates = [k for k, ref in GATED.items() if ref == "mag_received"]
+    if not mag_gates:
+        pytest.skip("the core filter reports no magnetometer gate counters")
+    k = mag_gates[0]
+    d = DiagnosticsTracker("e")
+    d.status(snap(1.0, params={"use_mag": True}, last_mag=1.0))
+    st = d.status(snap(2.0, params={"use_mag": True}, last_mag=2.0,
+                       counters={"mag_received": 100, k: 10}))
+    assert st.level == OK
+    st = d.status(snap(3.0, params={"use_mag": True}, last_mag=3.0,
+                       counters={"mag_received": 200, k: 90}))
+    assert st.level == WARN and f"80 {k}" in st.message
