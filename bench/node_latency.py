@@ -106,7 +106,7 @@ def role_record(out: str) -> None:
     """Record (stamp, receive time) of every imu/data message until SIGINT; save .npy."""
     import numpy as np
     import rclpy
-    from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+    from rclpy.executors import ExternalShutdownException
     from rclpy.node import Node
     from rclpy.qos import QoSProfile, ReliabilityPolicy
     from sensor_msgs.msg import Imu
@@ -122,10 +122,14 @@ def role_record(out: str) -> None:
     node.create_subscription(Imu, "imu/data", on_msg,
                              QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE))
     print("recorder ready", flush=True)
-    ex = SingleThreadedExecutor()
+    # the C++ EventsExecutor (spin_once loop): the recorder must not be the bottleneck
+    from rclpy.experimental import EventsExecutor
+
+    ex = EventsExecutor()
     ex.add_node(node)
     with contextlib.suppress(KeyboardInterrupt, ExternalShutdownException):
-        ex.spin()
+        while ex.context.ok():
+            ex.spin_once(timeout_sec=0.2)
     np.save(out, np.array(rows, dtype=np.int64).reshape(-1, 2))
     rclpy.try_shutdown()
 
@@ -144,6 +148,10 @@ def estimator_cmd(args: argparse.Namespace) -> list[str]:
         "use_mag": "true", "algorithm": args.algorithm, "diagnostics_period": "1.0",
         "qos_overrides./imu/data_raw.subscription.reliability": args.qos,
         "qos_overrides./imu/mag.subscription.reliability": args.qos,
+        # 1 s at 1 kHz: a stall of the process (other jobs on the machine) must not overflow
+        # the reader's history, which drops the oldest samples even with reliable QoS
+        "qos_overrides./imu/data_raw.subscription.depth": str(args.depth),
+        "qos_overrides./imu/mag.subscription.depth": str(args.depth),
     }
     return base + ["--ros-args"] + [x for k, v in params.items() for x in ("-p", f"{k}:={v}")]
 
@@ -156,6 +164,7 @@ def main() -> int:
     ap.add_argument("--algorithm", choices=("mekf", "mukf"), default="mekf")
     ap.add_argument("--qos", choices=("reliable", "best_effort"), default="reliable",
                     help="estimator input QoS (default input QoS of the node: best_effort)")
+    ap.add_argument("--depth", type=int, default=1000, help="estimator input queue depth")
     ap.add_argument("--nice", type=int, default=0,
                     help="niceness of the three processes (negative needs root): measure on a "
                          "machine that other jobs keep busy")
@@ -179,7 +188,8 @@ def main() -> int:
     tmp = Path(tempfile.mkdtemp(prefix="mkf_ros-bench-"))
     print(f"ROS_DOMAIN_ID={env['ROS_DOMAIN_ID']} ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST, "
           f"{os.cpu_count()} cores, load average {os.getloadavg()[0]:.1f}, nice {args.nice}; "
-          f"estimator: {args.algorithm}, use_mag, input QoS {args.qos}, {args.executor} executor",
+          f"estimator: {args.algorithm}, use_mag, input QoS {args.qos} depth {args.depth}, "
+          f"{args.executor} executor",
           flush=True)
     est = subprocess.Popen(estimator_cmd(args), env=env, stdout=subprocess.DEVNULL,
                            stderr=open(tmp / "estimator.log", "w"))  # noqa: SIM115
