@@ -20,6 +20,10 @@ Every parameter of :data:`mkf_ros.core.params.PARAMS` is declared and can be cha
 time through SetParameters (``ros2 param set``): validated in the on-set callback (a rejected
 value leaves everything as it was and the caller sees the reason) and applied atomically,
 between two messages, in the post-set callback.
+
+Speed: the hot path uses no rclpy message objects (raw CDR in and out, :mod:`.rawmsg`), and the
+console script spins with the C++ EventsExecutor in a ``spin_once`` loop (``--executor=single``
+for rclpy's SingleThreadedExecutor, which alone costs ~0.3 ms of CPU per message here).
 """
 
 from __future__ import annotations
