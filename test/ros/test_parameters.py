@@ -247,9 +247,3 @@ def test_start_up_parameters(ros_context, tmp_path, capfd) -> None:
         with pytest.raises(ParameterError, match=why) as e:
             EstimatorNode(context=ros_context, warm=False, parameter_overrides=[bad])
         assert "\n" not in str(e.value)
-
-
-def test_every_filter_parameter_has_a_node_counterpart() -> None:
-    """Every PARAMS entry is declared: the node owns no parameter list of its own."""
-    assert len(BY_NAME) == len(PARAMS)
-    assert {p.scope for p in PARAMS} == {"filter", "node"}
