@@ -23,10 +23,23 @@ from __future__ import annotations
 import numpy as np
 
 from mkf_ros.core._jit import jit
+from mkf_ros.core.baselines import (
+    body_cov_to_euler,
+    euler_cov_to_body,
+    euler_kf_acc_update,
+    euler_kf_predict,
+    euler_to_quat,
+    euler_ukf_predict,
+    euler_ukf_update,
+    madgwick_step,
+    quat_to_euler,
+    yaw_update,
+)
 from mkf_ros.core.charts import chart_id, from_chart, t_matrix
 from mkf_ros.core.frames import FROM_ENU, align_tilt, heading_correction, keep_yaw
 from mkf_ros.core.linalg import congruence, eye, mm
 from mkf_ros.core.mekf import (
+    heading_residual,
     mekf_apply,
     mekf_gyro_update,
     mekf_heading_update,
@@ -50,7 +63,8 @@ C_MAG_TOL, C_DIP_TOL, C_MAG_GATE, C_MAG_RECOVER = 26, 27, 28, 29
 C_REST, C_REST_GYR, C_REST_ACC, C_REST_TIME, C_REST_VAR = 30, 31, 32, 33, 34
 C_MAG_HI = 35  # 3 values: hard-iron offset, sensor units
 C_MAG_SI = 38  # 9 values: soft-iron matrix, row-major
-C_SIZE = 47
+C_BETA, C_MADG_VAR, C_GIMBAL_COS = 47, 48, 49  # baselines (issue 7)
+C_SIZE = 50
 MAG_HEADING, MAG_VECTOR = 0, 1
 
 # --- layout of the state vector ----------------------------------------------------------------
@@ -58,7 +72,10 @@ S_QC, S_E, S_W, S_B, S_MREF, S_MSUM = 0, 4, 7, 10, 13, 16  # q̄_c(4) ē(3) ω̄
 S_MNORM = 19  # learned magnitude of the (calibrated) field
 # s since the last accepted acc; s a plausible field has disagreed (χ²); s at rest
 S_T_ACC, S_T_MAG, S_T_REST = 20, 21, 22
-S_SIZE = 23
+# baselines (issue 7): Euler angles (φ, θ, ψ) of the Euler KF/UKF (the UKF's body rates are
+# S_W); Madgwick's heading variance grown since alignment (6D), a held magnetometer sample
+S_EUL, S_BL_YAWVAR, S_BL_MAG, S_BL_MHELD = 23, 26, 27, 30
+S_SIZE = 31
 NX_MAX = 9
 
 # --- noise matrices derived from the configuration (built once per parameter set) -------------
@@ -75,13 +92,18 @@ COUNTER_NAMES = (
     "mag_missing", "mag_invalid",
     "gaps", "update_failed", "before_init",
     "acc_rejected_norm", "acc_rejected_chi2", "mag_rejected_norm", "mag_rejected_dip",
-    "mag_rejected_chi2", "rest_updates",
+    "mag_rejected_chi2", "rest_updates", "gimbal_lock",
 )
 K_SAMPLES, K_GYR_MISSING, K_GYR_INVALID, K_ACC_MISSING, K_ACC_INVALID = 0, 1, 2, 3, 4
 K_MAG_MISSING, K_MAG_INVALID, K_GAPS, K_UPDATE_FAILED, K_BEFORE_INIT = 5, 6, 7, 8, 9
 K_ACC_REJ_NORM, K_ACC_REJ_CHI2, K_MAG_REJ_NORM, K_MAG_REJ_DIP, K_MAG_REJ_CHI2 = 10, 11, 12, 13, 14
-K_REST = 15
+K_REST, K_GIMBAL = 15, 16
 K_SIZE = len(COUNTER_NAMES)
+
+# algorithm ids (index in ALGORITHMS): the paper's filters, then the baselines (issue 7)
+ALGO_MEKF, ALGO_MUKF = ALGORITHMS.index("mekf"), ALGORITHMS.index("mukf")
+ALGO_EULER_KF, ALGO_EULER_UKF = ALGORITHMS.index("euler_kf"), ALGORITHMS.index("euler_ukf")
+ALGO_MADGWICK = ALGORITHMS.index("madgwick")
 
 UP = np.array((0.0, 0.0, 1.0))  # world up in ENU: what a resting accelerometer measures
 MAG_REF_SAMPLES = 100  # magnetometer samples averaged into a learned reference
@@ -133,6 +155,8 @@ def estimate_enu(cfg: np.ndarray, st: np.ndarray, P: np.ndarray) -> tuple[np.nda
     """Point estimate ``q̂`` (ENU) and the attitude covariance about **body** axes, transported
     from the ``q̄_c``-chart to ``q̂`` with the T-matrix (§3.2; first order, every chart agrees
     with the rotation vector at the origin, eq. 10)."""
+    if int(cfg[C_ALGO]) >= ALGO_EULER_KF:
+        return _baseline_estimate(cfg, st, P)
     chart = int(cfg[C_CHART])
     e = st[S_E:S_E + 3]
     if e[0] == 0.0 and e[1] == 0.0 and e[2] == 0.0:
@@ -318,6 +342,171 @@ def _mag_plausible(cfg: np.ndarray, st: np.ndarray, fl: np.ndarray, cnt: np.ndar
     return True
 
 
+# --- baselines (issue 7): glue between the sensor layer and mkf_ros.core.baselines ----------
+# The sensor layer (alignment, heading initialisation, recovery) works on the MKF form of the
+# state, "canonical" here: q̄ = S_QC with ē = 0, P_ee about body axes, P_ωω, P_bb. The Euler
+# filters keep their own state (S_EUL, and P as the covariance of (φ, θ, ψ[, p, q, r])) and are
+# converted only where the sensor layer resets something and on an algorithm switch, so that
+# their gimbal-lock behaviour is theirs. Madgwick's state is S_QC itself; it has no covariance.
+
+
+@jit
+def _euler_n(algo: int) -> int:
+    return 3 if algo == ALGO_EULER_KF else 6
+
+
+@jit
+def _baseline_estimate(cfg: np.ndarray, st: np.ndarray,
+                       P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Estimate and attitude covariance about body axes of a baseline: Euler filters
+    ``E Σ_φθψ Eᵀ`` (E: body rotation vector per Euler increment, the inverse of eq. (7));
+    Madgwick a fixed ``madgwick_stddev²`` about each world axis (heading in 6D growing with the
+    integrated gyro noise)."""
+    q = st[S_QC:S_QC + 4].copy()
+    if int(cfg[C_ALGO]) == ALGO_MADGWICK:
+        v = cfg[C_MADG_VAR]
+        vy = v if cfg[C_USE_MAG] > 0 else v + st[S_BL_YAWVAR]
+        R = rotmat(q)
+        C = np.empty((3, 3))
+        for i in range(3):
+            for j in range(3):
+                C[i, j] = v * (R[0, i] * R[0, j] + R[1, i] * R[1, j]) + vy * R[2, i] * R[2, j]
+        return q, C
+    return q, euler_cov_to_body(st[S_EUL:S_EUL + 3], P, 3)
+
+
+@jit
+def _bl_export(cfg: np.ndarray, st: np.ndarray, P: np.ndarray) -> None:
+    """Baseline state → canonical form (no-op for the MKFs); attitude-bias cross terms are
+    zero (the baselines do not estimate the bias; a bias estimated before a switch is kept
+    frozen and subtracted from the gyro)."""
+    algo = int(cfg[C_ALGO])
+    if algo < ALGO_EULER_KF:
+        return
+    q, C = _baseline_estimate(cfg, st, P)
+    n = 3 if algo != ALGO_EULER_UKF else 6
+    if algo == ALGO_EULER_UKF:
+        C = euler_cov_to_body(st[S_EUL:S_EUL + 3], P, 6)
+    st[S_QC:S_QC + 4] = q
+    st[S_E:S_E + 3] = 0.0
+    for i in range(NX_MAX):  # clear everything but the bias block ...
+        for j in range(NX_MAX):
+            if i < 6 or j < 6:
+                P[i, j] = 0.0
+    P[0:n, 0:n] = C  # ... then the attitude [and rate] block
+    if n == 3:  # KF, Madgwick: the gyro reading is the rate estimate
+        for i in range(3, 6):
+            P[i, i] = cfg[C_RW]
+
+
+@jit
+def to_canonical(cfg: np.ndarray, st: np.ndarray, P: np.ndarray) -> None:
+    """Any algorithm's state in the canonical form: :func:`recentre` for the MKFs."""
+    if int(cfg[C_ALGO]) < ALGO_EULER_KF:
+        recentre(cfg, st, P)
+    else:
+        _bl_export(cfg, st, P)
+
+
+@jit
+def from_canonical(cfg: np.ndarray, st: np.ndarray, P: np.ndarray) -> None:
+    """Canonical form → the algorithm's own state (no-op for the MKFs): Euler angles of
+    ``q̄`` and ``Σ = W P_ee Wᵀ`` (W of eq. (7), |cos θ| floored), rates block kept for the UKF."""
+    algo = int(cfg[C_ALGO])
+    if algo < ALGO_EULER_KF:
+        return
+    if algo == ALGO_MADGWICK:
+        st[S_BL_YAWVAR] = 0.0
+        st[S_BL_MHELD] = 0.0
+        return
+    n = _euler_n(algo)
+    phi, theta, psi = quat_to_euler(st[S_QC:S_QC + 4])
+    st[S_EUL], st[S_EUL + 1], st[S_EUL + 2] = phi, theta, psi
+    S = body_cov_to_euler(st[S_EUL:S_EUL + 3], P, n)
+    for i in range(n):
+        for j in range(n, NX_MAX):
+            P[i, j] = 0.0
+            P[j, i] = 0.0
+    P[0:n, 0:n] = S
+    st[S_QC:S_QC + 4] = euler_to_quat(phi, theta, psi)
+
+
+@jit
+def _baseline_update(cfg: np.ndarray, nz: np.ndarray, st: np.ndarray, P: np.ndarray,
+                     cnt: np.ndarray, dt: float, g: np.ndarray, has_g: bool, a_body: np.ndarray,
+                     has_a: bool, var_a_extra: float, m_body: np.ndarray, has_m: bool,
+                     acc_gate: float, mag_gate: float) -> tuple[bool, float, float]:
+    """One step of a baseline after the sensor layer's checks. The gyro minus the (frozen)
+    bias is the rate; a missing gyro sample repeats the last rate (KF, Madgwick). Returns
+    ``(ok, acc NIS, mag NIS)`` like the MKF branches (Madgwick: NIS 0, it has no gate)."""
+    algo = int(cfg[C_ALGO])
+    b = st[S_B:S_B + 3]
+    w = st[S_W:S_W + 3]
+    if has_g and algo != ALGO_EULER_UKF:
+        for i in range(3):
+            w[i] = g[i] - b[i]
+    var_w = cfg[C_RW]
+    var_a = cfg[C_RA] + var_a_extra
+    ref = st[S_MREF:S_MREF + 3]
+    h = np.sqrt(ref[0] * ref[0] + ref[1] * ref[1])
+    href = np.array((ref[0] / h, ref[1] / h, 0.0)) if h > 0.0 else np.array((0.0, 1.0, 0.0))
+    if algo == ALGO_MADGWICK:
+        m = m_body
+        use_m = has_m
+        if has_m and not has_a:  # Madgwick needs both: hold it for the next IMU sample
+            st[S_BL_MAG:S_BL_MAG + 3] = m_body
+            st[S_BL_MHELD] = 1.0
+            use_m = False
+        elif has_a and not has_m and st[S_BL_MHELD] > 0:
+            m = st[S_BL_MAG:S_BL_MAG + 3].copy()
+            use_m = True
+        if has_a:
+            st[S_BL_MHELD] = 0.0
+        madgwick_step(st[S_QC:S_QC + 4], w, dt, a_body, has_a, m, use_m, href, cfg[C_BETA])
+        st[S_BL_YAWVAR] += var_w * dt * dt
+        return True, 0.0, 0.0
+    x = st[S_EUL:S_EUL + 3]
+    mag_var = _mag_yaw_var(cfg, ref)
+    ok = True
+    acc_nis = 0.0
+    mag_nis = 0.0
+    if algo == ALGO_EULER_KF:
+        euler_kf_predict(x, P, w, dt, var_w)
+        if has_a:
+            acc_nis = euler_kf_acc_update(x, P, a_body, var_a, acc_gate)
+        if has_m:
+            resid, _ = heading_residual(rotmat(euler_to_quat(x[0], x[1], x[2])), m_body, href)
+            mag_nis = yaw_update(x, P, 3, resid, mag_var, mag_gate)
+    else:
+        xx = np.empty(6)
+        for i in range(3):
+            xx[i] = x[i]
+            xx[3 + i] = w[i]
+        ok = euler_ukf_predict(xx, P, dt, cfg[C_QW])
+        if ok:
+            z = np.zeros(7)
+            for i in range(3):
+                z[i] = a_body[i]
+                z[3 + i] = g[i] - b[i]
+            if has_m:
+                resid, _ = heading_residual(rotmat(euler_to_quat(xx[0], xx[1], xx[2])), m_body,
+                                            href)
+                z[6] = resid
+            use = np.array((has_a, has_g, has_m))
+            Rd = np.array((var_a, var_a, var_a, var_w, var_w, var_w, mag_var))
+            gates = np.array((acc_gate, np.inf, mag_gate))
+            nis = np.zeros(3)
+            ok = euler_ukf_update(xx, P, use, z, Rd, gates, nis)
+            acc_nis, mag_nis = nis[0], nis[2]
+        for i in range(3):
+            x[i] = xx[i]
+            w[i] = xx[3 + i]
+    if abs(np.cos(x[1])) < cfg[C_GIMBAL_COS]:
+        cnt[K_GIMBAL] += 1
+    st[S_QC:S_QC + 4] = euler_to_quat(x[0], x[1], x[2])
+    return ok, acc_nis, mag_nis
+
+
 @jit
 def sensor_step(cfg: np.ndarray, nz: np.ndarray, st: np.ndarray, P: np.ndarray,
                 fl: np.ndarray, cnt: np.ndarray, dt: float, gyr: np.ndarray, acc: np.ndarray,
@@ -347,8 +536,10 @@ def sensor_step(cfg: np.ndarray, nz: np.ndarray, st: np.ndarray, P: np.ndarray,
     if fl[F_INIT] == 0:
         if cfg[C_PAPER] > 0:
             _paper_init(cfg, st, P, fl)
+            from_canonical(cfg, st, P)
         elif has_a:
             _align(cfg, st, P, fl, g, has_g, acc, m_body, m_norm, has_m)
+            from_canonical(cfg, st, P)
             return
         else:
             cnt[K_BEFORE_INIT] += 1
@@ -357,7 +548,9 @@ def sensor_step(cfg: np.ndarray, nz: np.ndarray, st: np.ndarray, P: np.ndarray,
     nx = int(cfg[C_NX])
     chart = int(cfg[C_CHART])
     if has_m and fl[F_HEADING] == 0:
+        _bl_export(cfg, st, P)  # baselines: the sensor layer works on (q̄, P_ee, ...)
         _heading_init(cfg, st, P, fl, m_body, m_norm)
+        from_canonical(cfg, st, P)
         has_m = False  # this sample set the heading; do not count it twice
     qc = st[S_QC:S_QC + 4]
     w = st[S_W:S_W + 3]
@@ -378,7 +571,9 @@ def sensor_step(cfg: np.ndarray, nz: np.ndarray, st: np.ndarray, P: np.ndarray,
             up = rotate_inv(st[S_QC:S_QC + 4], UP)
             ang = np.arccos(max(-1.0, min(1.0, up[0] * a_body[0] + up[1] * a_body[1]
                                           + up[2] * a_body[2])))
+            _bl_export(cfg, st, P)
             _inflate_world(st, P, ang * ang, 0.0)
+            from_canonical(cfg, st, P)
             acc_gate = np.inf
         elif abs(a_excess) > cfg[C_ACC_TOL]:
             cnt[K_ACC_REJ_NORM] += 1
@@ -407,12 +602,19 @@ def sensor_step(cfg: np.ndarray, nz: np.ndarray, st: np.ndarray, P: np.ndarray,
     elif has_m and cfg[C_PAPER] <= 0 and st[S_T_MAG] > cfg[C_MAG_RECOVER]:
         # a plausible field has disagreed with the estimate for this long, without a break:
         # the heading is suspect; take it from the field in closed form, as at start-up
+        _bl_export(cfg, st, P)
         _heading_init(cfg, st, P, fl, m_body, m_norm)
+        from_canonical(cfg, st, P)
         has_m = False
     ok = True
     acc_nis = 0.0
     mag_nis = 0.0
-    if int(cfg[C_ALGO]) == 0:  # MEKF: predict, one block per sensor, one move to the manifold
+    if int(cfg[C_ALGO]) >= ALGO_EULER_KF:  # baselines: no rate/bias state to sharpen at rest
+        rest = False
+        ok, acc_nis, mag_nis = _baseline_update(cfg, nz, st, P, cnt, dt, g, has_g, a_body,
+                                                has_a, Qa[0, 0], m_body, has_m, acc_gate,
+                                                mag_gate)
+    elif int(cfg[C_ALGO]) == 0:  # MEKF: predict, one block per sensor, one move to the manifold
         mekf_predict(qc, w, P, nx, dt, nz[N_QW], nz[N_QB])
         R = rotmat(qc)
         dx = np.zeros(nx)
@@ -555,6 +757,9 @@ def build_cfg(p: FilterParams) -> np.ndarray:
     cfg[C_REST_ACC] = p.rest_acc_threshold
     cfg[C_REST_TIME] = p.rest_time
     cfg[C_REST_VAR] = p.rest_rate_stddev**2
+    cfg[C_BETA] = p.madgwick_beta
+    cfg[C_MADG_VAR] = p.madgwick_stddev**2
+    cfg[C_GIMBAL_COS] = np.cos(p.gimbal_lock_pitch)
     cfg[C_MAG_HI:C_MAG_HI + 3] = (p.mag_bias_x, p.mag_bias_y, p.mag_bias_z)
     si = np.asarray(p.mag_soft_iron, dtype=float)
     if abs(np.linalg.det(si.reshape(3, 3))) < 1e-12:
@@ -612,7 +817,9 @@ class AttitudeFilter:
         """
         new = self._params.replace(**changes)
         cfg = build_cfg(new)
-        recentre(self._cfg, self._st, self._P)
+        switch = new.algorithm != self._params.algorithm
+        if switch or int(self._cfg[C_ALGO]) < ALGO_EULER_KF:
+            to_canonical(self._cfg, self._st, self._P)
         old_nx, new_nx = int(self._cfg[C_NX]), int(cfg[C_NX])
         if new_nx > old_nx and self._fl[F_INIT]:
             self._P[6:9, :] = 0.0
@@ -622,6 +829,8 @@ class AttitudeFilter:
             new.use_mag and not self._params.use_mag
         ):
             self._fl[F_HEADING] = 0  # re-establish heading from the next magnetometer sample
+        if switch:
+            from_canonical(cfg, self._st, self._P)
         self._params, self._cfg, self._nz = new, cfg, build_noise(cfg)
         self._q_from_enu = FROM_ENU[new.world_frame].copy()
         return new

@@ -95,14 +95,15 @@ def _fmt(x: float) -> str:
     return f"{x:g}"
 
 
-ALGORITHMS = ("mekf", "mukf")
+#: The paper's filters, then the seed report's baselines (mkf_ros.core.baselines, issue 7).
+ALGORITHMS = ("mekf", "mukf", "euler_kf", "euler_ukf", "madgwick")
 WORLD_FRAMES = ("enu", "ned", "nwu")
 
 _P = Param
 PARAMS: tuple[Param, ...] = (
     # --- filter and chart (spec §5, §6, §2) -------------------------------------------------
-    _P("algorithm", str, "mekf", "Filter: Manifold EKF (§5) or Manifold UKF (§6)",
-       choices=ALGORITHMS),
+    _P("algorithm", str, "mekf", "Filter: Manifold EKF (§5) or Manifold UKF (§6); baselines "
+       "(docs/baselines.md): Euler-angle KF, Euler-angle UKF, Madgwick", choices=ALGORITHMS),
     _P("chart", str, "rp", "Chart of the error state: orthographic, Rodrigues parameters, "
        "modified Rodrigues parameters, rotation vector (§2)", choices=("o", "rp", "mrp", "rv")),
     _P("chart_update", bool, True, "Move the covariance to the chart of the updated estimate "
@@ -190,6 +191,17 @@ PARAMS: tuple[Param, ...] = (
     _P("mag_soft_iron", list, [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0], "Soft-iron "
        "matrix S (row-major) applied after the hard-iron offset: m = S (m_raw - bias)",
        length=9, range=(-1e6, 1e6), group="calibration"),
+    # --- baselines (issue 7): used only by algorithm euler_kf, euler_ukf, madgwick ------------
+    _P("madgwick_beta", float, 0.041, "Madgwick gain beta: gyro error as the magnitude of a "
+       "quaternion derivative (Madgwick 2010 recommends 0.041 for 9D, 0.033 for 6D; "
+       "imu_filter_madgwick's 'gain' defaults to 0.1)", unit="rad/s", range=(0.0, 10.0),
+       group="baselines"),
+    _P("madgwick_stddev", float, 0.05, "Madgwick has no covariance: this fixed standard "
+       "deviation is published about each world axis (in 6D the heading's grows from it with "
+       "the integrated gyro noise)", unit="rad", range=(1e-4, 3.15), group="baselines"),
+    _P("gimbal_lock_pitch", float, 1.3963, "Euler-angle baselines: samples whose estimated "
+       "|pitch| exceeds this are counted as gimbal_lock (near +-90 deg the Euler-rate matrix "
+       "is singular; default 80 deg)", unit="rad", range=(0.0, 1.5708), group="baselines"),
     # --- initialisation and time -------------------------------------------------------------
     _P("init_mode", str, "align", "'align': closed-form attitude from the first accelerometer "
        "(+ magnetometer) sample; 'paper': identity with P0 = 100 I as in the paper's study",
