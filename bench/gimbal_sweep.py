@@ -8,7 +8,9 @@ axis while there), runs every algorithm of :data:`mkf_ros.core.params.ALGORITHMS
 parameters, 6D and 9D, and prints per algorithm the max and RMS error inside and outside the
 gimbal-lock intervals (true |pitch| > 80°, ``meta['intervals']['gimbal_lock']``): inclination
 for 6D (heading is unobservable), total for 9D; plus the ``gimbal_lock`` counter of the Euler
-filters. The plot (error vs time, intervals shaded) goes to ``docs/baselines/gimbal_sweep.png``.
+filters and the accelerometer samples the χ² gate rejected (a filter over-confident after a
+failure rejects the very samples that would correct it). The plot (error vs time, intervals
+shaded) goes to ``docs/baselines/gimbal_sweep.png``.
 """
 
 from __future__ import annotations
@@ -54,8 +56,8 @@ def table(sim: object, res: dict[tuple[str, str], dict]) -> str:
         "(true |pitch| > 80°)",
         "",
         "| algorithm | dim | error | inside max | inside RMS | outside max | outside RMS "
-        "| gimbal_lock count | finite |",
-        "|---|---|---|---:|---:|---:|---:|---:|---|",
+        "| gimbal_lock count | acc χ² rejections | finite |",
+        "|---|---|---|---:|---:|---:|---:|---:|---:|---|",
     ]
     for (algo, dim), r in res.items():
         err = r["err"]
@@ -64,7 +66,8 @@ def table(sim: object, res: dict[tuple[str, str], dict]) -> str:
             cells += [f"{err[m].max():.2f}", f"{np.sqrt(np.mean(err[m] ** 2)):.2f}"]
         kind = "inclination" if dim == "6D" else "total"
         lines.append(f"| {algo} | {dim} | {kind} | " + " | ".join(cells)
-                     + f" | {r['counters']['gimbal_lock']} | {'yes' if r['finite'] else 'NO'} |")
+                     + f" | {r['counters']['gimbal_lock']} | {r['counters']['acc_rejected_chi2']} "
+                     f"| {'yes' if r['finite'] else 'NO'} |")
     return "\n".join(lines)
 
 
