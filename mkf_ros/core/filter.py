@@ -778,7 +778,8 @@ def build_cfg(p: FilterParams) -> np.ndarray:
 
 
 class AttitudeFilter:
-    """Stateful single-step attitude filter (MEKF or MUKF, any chart) for streaming use.
+    """Stateful single-step attitude filter (MEKF or MUKF, any chart, or a baseline of
+    :mod:`mkf_ros.core.baselines`) for streaming use.
 
     >>> f = AttitudeFilter(algorithm="mekf", chart="rp")
     >>> f.step(0.01, gyr=[0, 0, 0], acc=[0, 0, 9.81])
@@ -812,7 +813,9 @@ class AttitudeFilter:
         Switching ``algorithm``, ``chart`` or ``chart_update`` keeps the estimate: a MUKF mean
         ``ē ≠ 0`` is first moved onto the chart origin with the T-matrix (§3.2); at the origin
         every chart agrees with the rotation vector to first order (eq. 10), so ``P`` carries
-        over unchanged. Enabling bias estimation starts the bias at 0 with
+        over unchanged. A switch to or from a baseline converts the state through that form:
+        quaternion ↔ Euler angles, ``P_ee = E Σ Eᵀ`` ↔ ``Σ = W P_ee Wᵀ`` (:func:`to_canonical`,
+        :func:`from_canonical`). Enabling bias estimation starts the bias at 0 with
         ``gyro_bias_stddev``; disabling it freezes the current bias.
         """
         new = self._params.replace(**changes)
