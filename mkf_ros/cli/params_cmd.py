@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import argparse
+import re
+from pathlib import Path
 
 from mkf_ros.core.params import BY_NAME, Param
 
@@ -13,6 +15,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--format", choices=("yaml", "markdown"), default="yaml")
     parser.add_argument("--node-name", default="estimator",
                         help="top-level key of the YAML (default: estimator)")
+    parser.add_argument("--update", action="store_true",
+                        help="in a source checkout: rewrite every generated copy "
+                             "(config/estimator.yaml, the tables in README.md and "
+                             "docs/estimator.md)")
 
 
 def yaml_value(v: object) -> str:
@@ -50,7 +56,40 @@ def to_markdown(params: list[Param]) -> str:
     return "\n".join(rows) + "\n"
 
 
+def update_generated(root: Path) -> list[Path]:
+    """Regenerate the YAML and the Markdown tables between their markers; returns the files."""
+    params = list(BY_NAME.values())
+    table = to_markdown(params)
+    done = []
+    cfg = root / "config" / "estimator.yaml"
+    if cfg.parent.is_dir():
+        cfg.write_text(to_yaml(params, "/**"))
+        done.append(cfg)
+    for path, begin, end in ((root / "README.md", r"<!-- PARAMS-TABLE[^>]*-->\n",
+                              "<!-- /PARAMS-TABLE -->"),
+                             (root / "docs" / "estimator.md", "<!-- params:begin -->\n",
+                              "<!-- params:end -->")):
+        if not path.is_file():
+            continue
+        text = path.read_text()
+        new, n = re.subn(f"({begin})(.*?)({re.escape(end)})",
+                         lambda m: m.group(1) + table + m.group(3), text, flags=re.S)
+        if n:
+            path.write_text(new)
+            done.append(path)
+    return done
+
+
 def run(args: argparse.Namespace) -> int:
+    if args.update:
+        from mkf_ros.cli.main import CliError
+
+        root = Path(__file__).resolve().parents[2]
+        if not (root / "package.xml").is_file():
+            raise CliError("--update works in a source checkout (package.xml not found)")
+        for path in update_generated(root):
+            print(f"updated {path.relative_to(root)}")
+        return 0
     params = list(BY_NAME.values())
     print(to_yaml(params, args.node_name) if args.format == "yaml" else to_markdown(params),
           end="")

@@ -64,8 +64,10 @@ C_REST, C_REST_GYR, C_REST_ACC, C_REST_TIME, C_REST_VAR = 30, 31, 32, 33, 34
 C_MAG_HI = 35  # 3 values: hard-iron offset, sensor units
 C_MAG_SI = 38  # 9 values: soft-iron matrix, row-major
 C_BETA, C_MADG_VAR, C_GIMBAL_COS = 47, 48, 49  # baselines (issue 7)
-C_SIZE = 50
+C_ACC_MODE = 50
+C_SIZE = 51
 MAG_HEADING, MAG_VECTOR = 0, 1
+ACC_TILT, ACC_VECTOR = 0, 1
 
 # --- layout of the state vector ----------------------------------------------------------------
 S_QC, S_E, S_W, S_B, S_MREF, S_MSUM = 0, 4, 7, 10, 13, 16  # q̄_c(4) ē(3) ω̄(3) b̄(3) m_ref m_sum
@@ -619,7 +621,8 @@ def sensor_step(cfg: np.ndarray, nz: np.ndarray, st: np.ndarray, P: np.ndarray,
         R = rotmat(qc)
         dx = np.zeros(nx)
         if has_a:
-            acc_nis = mekf_vector_update(P, nx, dx, R, a_body, UP, nz[N_RA], Qa, acc_gate)
+            acc_nis = mekf_vector_update(P, nx, dx, R, a_body, UP, nz[N_RA], Qa, acc_gate,
+                                         cfg[C_ACC_MODE] == ACC_TILT)
         if has_m:
             if heading:
                 h = np.sqrt(st[S_MREF] ** 2 + st[S_MREF + 1] ** 2)
@@ -655,7 +658,7 @@ def sensor_step(cfg: np.ndarray, nz: np.ndarray, st: np.ndarray, P: np.ndarray,
                            st[S_E:S_E + 3], w, b, P, nx, dt, nz[N_QW], nz[N_QB], vm, vref, Rv,
                            Qv, use_v, g, has_g, nz[N_RW], m_body, href, has_m and heading,
                            _mag_yaw_var(cfg, st[S_MREF:S_MREF + 3]), rest, cfg[C_REST_VAR],
-                           gates, nis)
+                           gates, nis, cfg[C_ACC_MODE] == ACC_TILT)
         acc_nis = nis[B_VEC0] if has_a else 0.0
         mag_nis = nis[B_HEADING] if heading else nis[B_VEC1]
     if not ok or acc_nis < 0 or mag_nis < 0:
@@ -744,6 +747,7 @@ def build_cfg(p: FilterParams) -> np.ndarray:
     cfg[C_PAPER] = float(p.init_mode == "paper")
     cfg[C_MAXDT] = p.max_dt
     cfg[C_MAG_MODE] = MAG_HEADING if p.mag_mode == "heading" else MAG_VECTOR
+    cfg[C_ACC_MODE] = ACC_TILT if p.acc_mode == "tilt" else ACC_VECTOR
     cfg[C_GRAVITY] = g
     cfg[C_ACC_TOL] = p.acc_norm_tolerance
     cfg[C_ACC_GATE] = p.acc_gate

@@ -123,13 +123,55 @@ def _block_update(P: np.ndarray, nx: int, dx: np.ndarray, PHt: np.ndarray, S: np
 
 
 @jit
+def _joseph_projected(P: np.ndarray, nx: int, dx: np.ndarray, PHt: np.ndarray, S: np.ndarray,
+                      r: np.ndarray, gate: float, u: np.ndarray) -> float:
+    """:func:`_block_update` with the gain of every 3-row group (attitude, rate, bias) projected
+    off the direction ``u`` (the world vertical in body axes), so that this measurement cannot
+    change heading, vertical rate or vertical bias; ``P`` by the Joseph form, valid for any
+    gain: ``(I − K H) P (I − K H)ᵀ + K R Kᵀ = P − K (PHᵀ)ᵀ − PHᵀ Kᵀ + K S Kᵀ``."""
+    Si = np.empty((3, 3))
+    if not inv3_spd(S, Si):
+        return -1.0
+    nis = 0.0
+    for i in range(3):
+        for j in range(3):
+            nis += r[i] * Si[i, j] * r[j]
+    if nis > gate:
+        return nis
+    K = np.empty((nx, 3))
+    for i in range(nx):
+        for j in range(3):
+            K[i, j] = PHt[i, 0] * Si[0, j] + PHt[i, 1] * Si[1, j] + PHt[i, 2] * Si[2, j]
+    for g in range(nx // 3):  # K_g ← (I − u uᵀ) K_g
+        for j in range(3):
+            ku = u[0] * K[3 * g, j] + u[1] * K[3 * g + 1, j] + u[2] * K[3 * g + 2, j]
+            for i in range(3):
+                K[3 * g + i, j] -= u[i] * ku
+    for i in range(nx):
+        dx[i] += K[i, 0] * r[0] + K[i, 1] * r[1] + K[i, 2] * r[2]
+    # Joseph form: P' = P − K PHtᵀ − PHt Kᵀ + K S Kᵀ  (S = H P Hᵀ + R; equals the Joseph form)
+    KS = np.empty((nx, 3))
+    for i in range(nx):
+        for j in range(3):
+            KS[i, j] = K[i, 0] * S[0, j] + K[i, 1] * S[1, j] + K[i, 2] * S[2, j]
+    for i in range(nx):
+        for j in range(nx):
+            s_ = 0.0
+            for k in range(3):
+                s_ += -K[i, k] * PHt[j, k] - PHt[i, k] * K[j, k] + KS[i, k] * K[j, k]
+            P[i, j] += s_
+    return nis
+
+
+@jit
 def mekf_vector_update(
     P: np.ndarray, nx: int, dx: np.ndarray, R: np.ndarray, vm: np.ndarray, vref: np.ndarray,
-    Rv: np.ndarray, Qv: np.ndarray, gate: float,
+    Rv: np.ndarray, Qv: np.ndarray, gate: float, tilt_only: bool = False,
 ) -> float:
     """One vector sensor (§5 "Measurement prediction", §4.3): ``v̄ = R(q̄⁻)ᵀ v``,
-    ``H = [[v̄]×, 0]``, noise ``R(q̄⁻)ᵀ Q_v R(q̄⁻) + R_v``. ``R`` is ``R(q̄⁻)``. Returns the NIS
-    (see :func:`_block_update`)."""
+    ``H = [[v̄]×, 0]``, noise ``R(q̄⁻)ᵀ Q_v R(q̄⁻) + R_v``. ``R`` is ``R(q̄⁻)``. With
+    ``tilt_only`` (extension, for gravity) the gain is kept off the world vertical
+    (:func:`_joseph_projected`). Returns the NIS (see :func:`_block_update`)."""
     vb = np.empty(3)
     for i in range(3):
         vb[i] = R[0, i] * vref[0] + R[1, i] * vref[1] + R[2, i] * vref[2]
@@ -163,6 +205,9 @@ def mekf_vector_update(
                     for m in range(3):
                         qb += R[k, i] * Qv[k, m] * R[m, j]
             S[i, j] += qb + Rv[i, j]
+    if tilt_only:
+        u = np.array((R[2, 0], R[2, 1], R[2, 2]))  # R(q̄)ᵀ ẑ
+        return _joseph_projected(P, nx, dx, PHt, S, r, gate, u)
     return _block_update(P, nx, dx, PHt, S, r, gate)
 
 

@@ -76,9 +76,12 @@ def mukf_step_ext(
     vm: np.ndarray, vref: np.ndarray, Rv: np.ndarray, Qv: np.ndarray, use_v: np.ndarray,
     wm: np.ndarray, use_w: bool, Rw: np.ndarray,
     hm: np.ndarray, href: np.ndarray, use_h: bool, var_h: float,
-    use_z: bool, var_z: float, gates: np.ndarray, nis: np.ndarray,
+    use_z: bool, var_z: float, gates: np.ndarray, nis: np.ndarray, tilt_v0: bool = False,
 ) -> bool:
-    """:func:`mukf_step` with the real-sensor extensions: a magnetometer for heading only
+    """:func:`mukf_step` with the real-sensor extensions: with ``tilt_v0`` the first vector
+    sensor (gravity) corrects tilt only — its gain is kept off the world vertical for attitude,
+    rate and bias, as in :func:`mkf_ros.core.mekf.mekf_vector_update`; a magnetometer for
+    heading only
     (``hm``: body field, ``href``: horizontal world reference, the pseudo-measurement
     ``0 = ψ(q) + n`` of :func:`mkf_ros.core.mekf.mekf_heading_update`, its gain projected onto
     the vertical, Joseph-form covariance), the zero-rate pseudo-measurement ``0 = ω + n`` of rest
@@ -227,7 +230,6 @@ def mukf_step_ext(
     first = np.full(4, -1)
     size = np.zeros(4, dtype=np.int64)
     row = 0
-    kv = 0
     for k in range(use_v.shape[0]):
         if use_v[k]:  # R_v + R(q_0⁻)ᵀ Q_v R(q_0⁻): the disturbance sigma pairs, summed exactly
             for i in range(3):
@@ -238,8 +240,7 @@ def mukf_step_ext(
                             qb += R0[a, i] * Qv[k, a, bb] * R0[bb, jj]
                     Pyy[row + i, row + jj] += Rv[k, i, jj] + qb
                 inn[row + i] = vm[k, i] - ym[row + i]
-            first[B_VEC0 + kv], size[B_VEC0 + kv] = row, 3
-            kv += 1
+            first[B_VEC0 + k], size[B_VEC0 + k] = row, 3  # by slot: 0 = first sensor
             row += 3
     if use_h:
         Pyy[row, row] += var_h
@@ -293,17 +294,25 @@ def mukf_step_ext(
         if not ok:
             return False
         Kt = cho_solve(Ly, Pxy_a.T.copy())  # Kᵀ = P_yy⁻¹ P_xyᵀ
-        hrow = -1
-        if use_h and keep[first[B_HEADING]]:
-            for a in range(ma):
-                if idx[a] == first[B_HEADING]:
-                    hrow = a
-        if hrow >= 0:  # heading turns about the vertical only: project its attitude gain
-            u0, u1, u2 = R0[2, 0], R0[2, 1], R0[2, 2]  # world vertical in the new chart's axes
-            ku = u0 * Kt[hrow, 0] + u1 * Kt[hrow, 1] + u2 * Kt[hrow, 2]
-            Kt[hrow, 0], Kt[hrow, 1], Kt[hrow, 2] = u0 * ku, u1 * ku, u2 * ku
+        Rm = rotmat(qm)
+        u0, u1, u2 = Rm[2, 0], Rm[2, 1], Rm[2, 2]  # world vertical in the new chart's axes
+        projected = False
+        for a in range(ma):
+            if use_h and idx[a] == first[B_HEADING]:
+                # heading turns about the vertical only: project its attitude gain onto u
+                ku = u0 * Kt[a, 0] + u1 * Kt[a, 1] + u2 * Kt[a, 2]
+                Kt[a, 0], Kt[a, 1], Kt[a, 2] = u0 * ku, u1 * ku, u2 * ku
+                projected = True
+            elif tilt_v0 and first[B_VEC0] >= 0 and first[B_VEC0] <= idx[a] < first[B_VEC0] + 3:
+                # gravity: keep every group's gain (attitude, rate, bias) off the vertical
+                for g in range(nx // 3):
+                    ku = u0 * Kt[a, 3 * g] + u1 * Kt[a, 3 * g + 1] + u2 * Kt[a, 3 * g + 2]
+                    Kt[a, 3 * g] -= u0 * ku
+                    Kt[a, 3 * g + 1] -= u1 * ku
+                    Kt[a, 3 * g + 2] -= u2 * ku
+                projected = True
         upd = mtv(Kt, inn_a)
-        if hrow >= 0:  # Joseph form, valid for any gain: P − K P_xyᵀ − P_xy Kᵀ + K P_yy Kᵀ
+        if projected:  # Joseph form, valid for any gain: P − K P_xyᵀ − P_xy Kᵀ + K P_yy Kᵀ
             KPyy = np.zeros((nx, ma))
             for i in range(nx):
                 for a in range(ma):

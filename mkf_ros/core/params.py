@@ -110,7 +110,7 @@ PARAMS: tuple[Param, ...] = (
        "(paper eq. 47b); false = the classic reset"),
     _P("mukf_w0", float, 1.0 / 25.0, "MUKF weight of the central sigma point W_0 (§6)",
        unit="1", range=(1e-3, 0.99)),
-    _P("mukf_noise_scaling", str, "consistent", "MUKF angular-velocity noise (§8 item 3): "
+    _P("mukf_noise_scaling", str, "integrated", "MUKF angular-velocity noise (§8 item 3): "
        "'consistent' grows the rate variance by Q_w*dt; 'published' by Q_w*dt^2 as in the "
        "paper's figures; 'integrated' (extension) also rotates each step with the mean rate of "
        "the Wiener process, giving the attitude the MEKF's Q_w*dt^3/3 and an honest covariance",
@@ -130,13 +130,13 @@ PARAMS: tuple[Param, ...] = (
        unit="rad/s", range=(1e-6, 10.0), group="noise"),
     _P("acc_noise", float, 0.05, "Accelerometer white noise per sample (sqrt of R_v)",
        unit="m/s^2", range=(1e-6, 100.0), group="noise"),
-    _P("acc_disturbance", float, 1.0, "Non-gravitational acceleration expected "
+    _P("acc_disturbance", float, 0.6, "Non-gravitational acceleration expected "
        "(sqrt of Q_v, external disturbance)", unit="m/s^2", range=(0.0, 100.0), group="noise"),
     _P("mag_noise", float, 0.02, "Magnetometer white noise per sample, relative to the field "
        "magnitude", unit="1", range=(1e-6, 10.0), group="noise"),
     _P("mag_disturbance", float, 0.05, "Magnetic disturbance expected, relative to the field "
        "magnitude", unit="1", range=(0.0, 10.0), group="noise"),
-    _P("rate_process_noise", float, 10.0, "Power spectral density Q_w of the angular "
+    _P("rate_process_noise", float, 20.0, "Power spectral density Q_w of the angular "
        "acceleration driving the constant-rate model (§4.2)", unit="rad^2/s^3",
        range=(1e-9, 1e9), group="noise"),
     _P("estimate_gyro_bias", bool, True, "Estimate a gyro bias in the state (extension)",
@@ -146,7 +146,7 @@ PARAMS: tuple[Param, ...] = (
     _P("gyro_bias_stddev", float, 0.02, "Initial uncertainty of the gyro bias", unit="rad/s",
        range=(1e-9, 1.0), group="noise"),
     # --- disturbances and calibration (extensions for real sensors) --------------------------
-    _P("acc_norm_tolerance", float, 0.15, "Accelerometer samples whose magnitude differs from "
+    _P("acc_norm_tolerance", float, 0.5, "Accelerometer samples whose magnitude differs from "
        "gravity by more than this fraction are not fused (the excess also widens the "
        "disturbance of every sample)", unit="1", range=(0.0, 1000.0), group="robustness"),
     _P("acc_gate", float, 16.3, "Chi-square gate on the accelerometer innovation (3 degrees of "
@@ -155,7 +155,11 @@ PARAMS: tuple[Param, ...] = (
     _P("acc_recovery_time", float, 1.0, "After this long without an accepted accelerometer "
        "sample, the next one is fused regardless of the gates", unit="s", range=(0.0, 3600.0),
        group="robustness"),
-    _P("mag_mode", str, "heading", "'heading': the magnetometer corrects heading only and can "
+    _P("acc_mode", str, "tilt", "'tilt': the accelerometer corrects roll and pitch only and can "
+       "never move heading or the vertical rate and bias (extension: gravity carries no heading "
+       "information); 'vector': the paper's full vector measurement",
+       choices=("tilt", "vector"), group="robustness"),
+    _P("mag_mode", str, "vector", "'heading': the magnetometer corrects heading only and can "
        "never tilt the estimate (extension); 'vector': the paper's full vector measurement",
        choices=("heading", "vector"), group="robustness"),
     _P("mag_norm_tolerance", float, 0.1, "Magnetometer samples whose magnitude differs from the "
@@ -164,9 +168,9 @@ PARAMS: tuple[Param, ...] = (
     _P("mag_dip_tolerance", float, 0.1745, "Magnetometer samples whose dip angle differs from "
        "the learned field's by more than this are not fused", unit="rad", range=(0.0, 3.1416),
        group="robustness"),
-    _P("mag_gate", float, 10.8, "Chi-square gate on the magnetometer innovation (1 degree of "
-       "freedom in heading mode; 10.8 = 0.1% false rejection); 0 = off", unit="1",
-       range=(0.0, 1e6), group="robustness"),
+    _P("mag_gate", float, 10.8, "Chi-square gate on the magnetometer innovation (vector mode, "
+       "3 degrees of freedom: 10.8 = 1.3% false rejection; heading mode, 1: 3.3 sigma); 0 = off",
+       unit="1", range=(0.0, 1e6), group="robustness"),
     _P("mag_recovery_time", float, 10.0, "After this long without an accepted magnetometer "
        "sample, the chi-square gate is suspended (magnitude and dip checks stay)", unit="s",
        range=(0.0, 3600.0), group="robustness"),
