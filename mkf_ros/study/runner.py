@@ -15,14 +15,16 @@ files and a re-run continues with the missing units.
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import hashlib
 import json
 import multiprocessing as mp
 import os
 import signal
+import threading
 import time
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -91,6 +93,41 @@ def atomic_write_bytes(path: Path, data: bytes) -> None:
 
 def atomic_write_text(path: Path, text: str) -> None:
     atomic_write_bytes(path, text.encode())
+
+
+@contextlib.contextmanager
+def deferred_sigint() -> Iterator[None]:
+    """Hold Ctrl-C while results are written; raise it afterwards (main thread only)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    caught: list[int] = []
+    old = signal.signal(signal.SIGINT, lambda signum, frame: caught.append(signum))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, old)
+    if caught:
+        raise KeyboardInterrupt
+
+
+@contextlib.contextmanager
+def _sigint_noted() -> Iterator[list[int]]:
+    """Ctrl-C behaves as usual, but is also recorded in the yielded list."""
+    if threading.current_thread() is not threading.main_thread():
+        yield []
+        return
+    noted: list[int] = []
+
+    def handler(signum: int, frame: object) -> None:
+        noted.append(signum)
+        raise KeyboardInterrupt
+
+    old = signal.signal(signal.SIGINT, handler)
+    try:
+        yield noted
+    finally:
+        signal.signal(signal.SIGINT, old)
 
 
 def _save_npz(path: Path, **arrays: np.ndarray) -> None:
@@ -355,14 +392,15 @@ def run_study(
 
     def finish(unit: Unit, res: dict[str, np.ndarray], cpu: float) -> None:
         report.cpu_s += cpu
-        parts.write(unit, res)
-        new = [c for c in unit.cells if c.key in pending and parts.complete(c.key, n_s)]
-        for c in new:
-            rows[c.key] = cell_row(c, parts.arrays(c, n_s))
-            pending.discard(c.key)
-            report.finished.append(c)
-        if new:
-            write_rows(out, rows)
+        with deferred_sigint():  # the part file and the CSV rows are written as a whole
+            parts.write(unit, res)
+            new = [c for c in unit.cells if c.key in pending and parts.complete(c.key, n_s)]
+            for c in new:
+                rows[c.key] = cell_row(c, parts.arrays(c, n_s))
+                pending.discard(c.key)
+                report.finished.append(c)
+            if new:
+                write_rows(out, rows)
         if bar is not None:
             bar.update(unit.cost)
             bar.set_postfix_str(f"cells {len(rows.keys() & selected.keys())}/{len(selected)}")
@@ -371,7 +409,13 @@ def run_study(
 
     try:
         if units:
-            warm_up()
+            with _sigint_noted() as noted:
+                try:
+                    warm_up()
+                except Exception:
+                    if noted:  # Ctrl-C inside numba's compiler can surface as another error
+                        raise KeyboardInterrupt from None
+                    raise
         if workers <= 1 or len(units) <= 1:
             for u in units:
                 finish(*_timed_unit(u))

@@ -48,8 +48,8 @@ def test_small_study_writes_cells_with_the_metric(tmp_path: Path) -> None:
 
 def test_interrupt_then_resume_gives_the_uninterrupted_result(tmp_path: Path) -> None:
     cells = cfg.cells(**SMALL)
-    ref = tmp_path / "ref"
-    runner.run_study(cells, N_S, 4, ref, workers=1, progress=False)
+    ref = tmp_path / "ref"  # two worker processes here, one below: same numbers
+    runner.run_study(cells, N_S, 4, ref, workers=2, progress=False)
 
     out = tmp_path / "resumed"
     calls = []
