@@ -248,10 +248,10 @@ def test_gap_makes_the_published_yaw_uncertain(use_mag: bool) -> None:
             s.on_mag(T0 + 0.01 * k, mag)
     assert math.degrees(math.sqrt(out.orientation_cov[2, 2])) < 5.0
     out = s.on_imu(T0 + 5.0, Z, G)  # 4 s without data
-    assert out.orientation_cov[2, 2] == pytest.approx(math.pi ** 2 / 3)
+    assert out.orientation_cov[2, 2] == pytest.approx(math.pi ** 2 / 3, rel=1e-3)
     assert math.degrees(math.sqrt(out.orientation_cov[0, 0])) < 10.0
     out = feed(s, 10, t0=T0 + 5.01)[-1]
-    assert out.orientation_cov[2, 2] == pytest.approx(math.pi ** 2 / 3)
+    assert out.orientation_cov[2, 2] == pytest.approx(math.pi ** 2 / 3, rel=1e-3)
     if use_mag:
         s.on_mag(T0 + 5.1, mag)
         out = s.on_imu(T0 + 5.11, Z, G)

@@ -27,14 +27,21 @@ _PACKAGE_DIR = Path(__file__).resolve().parents[1]
 _MARKER = "core._jit import jit"
 
 
+def _kernel_files() -> list[Path]:
+    """Every package source file that defines kernels with :func:`jit` (and this one)."""
+    return [p for p in sorted(_PACKAGE_DIR.rglob("*.py"))
+            if p.name == "_jit.py" or _MARKER.encode() in p.read_bytes()]
+
+
+_KERNEL_FILES = _kernel_files()
+
+
 def _kernel_hash() -> str:
-    """Hash of every package source file that defines kernels, plus the numba/Python version."""
+    """Hash of every kernel source file, plus the numba and Python versions."""
     h = hashlib.sha256(f"{numba.__version__} {sys.version_info[:2]}".encode())
-    for path in sorted(_PACKAGE_DIR.rglob("*.py")):
-        data = path.read_bytes()
-        if path.name == "_jit.py" or _MARKER.encode() in data:
-            h.update(str(path.relative_to(_PACKAGE_DIR)).encode())
-            h.update(data)
+    for path in _KERNEL_FILES:
+        h.update(str(path.relative_to(_PACKAGE_DIR)).encode())
+        h.update(path.read_bytes())
     return h.hexdigest()[:16]
 
 
@@ -71,10 +78,9 @@ class KernelCacheLocator(caching._SourceFileBackedLocatorMixin, caching._CacheLo
 
     @classmethod
     def from_function(cls, py_func: object, py_file: str) -> KernelCacheLocator | None:
-        try:
-            Path(py_file).resolve().relative_to(_PACKAGE_DIR)
-        except ValueError:
-            return None  # not one of ours: numba's usual locators decide
+        if Path(py_file).resolve() not in _KERNEL_FILES:
+            return None  # not hashed (not ours, or not using jit): numba's usual locators
+
         self = cls(py_func, py_file)
         try:
             self.ensure_cache_path()
@@ -82,6 +88,23 @@ class KernelCacheLocator(caching._SourceFileBackedLocatorMixin, caching._CacheLo
             return None
         return self
 
+
+def _prune_old_caches(keep_days: float = 7.0) -> None:
+    """Best effort: remove caches of other kernel versions unused for ``keep_days``."""
+    import shutil
+    import time
+
+    root = _cache_root()
+    try:
+        for d in root.glob("numba-*"):
+            old = time.time() - d.stat().st_mtime > keep_days * 86400
+            if d.name != f"numba-{KERNEL_HASH}" and old:
+                shutil.rmtree(d, ignore_errors=True)
+    except OSError:
+        pass
+
+
+_prune_old_caches()
 
 if KernelCacheLocator not in caching.CacheImpl._locator_classes:
     caching.CacheImpl._locator_classes.insert(0, KernelCacheLocator)

@@ -270,7 +270,10 @@ def _align(cfg: np.ndarray, st: np.ndarray, P: np.ndarray, fl: np.ndarray,
         P[3 + i, 3 + i] = cfg[C_RW] if has_g else 1.0
     if nx == 9:
         P[6:9, 6:9] = Pb if fl[F_EVER] > 0 else eye(3, cfg[C_B0])
-    _set_world_attitude_cov(st, P, nx, cfg[C_RA] + cfg[C_QA], YAW0_STDDEV ** 2, False)
+    # heading: defined by the start-up heading at the first alignment; after a gap it is kept
+    # but unknown (uniform over ±180°) until a magnetometer fixes it
+    var_yaw = np.pi ** 2 / 3.0 if fl[F_EVER] > 0 else YAW0_STDDEV ** 2
+    _set_world_attitude_cov(st, P, nx, cfg[C_RA] + cfg[C_QA], var_yaw, False)
     fl[F_INIT] = 1
     fl[F_EVER] = 1
     fl[F_HEADING] = 0
@@ -906,7 +909,9 @@ _NAN3 = np.full(3, np.nan)
 def _vec(v: object) -> np.ndarray:
     if v is None:
         return _NAN3
-    a = np.asarray(v, dtype=float).reshape(-1)
+    # a fresh C-contiguous, writable float64 array: anything else would make numba compile a
+    # new specialisation of the kernels in the middle of a stream
+    a = np.array(v, dtype=np.float64, copy=True).reshape(-1)
     if a.shape != (3,):
         raise ValueError(f"sensor sample must have 3 components, got shape {np.shape(v)}")
     return a

@@ -114,9 +114,12 @@ def mukf_step_ext(
     L, ok = cholesky(P[:nx, :nx].copy())
     if not ok:
         return False
-    Lw, ok = cholesky(Qw if published else Qw * dt)
-    if not ok:
-        return False
+    if dt > 0.0 or published:
+        Lw, ok = cholesky(Qw if published else Qw * dt)
+        if not ok:
+            return False
+    else:  # a zero-length step (e.g. a magnetometer fused at the IMU's time): no rate noise,
+        Lw = np.zeros((3, 3))  # those sigma points coincide with the central one
     c = np.sqrt(N / (1.0 - w0))
     wj = (1.0 - w0) / (2.0 * N)
     nd = nx + 3  # propagated directions: state and rate noise

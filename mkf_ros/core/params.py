@@ -54,7 +54,7 @@ class Param:
         if self.type is str:
             if not isinstance(value, str):
                 raise ValueError(f"{n} must be a string, got {value!r}")
-            v = value.strip().lower()
+            v = value.strip().lower() if self.choices else value  # frame ids keep their case
             if self.choices and v not in self.choices:
                 raise ValueError(f"{n} must be one of {', '.join(self.choices)}, got {value!r}")
             return v

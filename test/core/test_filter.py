@@ -220,3 +220,21 @@ def test_magnetometer_in_its_own_step_equals_joint(algorithm: str) -> None:
     rj, rs = np.degrees(np.sqrt(np.mean(np.square(ej[100:])))), np.degrees(
         np.sqrt(np.mean(np.square(es[100:]))))
     assert rs < 1.2 * rj + 0.02, (rs, rj)
+
+
+@pytest.mark.parametrize("algorithm", ["mekf", "mukf"])
+def test_zero_length_step_and_heading_after_gap(algorithm: str) -> None:
+    """A zero-length step (a magnetometer fused at the IMU's time) is a plain update; after a
+    gap without a magnetometer the kept heading is reported as unknown (σ of a uniform angle)."""
+    sim = simulate("slow_rotation", duration=3, rate=100, seed=2)
+    f = AttitudeFilter(algorithm=algorithm, use_mag=True)
+    for k in range(sim.t.size):
+        f.step(0.01 if k else 0.0, sim.gyr[k], sim.acc[k])
+        f.step(0.0, None, None, sim.mag[k])
+    assert f.counter_dict()["update_failed"] == 0
+    assert np.degrees(angle_between(f.quaternion, sim.quat[-1])) < 1.0
+    g = AttitudeFilter(algorithm=algorithm)
+    g.step(0.0, sim.gyr[0], sim.acc[0])
+    assert g.covariance[2, 2] < 1e-4
+    g.step(5.0, sim.gyr[1], sim.acc[1])  # a 5 s gap
+    assert g.covariance[2, 2] == pytest.approx(np.pi**2 / 3, rel=1e-3)
