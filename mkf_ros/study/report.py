@@ -66,6 +66,7 @@ class Row:
     lo: float
     hi: float
     non_converged: int
+    stalled: int
     crashed: int
     mu_all: float
     pub: float | None
@@ -91,7 +92,8 @@ def load_rows(out: Path | str) -> dict[str, Row]:
         rows[key] = Row(
             runner.row_cell(r), int(r["n_s"]), int(r["n_used"]), float(r["mu_deg"]),
             float(r["sigma_deg"]), float(r["ci_lo_deg"]), float(r["ci_hi_deg"]),
-            int(r["non_converged"]), int(r["crashed"]), float(r["mu_all_deg"]),
+            int(r["non_converged"]), int(r.get("stalled") or 0), int(r["crashed"]),
+            float(r["mu_all_deg"]),
             _f(r["published_deg"]), _f(r["published_ci_lo_deg"]), _f(r["published_ci_hi_deg"]),
             _f(r["rel_diff"]), r["within_10pct"] == "1", r["ci_overlap"] == "1")
     return rows
@@ -538,6 +540,9 @@ def explain(t: Table, r: Row) -> str:
                 notes.append(f"all 8 variants here are shifted alike (ours {m_ours:.3g}° vs "
                              f"paper {m_pub:.3g}° on average, {100 * shift:+.0f}%): a "
                              "level difference, not a variant effect")
+    if r.stalled:
+        notes.append(f"{r.stalled} of {r.n_s} runs stopped at a fixed point of the filter "
+                     "(see *Runs stuck at a fixed point*)")
     if r.n_used == 0:
         notes.append(f"no run reached {sim.THETA_E0_DEG:g}° within the convergence cap: a "
                      "failure to converge, not a statistical disagreement (see non_converged)")
@@ -596,7 +601,8 @@ def _fmt_row(r: Row | None) -> str:
     if r is None:
         return "–"
     if not np.isfinite(r.mu):
-        return f"no converged run ({r.non_converged}/{r.n_s} non-converged)"
+        stuck = f", {r.stalled} at a fixed point" if r.stalled else ""
+        return f"no converged run ({r.non_converged}/{r.n_s} non-converged{stuck})"
     return f"{r.mu:.3g} [{r.lo:.3g}, {r.hi:.3g}]"
 
 
@@ -729,6 +735,26 @@ def summary_markdown(out: Path, figs: dict[str, Path | None], fig_prefix: str = 
                   f"{c.rate_hz:g} Hz | {_fmt_row(r)} | {r.pub:g} | {_pct(r.rel)} | "
                   f"{explain(t, r)} |")
             a("")
+    stuck = [r for r in t.rows.values() if r.stalled]
+    if stuck:
+        a("## Runs stuck at a fixed point\n")
+        names = ", ".join(sorted({f"{r.cell.filter.upper()} {r.cell.chart.upper()} "
+                                  f"{r.cell.update}" for r in stuck}))
+        a(f"{sum(r.stalled for r in stuck)} runs in {len(stuck)} cells ({names}) stopped "
+          f"their convergence phase because the attitude covariance did not change for "
+          f"{sim.STALL_WINDOW} consecutive updates; they count as non-converged. Mechanism: "
+          "from P_0 = 10²·I every attitude sigma point is saturated to the edge of the chart's "
+          "image, c·√P_ee ≥ π for RV. The pair ±π·u is the same rotation, so both points "
+          "predict the same measurement while their chart coordinates are opposite: their "
+          "contributions to P_xy cancel exactly, the gain on the attitude is zero, and "
+          "P_ee = (1 − W_0)π²/N is reproduced by the next step: the filter never moves. The "
+          "chart update escapes because its mean ē ≠ 0 shifts the points off the symmetric "
+          "edge; process noise escapes at lower rates. The paper's ω̄_0 = 10⁻¹⁰ (§6), meant to "
+          "break this symmetry, cannot: one rotation applied to every sigma point leaves their "
+          "dot products, hence the alignment and the cancellation, unchanged. The paper "
+          "reports finite errors for these cells, so its implementation escaped this point by "
+          "a numerical detail we cannot recover. Without this stop each such run would spend "
+          f"the whole cap ({sim.CONV_CAP:,} updates) there.\n")
     L.extend(sampling_section(t))
     if speed:
         from mkf_ros.study.speed import Speed, format_table
@@ -741,7 +767,8 @@ def summary_markdown(out: Path, figs: dict[str, Path | None], fig_prefix: str = 
         a(format_table([Speed(**s) for s in speed["speeds"]]))
         a("")
     a("## Files\n")
-    a("`cells.csv` (one row per cell: μ, σ, CI, non-converged and crashed counts, μ including "
+    a("`cells.csv` (one row per cell: μ, σ, CI, non-converged (stalled among them) and crashed "
+      "counts, μ including "
       "non-converged runs, mean convergence length, published value and bar, agreement), "
       "`parts/*.npz` (per-trajectory errors, statuses and convergence lengths), "
       "`study.json` (settings and run log), `speed.json`.")

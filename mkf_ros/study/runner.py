@@ -41,8 +41,8 @@ PARTS = "parts"
 
 CSV_FIELDS = (
     "filter", "chart", "update", "R", "rate_hz", "mukf_scaling", "noise_sampling", "n_s", "n_used",
-    "mu_deg", "sigma_deg", "ci_lo_deg", "ci_hi_deg", "non_converged", "crashed", "mu_all_deg",
-    "conv_updates_mean", "published_deg", "published_ci_lo_deg", "published_ci_hi_deg",
+    "mu_deg", "sigma_deg", "ci_lo_deg", "ci_hi_deg", "non_converged", "stalled", "crashed",
+    "mu_all_deg", "conv_updates_mean", "published_deg", "published_ci_lo_deg", "published_ci_hi_deg",
     "rel_diff", "within_10pct", "ci_overlap",
 )
 
@@ -240,6 +240,7 @@ def cell_row(cell: Cell, arrays: dict[str, np.ndarray]) -> dict[str, str]:
         "noise_sampling": cell.sampling, "n_s": _fmt(s.n_s), "n_used": _fmt(s.n_used),
         "mu_deg": _fmt(s.mu), "sigma_deg": _fmt(s.sigma), "ci_lo_deg": _fmt(s.ci_lo),
         "ci_hi_deg": _fmt(s.ci_hi), "non_converged": _fmt(s.non_converged),
+        "stalled": _fmt(s.stalled),
         "crashed": _fmt(s.crashed), "mu_all_deg": _fmt(s.mu_all),
         "conv_updates_mean": _fmt(s.conv_updates_mean), "published_deg": _fmt(pub),
         "published_ci_lo_deg": _fmt(pci[0] if pci else None),

@@ -5,7 +5,8 @@ trajectories of a cell: ``μ = mean(ē_θ)``, ``σ`` the sample standard deviati
 interval ``μ ± kσ/√n`` with ``k = 3`` (§8 item 13), over the ``n`` runs that converged and did not
 crash. Non-converged runs are excluded from μ, as in the authors' 2017 code and our reproduction
 (§7.6), but counted and reported, and ``μ_all`` (converged and non-converged runs) is reported
-beside it.
+beside it. Runs stopped at a fixed point of the filter (``STALLED``) are non-converged runs
+and counted a second time in ``stalled``.
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from mkf_ros.study.published import N_S_PAPER
-from mkf_ros.study.sim import CRASHED_CONV, CRASHED_EST, NON_CONVERGED, OK
+from mkf_ros.study.sim import CRASHED_CONV, CRASHED_EST, NON_CONVERGED, OK, STALLED
 
 K_CI = 3.0  #: confidence multiplier k of eq. 74 (§8 item 13)
 REL_TOL = 0.10  #: agreement target: within ±10% of the published value …
@@ -31,7 +32,8 @@ class CellStats:
     sigma: float
     ci_lo: float
     ci_hi: float
-    non_converged: int
+    non_converged: int  #: includes the stalled runs
+    stalled: int
     crashed: int
     mu_all: float
     conv_updates_mean: float
@@ -48,10 +50,11 @@ def cell_stats(err_deg: np.ndarray, status: np.ndarray, conv: np.ndarray,
     mu = float(np.mean(used)) if n else float("nan")
     sigma = float(np.std(used, ddof=1)) if n >= 2 else float("nan")
     hw = k * sigma / np.sqrt(n) if n >= 2 else float("nan")
-    both = err_deg[(status == OK) | (status == NON_CONVERGED)]
+    nonconv = (status == NON_CONVERGED) | (status == STALLED)
+    both = err_deg[ok | nonconv]
     return CellStats(
         n_s=int(err_deg.size), n_used=n, mu=mu, sigma=sigma, ci_lo=mu - hw, ci_hi=mu + hw,
-        non_converged=int(np.sum(status == NON_CONVERGED)),
+        non_converged=int(np.sum(nonconv)), stalled=int(np.sum(status == STALLED)),
         crashed=int(np.sum((status == CRASHED_CONV) | (status == CRASHED_EST))),
         mu_all=float(np.mean(both)) if both.size else float("nan"),
         conv_updates_mean=float(np.mean(conv)) if conv.size else float("nan"))

@@ -84,3 +84,20 @@ def test_convergence_phase_and_cap_are_honoured() -> None:
     assert np.all(np.isfinite(capped["err"]))
     full = run_unit(Unit("sigma", 50.0, 0, 4, cells, 1, sim.CONV_CAP))
     assert np.all(full["status"] == sim.OK) and np.all(full["conv"] > 2)
+
+
+def test_mukf_rv_reset_fixed_point_is_detected_and_the_chart_update_escapes_it() -> None:
+    """From P_0 = 100 I at 1000 Hz the MUKF with the RV chart and the reset sits at a fixed
+    point (attitude sigma points at ±π·u, zero attitude gain): the convergence phase stops
+    there instead of spending the whole cap, and counts as non-converged. The same runs with
+    the chart update, or with the MEKF, converge, and are never taken for stalled."""
+    stuck = tuple(cfg.cells(filters=["mukf"], charts=["rv"], updates=["reset"], rs=[1e-4],
+                            rates=[1000.0]))
+    r = run_unit(Unit("sigma", 1000.0, 0, 2, stuck, 1, sim.CONV_CAP))
+    assert np.all(r["status"] == sim.STALLED)
+    assert np.all(r["conv"] < 10 * sim.STALL_WINDOW)
+    assert np.all(np.isfinite(r["err"]))  # the estimation phase still ran
+    ok = tuple(cfg.cells(filters=["mukf", "mekf"], charts=["rv"], updates=["cu"], rs=[1e-4],
+                         rates=[1000.0]))
+    r = run_unit(Unit("sigma", 1000.0, 0, 2, ok, 1, sim.CONV_CAP))
+    assert np.all(r["status"] == sim.OK)

@@ -33,6 +33,11 @@ def test_cell_stats_mean_sigma_ci_and_exclusions() -> None:
     assert s.ci_hi == pytest.approx(2.5 + 3 * sd / 2)
     assert s.mu_all == pytest.approx(np.mean([1, 2, 3, 4, 50]))
     assert s.conv_updates_mean == pytest.approx(np.mean(conv))
+    # a run stopped at a fixed point is a non-converged run, counted once more as stalled
+    s2 = cell_stats(np.append(err, 60.0), np.append(status, sim.STALLED), np.append(conv, 9))
+    assert (s2.n_used, s2.non_converged, s2.stalled, s2.crashed) == (4, 2, 1, 2)
+    assert s2.mu == pytest.approx(2.5)
+    assert s2.mu_all == pytest.approx(np.mean([1, 2, 3, 4, 50, 60]))
 
 
 def test_agreement_rules() -> None:
