@@ -42,8 +42,8 @@ PARTS = "parts"
 CSV_FIELDS = (
     "filter", "chart", "update", "R", "rate_hz", "mukf_scaling", "noise_sampling", "n_s", "n_used",
     "mu_deg", "sigma_deg", "ci_lo_deg", "ci_hi_deg", "non_converged", "stalled", "crashed",
-    "mu_all_deg", "conv_updates_mean", "published_deg", "published_ci_lo_deg", "published_ci_hi_deg",
-    "rel_diff", "within_10pct", "ci_overlap",
+    "mu_all_deg", "conv_updates_mean", "published_deg", "published_ci_lo_deg",
+    "published_ci_hi_deg", "rel_diff", "within_10pct", "ci_overlap",
 )
 
 
