@@ -47,9 +47,8 @@ def test_launch_file() -> None:
     assert '"estimator.yaml"' in src and 'executable="estimator"' in src
     compile(src, "estimator.launch.py", "exec")
     pytest.importorskip("launch_ros")  # no wheel here: runs on a real ROS install only
-    from launch_ros.actions import Node
-
     from launch import LaunchDescription
+    from launch_ros.actions import Node
 
     ns: dict = {}
     exec(compile(src, "estimator.launch.py", "exec"), ns)
