@@ -14,8 +14,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mkf_ros.core._jit import jit
-from mkf_ros.core.quaternion import q_omega_t, qconj_mul, qmul, t3, t4
+from mkf_ros.core._jit import jit, jit_inline
+from mkf_ros.core.quaternion import a33, q_omega_t, qconj_mul, qmul_t, t3, t4
 
 O, RP, MRP, RV = 0, 1, 2, 3  # noqa: E741 (the paper's name of the orthographic chart)
 CHART_NAMES = ("o", "rp", "mrp", "rv")
@@ -36,24 +36,18 @@ def _canonical(d: tuple) -> tuple:
 
 
 @jit
-def _t_form(alpha: float, beta: float, gamma: float, v: np.ndarray) -> np.ndarray:
-    """``α I + β v vᵀ − γ [v]×``: every T-matrix of Table 4 has this form."""
-    r = np.empty((3, 3))
-    for i in range(3):
-        for j in range(3):
-            r[i, j] = beta * v[i] * v[j]
-        r[i, i] += alpha
-    r[0, 1] += gamma * v[2]
-    r[0, 2] -= gamma * v[1]
-    r[1, 0] -= gamma * v[2]
-    r[1, 2] += gamma * v[0]
-    r[2, 0] += gamma * v[1]
-    r[2, 1] -= gamma * v[0]
-    return r
+def _t_form(alpha: float, beta: float, gamma: float, v: tuple) -> tuple:
+    """``α I + β v vᵀ − γ [v]×``: every T-matrix of Table 4 has this form (tuple of rows)."""
+    b0, b1, b2 = beta * v[0], beta * v[1], beta * v[2]
+    g0, g1, g2 = gamma * v[0], gamma * v[1], gamma * v[2]
+    return ((b0 * v[0] + alpha, b0 * v[1] + g2, b0 * v[2] - g1),
+            (b1 * v[0] - g2, b1 * v[1] + alpha, b1 * v[2] + g0),
+            (b2 * v[0] + g1, b2 * v[1] - g0, b2 * v[2] + alpha))
 
 
-# Each chart: φ on a 4-tuple δ, φ⁻¹ on a 3-tuple e (Table 2), and T(δ̄) (Table 4). Tuples are
-# passed by value in numba, so the MUKF's sigma-point loop runs these without allocations.
+# Each chart: φ on a 4-tuple δ, φ⁻¹ on a 3-tuple e (Table 2), and T(δ̄) on a 4-tuple (Table 4,
+# a tuple of rows). Tuples are passed by value in numba, so the filters run these without heap
+# allocations.
 
 # --- O: orthographic ---------------------------------------------------------------------------
 @jit
@@ -69,11 +63,11 @@ def _o_from(e: tuple) -> tuple:
 
 
 @jit
-def _o_t(d: np.ndarray) -> np.ndarray:
+def _o_t(d: tuple) -> tuple:
     # T = δ0 I − [δv]× + δv δvᵀ / δ0   (Table 4)
     s = -1.0 if d[0] < 0.0 else 1.0
     d0 = s * d[0]
-    return _t_form(d0, 1.0 / max(d0, _TINY), 1.0, s * d[1:])
+    return _t_form(d0, 1.0 / max(d0, _TINY), 1.0, (s * d[1], s * d[2], s * d[3]))
 
 
 # --- RP: Rodrigues parameters / gnomonic -------------------------------------------------------
@@ -91,9 +85,9 @@ def _rp_from(e: tuple) -> tuple:
 
 
 @jit
-def _rp_t(d: np.ndarray) -> np.ndarray:
+def _rp_t(d: tuple) -> tuple:
     # T = δ0 (δ0 I − [δv]×)   (Table 4); sign-invariant
-    return _t_form(d[0] * d[0], 0.0, d[0], d[1:])
+    return _t_form(d[0] * d[0], 0.0, d[0], (d[1], d[2], d[3]))
 
 
 # --- MRP: modified Rodrigues parameters / stereographic ---------------------------------------
@@ -112,11 +106,11 @@ def _mrp_from(e: tuple) -> tuple:
 
 
 @jit
-def _mrp_t(d: np.ndarray) -> np.ndarray:
+def _mrp_t(d: tuple) -> tuple:
     # T = ½ [ (1 + δ0)(δ0 I − [δv]×) + δv δvᵀ ]   (Table 4)
     s = -1.0 if d[0] < 0.0 else 1.0
     d0 = s * d[0]
-    return _t_form(0.5 * (1.0 + d0) * d0, 0.5, 0.5 * (1.0 + d0), s * d[1:])
+    return _t_form(0.5 * (1.0 + d0) * d0, 0.5, 0.5 * (1.0 + d0), (s * d[1], s * d[2], s * d[3]))
 
 
 # --- RV: rotation vector / equidistant ---------------------------------------------------------
@@ -135,13 +129,13 @@ def _rv_from(e: tuple) -> tuple:
 
 
 @jit
-def _rv_t(d: np.ndarray) -> np.ndarray:
+def _rv_t(d: tuple) -> tuple:
     # T = k (δ0 (I − uuᵀ) − [δv]×) + uuᵀ,  k = x/arcsin x, x = ‖δv‖, u = δv/x   (Table 4)
     # rewritten as k δ0 I + c δv δvᵀ − k [δv]×,  c = (1 − k δ0)/x², which has the limit 2/3 at
     # x → 0 (so T → I there, §3.2).
     s = -1.0 if d[0] < 0.0 else 1.0
     d0 = s * d[0]
-    v = s * d[1:]
+    v = (s * d[1], s * d[2], s * d[3])
     x2 = v[0] * v[0] + v[1] * v[1] + v[2] * v[2]
     if x2 < 1e-8:
         k = 1.0 - x2 / 6.0
@@ -208,8 +202,8 @@ def saturate(chart: int, e: np.ndarray) -> np.ndarray:
 
 
 @jit
-def t_matrix(chart: int, d: np.ndarray) -> np.ndarray:
-    """``T(δ̄) = ∂e_p̄/∂e_q̄`` at ``e_q̄ = φ(δ̄)`` (§3.2, Table 4)."""
+def t_matrix_t(chart: int, d: tuple) -> tuple:
+    """``T(δ̄) = ∂e_p̄/∂e_q̄`` at ``e_q̄ = φ(δ̄)`` (§3.2, Table 4), as a tuple of rows."""
     if chart == O:
         return _o_t(d)
     if chart == RP:
@@ -217,6 +211,12 @@ def t_matrix(chart: int, d: np.ndarray) -> np.ndarray:
     if chart == MRP:
         return _mrp_t(d)
     return _rv_t(d)
+
+
+@jit
+def t_matrix(chart: int, d: np.ndarray) -> np.ndarray:
+    """Array form of :func:`t_matrix_t`."""
+    return a33(t_matrix_t(chart, t4(d)))
 
 
 @jit
@@ -232,10 +232,17 @@ def to_chart_at(chart: int, qbar: np.ndarray, q: np.ndarray) -> np.ndarray:
 
 
 @jit
-def from_chart_at(chart: int, qbar: np.ndarray, e: np.ndarray) -> np.ndarray:
+def from_chart_at_t(chart: int, qbar: tuple, e: tuple) -> tuple:
     """``φ_q̄⁻¹(e) = q̄ * φ⁻¹(e)`` (§2.3, eq. 12), normalised."""
-    q = qmul(qbar, from_chart(chart, e))
-    return q / np.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
+    q = qmul_t(qbar, from_chart_t(chart, e))
+    n = np.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
+    return (q[0] / n, q[1] / n, q[2] / n, q[3] / n)
+
+
+@jit_inline
+def from_chart_at(chart: int, qbar: np.ndarray, e: np.ndarray) -> np.ndarray:
+    """Array form of :func:`from_chart_at_t`."""
+    return np.array(from_chart_at_t(chart, t4(qbar), t3(e)))
 
 
 def chart_id(name: str) -> int:

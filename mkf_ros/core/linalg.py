@@ -7,7 +7,31 @@ from __future__ import annotations
 
 import numpy as np
 
-from mkf_ros.core._jit import jit
+from mkf_ros.core._jit import jit, jit_inline
+
+
+@jit_inline
+def cholesky_into(a: np.ndarray, L: np.ndarray, o: int, n: int) -> bool:
+    """Lower Cholesky factor ``L`` with ``a = L Lᵀ`` of the ``n × n`` diagonal blocks at rows and
+    columns ``o … o + n − 1``, in place (``L`` may be ``a``: only its lower triangle is read;
+    the upper one is zeroed). False if ``a`` is not positive definite (``L`` is then
+    incomplete)."""
+    for j in range(o, o + n):
+        s = a[j, j]
+        for k in range(o, j):
+            s -= L[j, k] * L[j, k]
+        if not s > 0.0:  # also catches NaN
+            return False
+        d = np.sqrt(s)
+        L[j, j] = d
+        for i in range(j + 1, o + n):
+            s = a[i, j]
+            for k in range(o, j):
+                s -= L[i, k] * L[j, k]
+            L[i, j] = s / d
+        for i in range(o, j):
+            L[i, j] = 0.0
+    return True
 
 
 @jit
@@ -15,48 +39,42 @@ def cholesky(a: np.ndarray) -> tuple[np.ndarray, bool]:
     """Lower Cholesky factor ``L`` with ``a = L Lᵀ``; ``ok`` is False if ``a`` is not PD."""
     n = a.shape[0]
     L = np.zeros((n, n))
-    for j in range(n):
-        s = a[j, j]
-        for k in range(j):
-            s -= L[j, k] * L[j, k]
-        if not s > 0.0:  # also catches NaN
-            return L, False
-        d = np.sqrt(s)
-        L[j, j] = d
-        for i in range(j + 1, n):
-            s = a[i, j]
-            for k in range(j):
-                s -= L[i, k] * L[j, k]
-            L[i, j] = s / d
-    return L, True
+    ok = cholesky_into(a, L, 0, n)
+    return L, ok
 
 
-@jit
-def cho_solve(L: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Solve ``(L Lᵀ) X = B`` for a matrix ``B`` (columns are right-hand sides)."""
-    n, m = b.shape
-    x = b.copy()
-    inv = np.empty(n)
-    for i in range(n):
-        inv[i] = 1.0 / L[i, i]
+@jit_inline
+def cho_solve_into(L: np.ndarray, n: int, x: np.ndarray) -> None:
+    """Solve ``(L Lᵀ) X = B`` in place: ``x`` holds ``B`` (columns are right-hand sides) in its
+    first ``n`` rows on entry and ``X`` on return; ``L`` is ``n × n`` lower (leading block)."""
+    m = x.shape[1]
     for i in range(n):  # forward: L Z = B, all columns at once (row-major friendly)
         for k in range(i):
             lik = L[i, k]
             for c in range(m):
                 x[i, c] -= lik * x[k, c]
+        inv = 1.0 / L[i, i]
         for c in range(m):
-            x[i, c] *= inv[i]
+            x[i, c] *= inv
     for i in range(n - 1, -1, -1):  # backward: Lᵀ X = Z
         for k in range(i + 1, n):
             lki = L[k, i]
             for c in range(m):
                 x[i, c] -= lki * x[k, c]
+        inv = 1.0 / L[i, i]
         for c in range(m):
-            x[i, c] *= inv[i]
-    return x
+            x[i, c] *= inv
 
 
 @jit
+def cho_solve(L: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Solve ``(L Lᵀ) X = B`` for a matrix ``B`` (columns are right-hand sides)."""
+    x = b.copy()
+    cho_solve_into(L, b.shape[0], x)
+    return x
+
+
+@jit_inline
 def symmetrize(p: np.ndarray) -> None:
     """``P ← ½(P + Pᵀ)`` in place."""
     n = p.shape[0]

@@ -20,19 +20,24 @@ from __future__ import annotations
 
 import numpy as np
 
-from mkf_ros.core._jit import jit
-from mkf_ros.core.charts import from_chart, saturate, t_matrix
-from mkf_ros.core.quaternion import q_omega, qmul, rotmat
+from mkf_ros.core._jit import jit, jit_inline
+from mkf_ros.core.charts import from_chart_t, saturate_t, t_matrix_t
+from mkf_ros.core.quaternion import q_omega_t, qmul_t, qnormalize_t, rotmat_t, t3, t4, t33
+
+# Speed (the arithmetic of a 6-state update is a few hundred flops): 3-vectors, quaternions and
+# 3×3 matrices are tuples (``R[i][j]``), the nx×3 and 3×3 intermediates of a block live in one
+# scratch array (:func:`_scratch`) since numba allocates every array on the heap, and the
+# per-sample kernels and their blocks are inlined (``jit_inline``) so that passing arrays costs
+# no reference counting.
 
 
-@jit
-def _normalize_into(q: np.ndarray, out: np.ndarray) -> None:
-    n = 1.0 / np.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
-    for i in range(4):
-        out[i] = q[i] * n
+@jit_inline
+def _scratch(nx: int) -> np.ndarray:
+    """Scratch for the block updates: rows ``0:nx`` ``P Hᵀ``, ``nx:2nx`` ``K``, then ``S``."""
+    return np.empty((2 * nx + 3, 3))
 
 
-@jit
+@jit_inline
 def mekf_predict(
     qc: np.ndarray, w: np.ndarray, P: np.ndarray, nx: int, dt: float, Qw: np.ndarray,
     Qb: np.ndarray,
@@ -43,8 +48,10 @@ def mekf_predict(
     ``Q̂ = [[Q_ω Δt³/3, −Q_ω Δt²/2], [−Q_ω Δt²/2, Q_ω Δt]]`` (the authors' form, §8 item 2). The
     bias block gets ``Q_b Δt`` (random walk, extension).
     """
-    dq = q_omega(w, dt)
-    _normalize_into(qmul(qc, dq), qc)
+    dq = q_omega_t(t3(w), dt)
+    q = qnormalize_t(qmul_t(t4(qc), dq))
+    for i in range(4):
+        qc[i] = q[i]
     dt2 = dt * dt
     for i in range(3):  # P + Q̂
         for j in range(3):
@@ -56,27 +63,21 @@ def mekf_predict(
             if nx == 9:
                 P[6 + i, 6 + j] += Qb[i, j] * dt
     # F (P + Q̂) Fᵀ by blocks: F only mixes the attitude rows, e ← A e + Δt ω, A = R(Δq)ᵀ
-    R = rotmat(dq)  # A[i, k] = R[k, i]
-    M = np.empty((3, nx))
-    for i in range(3):
-        for j in range(nx):
-            M[i, j] = (R[0, i] * P[0, j] + R[1, i] * P[1, j] + R[2, i] * P[2, j]
-                       + dt * P[3 + i, j])
-    for i in range(3):
-        for j in range(nx):
-            P[i, j] = M[i, j]
-    for i in range(nx):
-        c0 = P[i, 0] * R[0, 0] + P[i, 1] * R[1, 0] + P[i, 2] * R[2, 0] + dt * P[i, 3]
-        c1 = P[i, 0] * R[0, 1] + P[i, 1] * R[1, 1] + P[i, 2] * R[2, 1] + dt * P[i, 4]
-        c2 = P[i, 0] * R[0, 2] + P[i, 1] * R[1, 2] + P[i, 2] * R[2, 2] + dt * P[i, 5]
-        P[i, 0] = c0
-        P[i, 1] = c1
-        P[i, 2] = c2
+    R = rotmat_t(dq)  # A[i][k] = R[k][i]
+    for j in range(nx):  # rows: F (P + Q̂), column by column
+        p0, p1, p2 = P[0, j], P[1, j], P[2, j]
+        for i in range(3):
+            P[i, j] = R[0][i] * p0 + R[1][i] * p1 + R[2][i] * p2 + dt * P[3 + i, j]
+    for i in range(nx):  # columns: (F (P + Q̂)) Fᵀ
+        p0, p1, p2 = P[i, 0], P[i, 1], P[i, 2]
+        for k in range(3):
+            P[i, k] = p0 * R[0][k] + p1 * R[1][k] + p2 * R[2][k] + dt * P[i, 3 + k]
 
 
 @jit
-def inv3_spd(S: np.ndarray, out: np.ndarray) -> bool:
-    """Inverse of a symmetric 3×3 matrix by cofactors; False unless positive definite."""
+def inv3_spd_t(S: np.ndarray) -> tuple[bool, tuple]:
+    """Inverse of a symmetric 3×3 matrix by cofactors, as its rows; False unless positive
+    definite."""
     a, b, c = S[0, 0], S[0, 1], S[0, 2]
     d, e, f = S[1, 1], S[1, 2], S[2, 2]
     c00 = d * f - e * e
@@ -84,64 +85,80 @@ def inv3_spd(S: np.ndarray, out: np.ndarray) -> bool:
     c02 = b * e - c * d
     det = a * c00 + b * c01 + c * c02
     if not (a > 0.0 and a * d - b * b > 0.0 and det > 0.0):
-        return False
+        return False, ((0.0, 0.0, 0.0), (0.0, 0.0, 0.0), (0.0, 0.0, 0.0))
     inv = 1.0 / det
-    out[0, 0] = c00 * inv
-    out[0, 1] = out[1, 0] = c01 * inv
-    out[0, 2] = out[2, 0] = c02 * inv
-    out[1, 1] = (a * f - c * c) * inv
-    out[1, 2] = out[2, 1] = (b * c - a * e) * inv
-    out[2, 2] = (a * d - b * b) * inv
-    return True
+    i01, i02, i12 = c01 * inv, c02 * inv, (b * c - a * e) * inv
+    return True, ((c00 * inv, i01, i02), (i01, (a * f - c * c) * inv, i12),
+                  (i02, i12, (a * d - b * b) * inv))
 
 
 @jit
-def _block_update(P: np.ndarray, nx: int, dx: np.ndarray, PHt: np.ndarray, S: np.ndarray,
-                  r: np.ndarray, gate: float) -> float:
-    """Kalman update for one 3-row block given ``P Hᵀ`` (nx×3), ``S`` and the innovation ``r``
-    (already corrected for earlier blocks): ``K = P Hᵀ S⁻¹``, ``Δx += K r``, ``P −= K (P Hᵀ)ᵀ``.
-    Returns the normalised innovation squared ``rᵀ S⁻¹ r``; ``-1`` if ``S`` is not positive
-    definite, and nothing changes when that value exceeds ``gate``."""
-    Si = np.empty((3, 3))
-    if not inv3_spd(S, Si):
-        return -1.0
+def inv3_spd(S: np.ndarray, out: np.ndarray) -> bool:
+    """Inverse of a symmetric 3×3 matrix by cofactors; False unless positive definite."""
+    ok, Si = inv3_spd_t(S)
+    if ok:
+        for i in range(3):
+            for j in range(3):
+                out[i, j] = Si[i][j]
+    return ok
+
+
+@jit
+def _nis3(r: tuple, Si: tuple) -> float:
+    """``rᵀ S⁻¹ r``."""
     nis = 0.0
     for i in range(3):
         for j in range(3):
-            nis += r[i] * Si[i, j] * r[j]
-    if nis > gate:
-        return nis
-    K = np.empty((nx, 3))
-    for i in range(nx):
-        for j in range(3):
-            K[i, j] = PHt[i, 0] * Si[0, j] + PHt[i, 1] * Si[1, j] + PHt[i, 2] * Si[2, j]
-        dx[i] += K[i, 0] * r[0] + K[i, 1] * r[1] + K[i, 2] * r[2]
-    for i in range(nx):
-        for j in range(nx):
-            P[i, j] -= K[i, 0] * PHt[j, 0] + K[i, 1] * PHt[j, 1] + K[i, 2] * PHt[j, 2]
+            nis += r[i] * Si[i][j] * r[j]
     return nis
 
 
 @jit
+def _gain_row(PHt: np.ndarray, i: int, Si: tuple) -> tuple:
+    """Row ``i`` of ``K = P Hᵀ S⁻¹``."""
+    p0, p1, p2 = PHt[i, 0], PHt[i, 1], PHt[i, 2]
+    return (p0 * Si[0][0] + p1 * Si[1][0] + p2 * Si[2][0],
+            p0 * Si[0][1] + p1 * Si[1][1] + p2 * Si[2][1],
+            p0 * Si[0][2] + p1 * Si[1][2] + p2 * Si[2][2])
+
+
+@jit_inline
+def _block_update(P: np.ndarray, nx: int, dx: np.ndarray, PHt: np.ndarray, S: np.ndarray,
+                  r: tuple, gate: float) -> float:
+    """Kalman update for one 3-row block given ``P Hᵀ`` (nx×3), ``S`` and the innovation ``r``
+    (already corrected for earlier blocks): ``K = P Hᵀ S⁻¹``, ``Δx += K r``, ``P −= K (P Hᵀ)ᵀ``.
+    Returns the normalised innovation squared ``rᵀ S⁻¹ r``; ``-1`` if ``S`` is not positive
+    definite, and nothing changes when that value exceeds ``gate``."""
+    ok, Si = inv3_spd_t(S)
+    if not ok:
+        return -1.0
+    nis = _nis3(r, Si)
+    if nis > gate:
+        return nis
+    for i in range(nx):  # row i of K, then of Δx and P (P Hᵀ is a copy: P may change)
+        k0, k1, k2 = _gain_row(PHt, i, Si)
+        dx[i] += k0 * r[0] + k1 * r[1] + k2 * r[2]
+        for j in range(nx):
+            P[i, j] -= k0 * PHt[j, 0] + k1 * PHt[j, 1] + k2 * PHt[j, 2]
+    return nis
+
+
+@jit_inline
 def _joseph_projected(P: np.ndarray, nx: int, dx: np.ndarray, PHt: np.ndarray, S: np.ndarray,
-                      r: np.ndarray, gate: float, u: np.ndarray) -> float:
+                      r: tuple, gate: float, u: tuple, K: np.ndarray) -> float:
     """:func:`_block_update` with the gain of every 3-row group (attitude, rate, bias) projected
     off the direction ``u`` (the world vertical in body axes), so that this measurement cannot
     change heading, vertical rate or vertical bias; ``P`` by the Joseph form, valid for any
-    gain: ``(I − K H) P (I − K H)ᵀ + K R Kᵀ = P − K (PHᵀ)ᵀ − PHᵀ Kᵀ + K S Kᵀ``."""
-    Si = np.empty((3, 3))
-    if not inv3_spd(S, Si):
+    gain: ``(I − K H) P (I − K H)ᵀ + K R Kᵀ = P − K (PHᵀ)ᵀ − PHᵀ Kᵀ + K S Kᵀ``. ``K`` is nx×3
+    scratch."""
+    ok, Si = inv3_spd_t(S)
+    if not ok:
         return -1.0
-    nis = 0.0
-    for i in range(3):
-        for j in range(3):
-            nis += r[i] * Si[i, j] * r[j]
+    nis = _nis3(r, Si)
     if nis > gate:
         return nis
-    K = np.empty((nx, 3))
     for i in range(nx):
-        for j in range(3):
-            K[i, j] = PHt[i, 0] * Si[0, j] + PHt[i, 1] * Si[1, j] + PHt[i, 2] * Si[2, j]
+        K[i, 0], K[i, 1], K[i, 2] = _gain_row(PHt, i, Si)
     for g in range(nx // 3):  # K_g ← (I − u uᵀ) K_g
         for j in range(3):
             ku = u[0] * K[3 * g, j] + u[1] * K[3 * g + 1, j] + u[2] * K[3 * g + 2, j]
@@ -150,45 +167,41 @@ def _joseph_projected(P: np.ndarray, nx: int, dx: np.ndarray, PHt: np.ndarray, S
     for i in range(nx):
         dx[i] += K[i, 0] * r[0] + K[i, 1] * r[1] + K[i, 2] * r[2]
     # Joseph form: P' = P − K PHtᵀ − PHt Kᵀ + K S Kᵀ  (S = H P Hᵀ + R; equals the Joseph form)
-    KS = np.empty((nx, 3))
     for i in range(nx):
-        for j in range(3):
-            KS[i, j] = K[i, 0] * S[0, j] + K[i, 1] * S[1, j] + K[i, 2] * S[2, j]
-    for i in range(nx):
+        ks0 = K[i, 0] * S[0, 0] + K[i, 1] * S[1, 0] + K[i, 2] * S[2, 0]  # row i of K S
+        ks1 = K[i, 0] * S[0, 1] + K[i, 1] * S[1, 1] + K[i, 2] * S[2, 1]
+        ks2 = K[i, 0] * S[0, 2] + K[i, 1] * S[1, 2] + K[i, 2] * S[2, 2]
         for j in range(nx):
             s_ = 0.0
-            for k in range(3):
-                s_ += -K[i, k] * PHt[j, k] - PHt[i, k] * K[j, k] + KS[i, k] * K[j, k]
+            s_ += -K[i, 0] * PHt[j, 0] - PHt[i, 0] * K[j, 0] + ks0 * K[j, 0]
+            s_ += -K[i, 1] * PHt[j, 1] - PHt[i, 1] * K[j, 1] + ks1 * K[j, 1]
+            s_ += -K[i, 2] * PHt[j, 2] - PHt[i, 2] * K[j, 2] + ks2 * K[j, 2]
             P[i, j] += s_
     return nis
 
 
-@jit
-def mekf_vector_update(
-    P: np.ndarray, nx: int, dx: np.ndarray, R: np.ndarray, vm: np.ndarray, vref: np.ndarray,
-    Rv: np.ndarray, Qv: np.ndarray, gate: float, tilt_only: bool = False,
+@jit_inline
+def _vector_update(
+    P: np.ndarray, nx: int, dx: np.ndarray, R: tuple, vm: np.ndarray, vref: np.ndarray,
+    Rv: np.ndarray, Qv: np.ndarray, gate: float, tilt_only: bool, work: np.ndarray,
 ) -> float:
-    """One vector sensor (§5 "Measurement prediction", §4.3): ``v̄ = R(q̄⁻)ᵀ v``,
-    ``H = [[v̄]×, 0]``, noise ``R(q̄⁻)ᵀ Q_v R(q̄⁻) + R_v``. ``R`` is ``R(q̄⁻)``. With
-    ``tilt_only`` (extension, for gravity) the gain is kept off the world vertical
-    (:func:`_joseph_projected`). Returns the NIS (see :func:`_block_update`)."""
-    vb = np.empty(3)
-    for i in range(3):
-        vb[i] = R[0, i] * vref[0] + R[1, i] * vref[1] + R[2, i] * vref[2]
+    """:func:`mekf_vector_update` with ``R`` as a tuple of rows and scratch ``work``."""
+    vb = (R[0][0] * vref[0] + R[1][0] * vref[1] + R[2][0] * vref[2],  # v̄ = R(q̄⁻)ᵀ v
+          R[0][1] * vref[0] + R[1][1] * vref[1] + R[2][1] * vref[2],
+          R[0][2] * vref[0] + R[1][2] * vref[1] + R[2][2] * vref[2])
     # innovation y − ȳ − H Δx, with H Δx = [v̄]× Δe = v̄ × Δe
-    r = np.empty(3)
-    r[0] = vm[0] - vb[0] - (vb[1] * dx[2] - vb[2] * dx[1])
-    r[1] = vm[1] - vb[1] - (vb[2] * dx[0] - vb[0] * dx[2])
-    r[2] = vm[2] - vb[2] - (vb[0] * dx[1] - vb[1] * dx[0])
+    r = (vm[0] - vb[0] - (vb[1] * dx[2] - vb[2] * dx[1]),
+         vm[1] - vb[1] - (vb[2] * dx[0] - vb[0] * dx[2]),
+         vm[2] - vb[2] - (vb[0] * dx[1] - vb[1] * dx[0]))
     # P Hᵀ = P[:, 0:3] [v̄]×ᵀ = −P[:, 0:3] [v̄]×
-    PHt = np.empty((nx, 3))
+    PHt = work[:nx]
     for i in range(nx):
         p0, p1, p2 = P[i, 0], P[i, 1], P[i, 2]
         PHt[i, 0] = -(p1 * vb[2] - p2 * vb[1])
         PHt[i, 1] = -(p2 * vb[0] - p0 * vb[2])
         PHt[i, 2] = -(p0 * vb[1] - p1 * vb[0])
     # S = [v̄]× (P Hᵀ)[0:3] + R(q̄⁻)ᵀ Q_v R(q̄⁻) + R_v
-    S = np.empty((3, 3))
+    S = work[2 * nx:2 * nx + 3]
     for j in range(3):
         S[0, j] = vb[1] * PHt[2, j] - vb[2] * PHt[1, j]
         S[1, j] = vb[2] * PHt[0, j] - vb[0] * PHt[2, j]
@@ -203,12 +216,45 @@ def mekf_vector_update(
                 qb = 0.0
                 for k in range(3):
                     for m in range(3):
-                        qb += R[k, i] * Qv[k, m] * R[m, j]
+                        qb += R[k][i] * Qv[k, m] * R[m][j]
             S[i, j] += qb + Rv[i, j]
     if tilt_only:
-        u = np.array((R[2, 0], R[2, 1], R[2, 2]))  # R(q̄)ᵀ ẑ
-        return _joseph_projected(P, nx, dx, PHt, S, r, gate, u)
+        return _joseph_projected(P, nx, dx, PHt, S, r, gate, R[2],  # R(q̄)ᵀ ẑ
+                                 work[nx:2 * nx])
     return _block_update(P, nx, dx, PHt, S, r, gate)
+
+
+@jit
+def mekf_vector_update(
+    P: np.ndarray, nx: int, dx: np.ndarray, R: np.ndarray, vm: np.ndarray, vref: np.ndarray,
+    Rv: np.ndarray, Qv: np.ndarray, gate: float, tilt_only: bool = False,
+) -> float:
+    """One vector sensor (§5 "Measurement prediction", §4.3): ``v̄ = R(q̄⁻)ᵀ v``,
+    ``H = [[v̄]×, 0]``, noise ``R(q̄⁻)ᵀ Q_v R(q̄⁻) + R_v``. ``R`` is ``R(q̄⁻)``. With
+    ``tilt_only`` (extension, for gravity) the gain is kept off the world vertical
+    (:func:`_joseph_projected`). Returns the NIS (see :func:`_block_update`)."""
+    return _vector_update(P, nx, dx, t33(R), vm, vref, Rv, Qv, gate, tilt_only, _scratch(nx))
+
+
+@jit_inline
+def _rate_update(
+    P: np.ndarray, nx: int, dx: np.ndarray, w: np.ndarray, b: np.ndarray, wm: np.ndarray,
+    Rw: np.ndarray, with_bias: bool, gate: float, work: np.ndarray,
+) -> float:
+    """:func:`mekf_rate_update` with scratch ``work``."""
+    bias = with_bias and nx == 9
+    r0 = wm[0] - w[0] - dx[3] - ((b[0] + dx[6]) if bias else (b[0] if with_bias else 0.0))
+    r1 = wm[1] - w[1] - dx[4] - ((b[1] + dx[7]) if bias else (b[1] if with_bias else 0.0))
+    r2 = wm[2] - w[2] - dx[5] - ((b[2] + dx[8]) if bias else (b[2] if with_bias else 0.0))
+    PHt = work[:nx]
+    for i in range(nx):
+        for j in range(3):
+            PHt[i, j] = P[i, 3 + j] + (P[i, 6 + j] if bias else 0.0)
+    S = work[2 * nx:2 * nx + 3]
+    for i in range(3):
+        for j in range(3):
+            S[i, j] = PHt[3 + i, j] + (PHt[6 + i, j] if bias else 0.0) + Rw[i, j]
+    return _block_update(P, nx, dx, PHt, S, (r0, r1, r2), gate)
 
 
 @jit
@@ -219,20 +265,7 @@ def mekf_rate_update(
     """A rate measurement: the gyro (eq. 23, ``ȳ = ω̄⁻ + b̄``, ``H = [0, I, I]``, or ``[0, I]``
     without bias) or, with ``with_bias=False``, the zero-rate pseudo-measurement of rest
     detection (``ȳ = ω̄⁻``, ``H = [0, I, 0]``)."""
-    bias = with_bias and nx == 9
-    r = np.empty(3)
-    PHt = np.empty((nx, 3))
-    for i in range(3):
-        r[i] = wm[i] - w[i] - dx[3 + i] - ((b[i] + dx[6 + i]) if bias else
-                                            (b[i] if with_bias else 0.0))
-    for i in range(nx):
-        for j in range(3):
-            PHt[i, j] = P[i, 3 + j] + (P[i, 6 + j] if bias else 0.0)
-    S = np.empty((3, 3))
-    for i in range(3):
-        for j in range(3):
-            S[i, j] = PHt[3 + i, j] + (PHt[6 + i, j] if bias else 0.0) + Rw[i, j]
-    return _block_update(P, nx, dx, PHt, S, r, gate)
+    return _rate_update(P, nx, dx, w, b, wm, Rw, with_bias, gate, _scratch(nx))
 
 
 @jit
@@ -241,18 +274,24 @@ def mekf_gyro_update(
     Rw: np.ndarray, gate: float,
 ) -> float:
     """The gyro (eq. 23): ``ȳ = ω̄⁻ + b̄``, ``H = [0, I, I]`` (``[0, I]`` without bias)."""
-    return mekf_rate_update(P, nx, dx, w, b, wm, Rw, True, gate)
+    return _rate_update(P, nx, dx, w, b, wm, Rw, True, gate, _scratch(nx))
+
+
+@jit
+def heading_residual_t(R: tuple, m_body: tuple, ref: tuple) -> tuple[float, float]:
+    """The rotation ψ about the world's vertical that brings the horizontal part of the measured
+    field ``R(q) m`` onto the horizontal reference, and the horizontal share ``h`` of the field
+    (extension: magnetometer for heading only). ``R`` is a tuple of rows, the vectors 3-tuples."""
+    mx = R[0][0] * m_body[0] + R[0][1] * m_body[1] + R[0][2] * m_body[2]
+    my = R[1][0] * m_body[0] + R[1][1] * m_body[1] + R[1][2] * m_body[2]
+    psi = np.arctan2(mx * ref[1] - my * ref[0], mx * ref[0] + my * ref[1])
+    return psi, np.sqrt(mx * mx + my * my)
 
 
 @jit
 def heading_residual(R: np.ndarray, m_body: np.ndarray, ref: np.ndarray) -> tuple[float, float]:
-    """The rotation ψ about the world's vertical that brings the horizontal part of the measured
-    field ``R(q) m`` onto the horizontal reference, and the horizontal share ``h`` of the field
-    (extension: magnetometer for heading only)."""
-    mx = R[0, 0] * m_body[0] + R[0, 1] * m_body[1] + R[0, 2] * m_body[2]
-    my = R[1, 0] * m_body[0] + R[1, 1] * m_body[1] + R[1, 2] * m_body[2]
-    psi = np.arctan2(mx * ref[1] - my * ref[0], mx * ref[0] + my * ref[1])
-    return psi, np.sqrt(mx * mx + my * my)
+    """Array form of :func:`heading_residual_t`."""
+    return heading_residual_t(t33(R), t3(m_body), t3(ref))
 
 
 @jit
@@ -307,20 +346,28 @@ def mekf_heading_update(
     return nis
 
 
-@jit
+@jit_inline
 def mekf_apply(chart: int, chart_update: bool, qc: np.ndarray, w: np.ndarray, b: np.ndarray,
                P: np.ndarray, nx: int, dx: np.ndarray) -> None:
     """Multiplicative update and chart update (§5): ``ē = sat(Δx_e)``, ``δ̄ = φ⁻¹(ē)``,
     ``q̄⁺ = q̄⁻ * δ̄``, ``ω̄⁺ = ω̄⁻ + Δω``; with the chart update ``P⁺ = T̃ P' T̃ᵀ``,
     ``T̃ = blockdiag(T(δ̄), I)`` (eq. 47b), otherwise ``P⁺ = P'`` (reset). ``P`` symmetrised."""
-    d = from_chart(chart, saturate(chart, dx[0:3]))
-    _normalize_into(qmul(qc, d), qc)
+    d = from_chart_t(chart, saturate_t(chart, (dx[0], dx[1], dx[2])))
+    q = qnormalize_t(qmul_t(t4(qc), d))
+    for i in range(4):
+        qc[i] = q[i]
     for i in range(3):
         w[i] += dx[3 + i]
         if nx == 9:
             b[i] += dx[6 + i]
     if chart_update:
-        transport_covariance(P, nx, t_matrix(chart, d))
+        transport_covariance_t(P, nx, t_matrix_t(chart, d))
+    symmetrize_leading(P, nx)
+
+
+@jit_inline
+def symmetrize_leading(P: np.ndarray, nx: int) -> None:
+    """``P ← ½(P + Pᵀ)`` on the leading ``nx × nx`` block."""
     for i in range(nx):
         for j in range(i + 1, nx):
             s = 0.5 * (P[i, j] + P[j, i])
@@ -328,26 +375,27 @@ def mekf_apply(chart: int, chart_update: bool, qc: np.ndarray, w: np.ndarray, b:
             P[j, i] = s
 
 
+@jit_inline
+def transport_covariance_t(P: np.ndarray, nx: int, T: tuple) -> None:
+    """Move ``P`` to a new chart centre (§3.2): ``P_ee ← T P_ee Tᵀ``, ``P_e* ← T P_e*``; ``T`` a
+    tuple of rows."""
+    for j in range(nx):  # rows: T P[0:3, :], column by column
+        p0, p1, p2 = P[0, j], P[1, j], P[2, j]
+        for i in range(3):
+            P[i, j] = T[i][0] * p0 + T[i][1] * p1 + T[i][2] * p2
+    for i in range(nx):  # columns: P[:, 0:3] Tᵀ, row by row
+        p0, p1, p2 = P[i, 0], P[i, 1], P[i, 2]
+        for k in range(3):
+            P[i, k] = p0 * T[k][0] + p1 * T[k][1] + p2 * T[k][2]
+
+
 @jit
 def transport_covariance(P: np.ndarray, nx: int, T: np.ndarray) -> None:
     """Move ``P`` to a new chart centre (§3.2): ``P_ee ← T P_ee Tᵀ``, ``P_e* ← T P_e*``."""
-    M = np.empty((3, nx))
-    for i in range(3):
-        for j in range(nx):
-            M[i, j] = T[i, 0] * P[0, j] + T[i, 1] * P[1, j] + T[i, 2] * P[2, j]
-    for i in range(3):
-        for j in range(nx):
-            P[i, j] = M[i, j]
-    for i in range(nx):
-        c0 = P[i, 0] * T[0, 0] + P[i, 1] * T[0, 1] + P[i, 2] * T[0, 2]
-        c1 = P[i, 0] * T[1, 0] + P[i, 1] * T[1, 1] + P[i, 2] * T[1, 2]
-        c2 = P[i, 0] * T[2, 0] + P[i, 1] * T[2, 1] + P[i, 2] * T[2, 2]
-        P[i, 0] = c0
-        P[i, 1] = c1
-        P[i, 2] = c2
+    transport_covariance_t(P, nx, t33(T))
 
 
-@jit
+@jit_inline
 def mekf_update(
     chart: int, chart_update: bool, qc: np.ndarray, w: np.ndarray, b: np.ndarray, P: np.ndarray,
     nx: int, vm: np.ndarray, vref: np.ndarray, Rv: np.ndarray, Qv: np.ndarray, use_v: np.ndarray,
@@ -360,13 +408,15 @@ def mekf_update(
     item 4). Returns False if an innovation covariance was not positive definite (that block is
     skipped).
     """
-    R = rotmat(qc)
+    R = rotmat_t(t4(qc))
     dx = np.zeros(nx)
+    work = _scratch(nx)
     ok = True
     for k in range(use_v.shape[0]):
         if use_v[k]:
-            ok &= mekf_vector_update(P, nx, dx, R, vm[k], vref[k], Rv[k], Qv[k], np.inf) >= 0
+            ok &= _vector_update(P, nx, dx, R, vm[k], vref[k], Rv[k], Qv[k], np.inf, False,
+                                 work) >= 0
     if use_w:
-        ok &= mekf_gyro_update(P, nx, dx, w, b, wm, Rw, np.inf) >= 0
+        ok &= _rate_update(P, nx, dx, w, b, wm, Rw, True, np.inf, work) >= 0
     mekf_apply(chart, chart_update, qc, w, b, P, nx, dx)
     return ok

@@ -13,17 +13,17 @@ from __future__ import annotations
 
 import numpy as np
 
-from mkf_ros.core._jit import jit
-from mkf_ros.core.charts import from_chart_at, from_chart_t, saturate, saturate_t, to_chart_t
-from mkf_ros.core.linalg import cho_solve, cholesky, mtv, symmetrize
-from mkf_ros.core.mekf import heading_residual
+from mkf_ros.core._jit import jit, jit_inline
+from mkf_ros.core.charts import from_chart_at, from_chart_at_t, from_chart_t, saturate_t, to_chart_t
+from mkf_ros.core.linalg import cho_solve_into, cholesky_into, symmetrize
+from mkf_ros.core.mekf import heading_residual_t
 from mkf_ros.core.quaternion import (
     q_omega_t,
     qconj_mul_t,
     qmul_t,
     qnormalize_t,
     rotate_inv_t,
-    rotmat,
+    rotmat_t,
     t3,
     t4,
 )
@@ -32,7 +32,7 @@ NOISE_CONSISTENT, NOISE_PUBLISHED, NOISE_INTEGRATED = 0, 1, 2
 NOISE_MODES = ("consistent", "published", "integrated")
 
 
-@jit
+@jit_inline
 def mukf_step(
     chart: int, chart_update: bool, noise_mode: int, w0: float,
     qc: np.ndarray, ebar: np.ndarray, w: np.ndarray, b: np.ndarray, P: np.ndarray, nx: int,
@@ -57,15 +57,27 @@ def mukf_step(
 
     Returns False (state untouched) if a factorisation fails.
     """
-    gates = np.full(4, np.inf)
-    nis = np.zeros(4)
-    return mukf_step_ext(chart, chart_update, noise_mode, w0, qc, ebar, w, b, P, nx, dt, Qw, Qb,
-                         vm, vref, Rv, Qv, use_v, wm, use_w, Rw, np.zeros(3), np.zeros(3), False,
-                         0.0, False, 0.0, gates, nis)
+    none = qc[:0]  # no heading sensor (hm, href unused), no gates (nis unused)
+    return _mukf_step(chart, chart_update, noise_mode, w0, qc, ebar, w, b, P, nx, dt, Qw, Qb,
+                      vm, vref, Rv, Qv, use_v, wm, use_w, Rw, none, none, False, 0.0, False, 0.0,
+                      none, none, False)
 
 
 # measurement blocks of mukf_step_ext, in row order; index into its `gates` / `nis` arrays
 B_VEC0, B_VEC1, B_HEADING, B_GYRO = 0, 1, 2, 3
+_BLOCK_SIZE = (3, 3, 1, 3)
+# columns of the sigma-point table of mukf_step_ext: state part x = (e, ω, b), quaternion q⁻,
+# measurement y
+_X, _Q, _Y = 0, 9, 13
+
+
+@jit
+def _row_kept(r: int, first: tuple, rejected: int) -> bool:
+    """Whether measurement row ``r`` belongs to no block rejected by the χ² gate (bit mask)."""
+    for blk in range(4):
+        if (rejected >> blk) & 1 and first[blk] <= r < first[blk] + _BLOCK_SIZE[blk]:
+            return False
+    return True
 
 
 @jit
@@ -86,22 +98,54 @@ def mukf_step_ext(
     ``0 = ψ(q) + n`` of :func:`mkf_ros.core.mekf.mekf_heading_update`, its gain projected onto
     the vertical, Joseph-form covariance), the zero-rate pseudo-measurement ``0 = ω + n`` of rest
     detection, and a χ² gate per block (vector 0, vector 1, heading, gyro; a block whose
-    ``rᵀ P_yy⁻¹ r`` exceeds its gate is left out; ``nis`` receives every block's value)."""
+    ``rᵀ P_yy⁻¹ r`` exceeds its gate is left out; ``nis`` receives every block's value).
+    At most two vector sensors (``use_v`` of length 1 or 2)."""
+    return _mukf_step(chart, chart_update, noise_mode, w0, qc, ebar, w, b, P, nx, dt, Qw, Qb,
+                      vm, vref, Rv, Qv, use_v, wm, use_w, Rw, hm, href, use_h, var_h, use_z, var_z,
+                      gates, nis, tilt_v0)
+
+
+@jit_inline
+def _mukf_step(
+    chart: int, chart_update: bool, noise_mode: int, w0: float,
+    qc: np.ndarray, ebar: np.ndarray, w: np.ndarray, b: np.ndarray, P: np.ndarray, nx: int,
+    dt: float, Qw: np.ndarray, Qb: np.ndarray,
+    vm: np.ndarray, vref: np.ndarray, Rv: np.ndarray, Qv: np.ndarray, use_v: np.ndarray,
+    wm: np.ndarray, use_w: bool, Rw: np.ndarray,
+    hm: np.ndarray, href: np.ndarray, use_h: bool, var_h: float,
+    use_z: bool, var_z: float, gates: np.ndarray, nis: np.ndarray, tilt_v0: bool,
+) -> bool:
+    """The body of :func:`mukf_step_ext` (inlined into it and into :func:`mukf_step`). With
+    ``gates`` empty no block is gated and ``nis`` is not written. (At most 30 arguments: numba
+    cannot inline a call with more.)"""
     # 0. reset variant: re-centre at the estimate, keep P
     if not chart_update:
-        qc[:] = from_chart_at(chart, qc, ebar)
+        q = from_chart_at_t(chart, t4(qc), t3(ebar))
+        for i in range(4):
+            qc[i] = q[i]
         ebar[:] = 0.0
     if nx == 9:  # bias random walk, added before the sigma points so that it reaches P_xy
-        P[6:9, 6:9] += Qb * dt
+        for i in range(3):
+            for j in range(3):
+                P[6 + i, 6 + j] += Qb[i, j] * dt
     published = noise_mode == NOISE_PUBLISHED
     if noise_mode == NOISE_INTEGRATED:  # Brownian-bridge part of the attitude increment
-        P[0:3, 0:3] += Qw * (dt * dt * dt / 12.0)
-    nvec = 0
-    for k in range(use_v.shape[0]):
-        if use_v[k]:
-            nvec += 1
-    # measurement rows: vectors (3 each), heading (1), gyro (3), zero rate (3)
-    m = 3 * nvec + (1 if use_h else 0) + (3 if use_w else 0) + (3 if use_z else 0)
+        k3 = dt * dt * dt / 12.0
+        for i in range(3):
+            for j in range(3):
+                P[i, j] += Qw[i, j] * k3
+    # measurement rows, in this order: vectors (3 each), heading (1), gyro (3), zero rate (3);
+    # first[blk] is the first row of block blk (B_VEC0 … B_GYRO), −1 if absent
+    v0 = use_v.shape[0] > 0 and bool(use_v[0])
+    v1 = use_v.shape[0] > 1 and bool(use_v[1])
+    nvec = (1 if v0 else 0) + (1 if v1 else 0)
+    row_h = 3 * nvec
+    row_g = row_h + (1 if use_h else 0)
+    row_z = row_g + (3 if use_w else 0)
+    m = row_z + (3 if use_z else 0)
+    m_nl = row_g  # the rows that are not linear in the state: vectors and heading
+    first = (0 if v0 else -1, (3 if v0 else 0) if v1 else -1, row_h if use_h else -1,
+             row_g if use_w else -1)
 
     # 1. augment: x̄ᵃ = (ē, ω̄[, b̄], w̄_ω = 0, w̄_v = 0 …), Pᵃ = blockdiag(P, Q_ωᵃ, Q_v …), N = dim
     # 2. sigma points X_0 = x̄ᵃ, X_j, X_{N+j} = x̄ᵃ ± c L[:, j], c = √(N/(1 − W_0)),
@@ -111,202 +155,244 @@ def mukf_step_ext(
     #    in every mean and covariance and R(q_0⁻)ᵀ Q_v R(q_0⁻) to the k-th block of P_yy. So only
     #    the 1 + 2(nx + 3) state and rate-noise points are propagated.
     N = nx + 3 + 3 * nvec
-    L, ok = cholesky(P[:nx, :nx].copy())
-    if not ok:
-        return False
-    if dt > 0.0 or published:
-        Lw, ok = cholesky(Qw if published else Qw * dt)
-        if not ok:
-            return False
-    else:  # a zero-length step (e.g. a magnetometer fused at the IMU's time): no rate noise,
-        Lw = np.zeros((3, 3))  # those sigma points coincide with the central one
-    c = np.sqrt(N / (1.0 - w0))
-    wj = (1.0 - w0) / (2.0 * N)
     nd = nx + 3  # propagated directions: state and rate noise
     ns = 2 * nd + 1
-    Qs = np.empty((ns, 4))
-    Ws = np.empty((ns, 3))
-    Bs = np.empty((ns, 3))
-    Ys = np.empty((ns, m))
-    wts = np.empty(ns)
-    wts[:] = wj
-    wts[0] = w0 + 2.0 * 3.0 * nvec * wj
-    x = np.empty(nx)
-    nw = np.empty(3)
-    wstep = np.empty(3)
+    # Scratch. numba has no stack arrays, and every allocation, every view and every array
+    # argument of a call costs reference counting (atomic operations) that outweighs a small
+    # matrix's arithmetic; so: four arrays, a few row ranges, and tables indexed by column.
+    # L: lower Cholesky factor of the propagated part of Pᵃ, blockdiag(P, Q_ωᵃ).
+    # T: row j for sigma point j: x_j = (e_j, ω_j⁻, b_j) in columns _X…_X+8 (in place, later
+    #    Δx_j: see step 6), q_j⁻ in _Q…_Q+3, y_j in _Y…; row ns: the means x̄⁻, ȳ; row ns + 1:
+    #    the update Δx and the innovation y − ȳ.
+    L = np.empty((nd, nd))
+    T = np.empty((ns + 2, _Y + m))
+    S_m = np.empty((2 * nx + 2 * m, m))  # row ranges: P_xy, P_yy, its factor, K P_yy
+    Pxy = S_m[:nx]
+    Pyy = S_m[nx:nx + m]
+    Ly = S_m[nx + m:nx + 2 * m]
+    KPyy = S_m[nx + 2 * m:]
+    S_nx = np.empty((nx + m, nx))  # row ranges: P_xx, Kᵀ
+    Pxx = S_nx[:nx]
+    Kt = S_nx[nx:]
+    inn = T[ns + 1, _Y:]
+    if not cholesky_into(P, L, 0, nx):
+        return False
+    if dt > 0.0 or published:
+        for i in range(3):
+            for j in range(3):
+                L[nx + i, nx + j] = Qw[i, j] if published else Qw[i, j] * dt
+        if not cholesky_into(L, L, nx, 3):
+            return False
+    else:  # a zero-length step (e.g. a magnetometer fused at the IMU's time): no rate noise,
+        L[nx:, nx:] = 0.0  # those sigma points coincide with the central one
+    c = np.sqrt(N / (1.0 - w0))
+    wj = (1.0 - w0) / (2.0 * N)
+    w_0 = w0 + 2.0 * 3.0 * nvec * wj  # X_0's weight, with the disturbance pairs'
     qc_t = t4(qc)
+    vrefs = ((vref[0, 0], vref[0, 1], vref[0, 2]) if v0 else (0.0, 0.0, 0.0),
+             (vref[1, 0], vref[1, 1], vref[1, 2]) if v1 else (0.0, 0.0, 0.0))
+    # X_0 on the manifold; also every point that moves only ω, b or the rate noise (L is lower
+    # triangular, so only the first three directions move e)
+    q_mid = qnormalize_t(qmul_t(qc_t, from_chart_t(chart, saturate_t(chart, t3(ebar)))))
     for s in range(ns):
-        for i in range(nx):
-            x[i] = ebar[i] if i < 3 else (w[i - 3] if i < 6 else b[i - 6])
-        nw[:] = 0.0
+        for i in range(3):  # x̄ (b̄ also without bias state: the gyro rows use it)
+            T[s, _X + i] = ebar[i]
+            T[s, _X + 3 + i] = w[i]
+            T[s, _X + 6 + i] = b[i]
+        j = s - 1 if s <= nd else s - 1 - nd  # direction: column of L
+        nw0 = nw1 = nw2 = 0.0
         if s > 0:
-            j = (s - 1) % nd
             step = c if s <= nd else -c
-            if j < nx:
+            if j < nx:  # a state direction
                 for i in range(j, nx):
-                    x[i] += step * L[i, j]
-            else:
-                for i in range(j - nx, 3):
-                    nw[i] = step * Lw[i, j - nx]
+                    T[s, _X + i] += step * L[i, j]
+            else:  # a rate-noise direction (L is lower triangular: its upper part is zero)
+                nw0, nw1, nw2 = step * L[nx, j], step * L[nx + 1, j], step * L[nx + 2, j]
         # 3. to the manifold, propagate, predict the measurement
         #    q_j = q̄_c * φ⁻¹(sat(e_j)),  ω_j⁻ = ω_j + n_ω (·Δt),  q_j⁻ = q_j * q_ω(ω_j⁻, Δt)
+        n_w = (nw0 * dt, nw1 * dt, nw2 * dt) if published else (nw0, nw1, nw2)
+        w_j = (T[s, _X + 3], T[s, _X + 4], T[s, _X + 5])
         for i in range(3):
-            n_w = nw[i] * dt if published else nw[i]
-            Ws[s, i] = x[3 + i] + n_w  # ω_j⁻, the rate at the end of the step
-            wstep[i] = x[3 + i] + 0.5 * n_w if noise_mode == NOISE_INTEGRATED else Ws[s, i]
-            Bs[s, i] = x[6 + i] if nx == 9 else b[i]
-        qj = qmul_t(qc_t, from_chart_t(chart, saturate_t(chart, (x[0], x[1], x[2]))))
-        qj = qnormalize_t(qmul_t(qnormalize_t(qj), q_omega_t(t3(wstep), dt)))
+            T[s, _X + 3 + i] = w_j[i] + n_w[i]  # ω_j⁻, the rate at the end of the step
+        if noise_mode == NOISE_INTEGRATED:  # rotate with the mean rate over the step
+            wstep = (w_j[0] + 0.5 * n_w[0], w_j[1] + 0.5 * n_w[1], w_j[2] + 0.5 * n_w[2])
+        else:
+            wstep = (T[s, _X + 3], T[s, _X + 4], T[s, _X + 5])
+        if s > 0 and 6 <= j < nx:  # moves the bias only: attitude and rate are X_0's
+            qj = (T[0, _Q], T[0, _Q + 1], T[0, _Q + 2], T[0, _Q + 3])
+        else:
+            qj = q_mid
+            if s > 0 and j < 3:
+                qj = qnormalize_t(qmul_t(qc_t, from_chart_t(chart, saturate_t(
+                    chart, (T[s, _X], T[s, _X + 1], T[s, _X + 2])))))
+            qj = qnormalize_t(qmul_t(qj, q_omega_t(wstep, dt)))
         for i in range(4):
-            Qs[s, i] = qj[i]
-        row = 0
-        for k in range(use_v.shape[0]):
-            if use_v[k]:  # y = R(q_j⁻)ᵀ v  (w̄_v = 0; its spread is added to P_yy below)
-                y = rotate_inv_t(qj, t3(vref[k]))
+            T[s, _Q + i] = qj[i]
+        for k in range(2):
+            if first[k] >= 0:  # y = R(q_j⁻)ᵀ v  (w̄_v = 0; its spread is added to P_yy below)
+                y = rotate_inv_t(qj, vrefs[k])
                 for i in range(3):
-                    Ys[s, row + i] = y[i]
-                row += 3
+                    T[s, _Y + first[k] + i] = y[i]
         if use_h:  # heading residual ψ(q_j⁻), unwrapped around the central point's
-            psi, _ = heading_residual(rotmat(Qs[s]), hm, href)
+            psi, _ = heading_residual_t(rotmat_t(qj), t3(hm), t3(href))
             if s > 0:
-                psi = Ys[0, row] + np.arctan2(np.sin(psi - Ys[0, row]), np.cos(psi - Ys[0, row]))
-            Ys[s, row] = psi
-            row += 1
-        if use_w:  # gyro: ω_j⁻ + b_j
-            for i in range(3):
-                Ys[s, row + i] = Ws[s, i] + Bs[s, i]
-            row += 3
-        if use_z:  # rest: ω_j⁻
-            for i in range(3):
-                Ys[s, row + i] = Ws[s, i]
+                d_psi = psi - T[0, _Y + row_h]
+                psi = T[0, _Y + row_h] + np.arctan2(np.sin(d_psi), np.cos(d_psi))
+            T[s, _Y + row_h] = psi
+        # (the gyro, ω_j⁻ + b_j, and the zero rate, ω_j⁻, are linear: see step 6)
     # 4. hemisphere alignment with the propagated sigma point 0
     for s in range(1, ns):
-        dot = Qs[s, 0] * Qs[0, 0] + Qs[s, 1] * Qs[0, 1] + Qs[s, 2] * Qs[0, 2] + Qs[s, 3] * Qs[0, 3]
+        dot = (T[s, _Q] * T[0, _Q] + T[s, _Q + 1] * T[0, _Q + 1] + T[s, _Q + 2] * T[0, _Q + 2]
+               + T[s, _Q + 3] * T[0, _Q + 3])
         if dot < 0.0:
-            Qs[s] = -Qs[s]
+            for i in range(4):
+                T[s, _Q + i] = -T[s, _Q + i]
     # 5. means: normalised weighted quaternion sum, weighted rate, bias and measurement
-    qm = np.zeros(4)
-    wm_ = np.zeros(3)
-    bm = np.zeros(3)
-    ym = np.zeros(m)
+    for cc in range(_Y + m_nl):
+        T[ns, cc] = 0.0
     for s in range(ns):
-        qm += wts[s] * Qs[s]
-        wm_ += wts[s] * Ws[s]
-        bm += wts[s] * Bs[s]
-        ym += wts[s] * Ys[s]
-    qm /= np.sqrt(qm[0] * qm[0] + qm[1] * qm[1] + qm[2] * qm[2] + qm[3] * qm[3])
-    qm_t = t4(qm)
+        ws_ = w_0 if s == 0 else wj
+        for cc in range(_X + 3, _Y + m_nl):  # ω, b, q, the non-linear rows of y
+            T[ns, cc] += ws_ * T[s, cc]
+    qs = (T[ns, _Q], T[ns, _Q + 1], T[ns, _Q + 2], T[ns, _Q + 3])
+    nq = np.sqrt(qs[0] * qs[0] + qs[1] * qs[1] + qs[2] * qs[2] + qs[3] * qs[3])
+    qm = (qs[0] / nq, qs[1] / nq, qs[2] / nq, qs[3] / nq)
+    for i in range(3):  # the linear rows: H x̄
+        if use_w:
+            T[ns, _Y + row_g + i] = T[ns, _X + 3 + i] + T[ns, _X + 6 + i]
+        if use_z:
+            T[ns, _Y + row_z + i] = T[ns, _X + 3 + i]
     # 6. re-express in the chart of the new mean; covariances (no subtraction of Σ W e_j, §8.7)
-    Pxx = np.zeros((nx, nx))
-    Pxy = np.zeros((nx, m))
-    Pyy = np.zeros((m, m))
-    dx = np.empty(nx)
-    dy = np.empty(m)
+    #    Δx_j = (e_j⁻, ω_j⁻ − ω̄⁻, b_j − b̄), Δy_j = y_j − ȳ, written over x_j and y_j.
+    #    Exact reduction: the gyro and zero-rate rows are linear in the state, y_j = H x_j, so
+    #    their sums are P_xy = P_xx Hᵀ and P_yy = H P_xy (the weighted sums are linear); only
+    #    the vector and heading rows (the first m_nl) are summed over the points.
     for s in range(ns):
-        e = to_chart_t(chart, qconj_mul_t(qm_t, t4(Qs[s])))
-        dx[0], dx[1], dx[2] = e[0], e[1], e[2]
-        dx[3:6] = Ws[s] - wm_
-        if nx == 9:
-            dx[6:9] = Bs[s] - bm
-        for i in range(m):
-            dy[i] = Ys[s, i] - ym[i]
-        ws_ = wts[s]
+        e = to_chart_t(chart, qconj_mul_t(qm, (T[s, _Q], T[s, _Q + 1], T[s, _Q + 2],
+                                               T[s, _Q + 3])))
+        T[s, _X], T[s, _X + 1], T[s, _X + 2] = e[0], e[1], e[2]
+        for cc in range(_X + 3, _X + nx):
+            T[s, cc] -= T[ns, cc]
+        for cc in range(_Y, _Y + m_nl):
+            T[s, cc] -= T[ns, cc]
+    Pxx[:, :] = 0.0
+    Pxy[:, :] = 0.0
+    Pyy[:, :] = 0.0
+    for s in range(ns):
+        ws_ = w_0 if s == 0 else wj
         for i in range(nx):
-            wdx = ws_ * dx[i]
+            wdx = ws_ * T[s, _X + i]
             for jj in range(i + 1):
-                Pxx[i, jj] += wdx * dx[jj]
-            for jj in range(m):
-                Pxy[i, jj] += wdx * dy[jj]
-        for i in range(m):
-            wdy = ws_ * dy[i]
+                Pxx[i, jj] += wdx * T[s, _X + jj]
+            for jj in range(m_nl):
+                Pxy[i, jj] += wdx * T[s, _Y + jj]
+        for i in range(m_nl):
+            wdy = ws_ * T[s, _Y + i]
             for jj in range(i + 1):
-                Pyy[i, jj] += wdy * dy[jj]
+                Pyy[i, jj] += wdy * T[s, _Y + jj]
     for i in range(nx):  # the loops above filled the lower triangles
         for jj in range(i):
             Pxx[jj, i] = Pxx[i, jj]
+    for r in range(m_nl, m):  # linear rows: column r of P_xy is P_xx Hᵀ, row r of P_yy H P_xy
+        k = r - row_g if r < row_z else r - row_z
+        bias = r < row_z and nx == 9  # the gyro measures ω + b
+        for i in range(nx):
+            Pxy[i, r] = Pxx[i, 3 + k] + (Pxx[i, 6 + k] if bias else 0.0)
+        for jj in range(r + 1):
+            Pyy[r, jj] = Pxy[3 + k, jj] + (Pxy[6 + k, jj] if bias else 0.0)
     for i in range(m):
         for jj in range(i):
             Pyy[jj, i] = Pyy[i, jj]
-    # measurement noise, innovations and the row range of every block
-    R0 = rotmat(Qs[0])
-    inn = np.empty(m)
-    first = np.full(4, -1)
-    size = np.zeros(4, dtype=np.int64)
-    row = 0
-    for k in range(use_v.shape[0]):
-        if use_v[k]:  # R_v + R(q_0⁻)ᵀ Q_v R(q_0⁻): the disturbance sigma pairs, summed exactly
+    # measurement noise and innovations
+    R0 = rotmat_t((T[0, _Q], T[0, _Q + 1], T[0, _Q + 2], T[0, _Q + 3]))
+    for k in range(2):
+        r0 = first[k]
+        if r0 >= 0:  # R_v + R(q_0⁻)ᵀ Q_v R(q_0⁻): the disturbance sigma pairs, summed exactly
             for i in range(3):
                 for jj in range(3):
                     qb = 0.0
                     for a in range(3):
                         for bb in range(3):
-                            qb += R0[a, i] * Qv[k, a, bb] * R0[bb, jj]
-                    Pyy[row + i, row + jj] += Rv[k, i, jj] + qb
-                inn[row + i] = vm[k, i] - ym[row + i]
-            first[B_VEC0 + k], size[B_VEC0 + k] = row, 3  # by slot: 0 = first sensor
-            row += 3
+                            qb += R0[a][i] * Qv[k, a, bb] * R0[bb][jj]
+                    Pyy[r0 + i, r0 + jj] += Rv[k, i, jj] + qb
+                inn[r0 + i] = vm[k, i] - T[ns, _Y + r0 + i]
     if use_h:
-        Pyy[row, row] += var_h
-        inn[row] = -ym[row]
-        first[B_HEADING], size[B_HEADING] = row, 1
-        row += 1
+        Pyy[row_h, row_h] += var_h
+        inn[row_h] = -T[ns, _Y + row_h]
     if use_w:
         for i in range(3):
             for jj in range(3):
-                Pyy[row + i, row + jj] += Rw[i, jj]
-            inn[row + i] = wm[i] - ym[row + i]
-        first[B_GYRO], size[B_GYRO] = row, 3
-        row += 3
+                Pyy[row_g + i, row_g + jj] += Rw[i, jj]
+            inn[row_g + i] = wm[i] - T[ns, _Y + row_g + i]
     if use_z:
         for i in range(3):
-            Pyy[row + i, row + i] += var_z
-            inn[row + i] = -ym[row + i]
-        row += 3
-    # χ² gate per block: keep the rows of the blocks that pass
-    keep = np.ones(m, dtype=np.bool_)
-    for blk in range(4):
-        if first[blk] < 0:
+            Pyy[row_z + i, row_z + i] += var_z
+            inn[row_z + i] = -T[ns, _Y + row_z + i]
+    # χ² gate per block: rᵀ P_yy⁻¹ r = ‖L⁻¹ r‖² of its rows alone (P_yy = L Lᵀ; Ly and the
+    # first row of KPyy are free here)
+    rejected = 0  # bit mask of blocks
+    for blk in range(gates.shape[0]):
+        r0 = first[blk]
+        if r0 < 0:
             continue
-        r0, nb = first[blk], size[blk]
-        Lb, okb = cholesky(Pyy[r0:r0 + nb, r0:r0 + nb].copy())
-        if not okb:
-            return False
-        z = cho_solve(Lb, inn[r0:r0 + nb].copy().reshape(nb, 1))
-        v = 0.0
+        nb = _BLOCK_SIZE[blk]
         for i in range(nb):
-            v += inn[r0 + i] * z[i, 0]
+            for jj in range(nb):
+                Ly[i, jj] = Pyy[r0 + i, r0 + jj]
+        if not cholesky_into(Ly, Ly, 0, nb):
+            return False
+        v = 0.0
+        for i in range(nb):  # z = L⁻¹ r
+            z = inn[r0 + i]
+            for k in range(i):
+                z -= Ly[i, k] * KPyy[0, k]
+            KPyy[0, i] = z / Ly[i, i]
+            v += KPyy[0, i] * KPyy[0, i]
         nis[blk] = v
         if v > gates[blk]:
-            for i in range(nb):
-                keep[r0 + i] = False
-    idx = np.nonzero(keep)[0]
-    ma = idx.size
-    # 7. update with the kept rows: K = P_xy P_yy⁻¹, Δx = K (y − ȳ)
-    upd = np.zeros(nx)
-    if ma > 0:
-        Pyy_a = np.empty((ma, ma))
-        Pxy_a = np.empty((nx, ma))
-        inn_a = np.empty(ma)
-        for a in range(ma):
-            inn_a[a] = inn[idx[a]]
-            for bb in range(ma):
-                Pyy_a[a, bb] = Pyy[idx[a], idx[bb]]
+            rejected |= 1 << blk
+    # the rows that pass, moved to the front in order (in place: a row or column only moves up)
+    row_hk = first[B_HEADING] if not (rejected >> B_HEADING) & 1 else -1
+    row_v0k = first[B_VEC0] if not (rejected >> B_VEC0) & 1 else -1
+    ma = m
+    if rejected:
+        ma = 0
+        for r in range(m):
+            if not _row_kept(r, first, rejected):
+                continue
+            if r == row_hk:
+                row_hk = ma
+            if r == row_v0k:
+                row_v0k = ma
+            inn[ma] = inn[r]
             for i in range(nx):
-                Pxy_a[i, a] = Pxy[i, idx[a]]
-        Ly, ok = cholesky(Pyy_a)
-        if not ok:
+                Pxy[i, ma] = Pxy[i, r]
+            a = 0
+            for cc in range(m):
+                if _row_kept(cc, first, rejected):
+                    Pyy[ma, a] = Pyy[r, cc]
+                    a += 1
+            ma += 1
+    # 7. update with the kept rows: K = P_xy P_yy⁻¹, Δx = K (y − ȳ)
+    for i in range(nx):
+        T[ns + 1, _X + i] = 0.0  # Δx
+    if ma > 0:
+        if not cholesky_into(Pyy, Ly, 0, ma):
             return False
-        Kt = cho_solve(Ly, Pxy_a.T.copy())  # Kᵀ = P_yy⁻¹ P_xyᵀ
-        Rm = rotmat(qm)
-        u0, u1, u2 = Rm[2, 0], Rm[2, 1], Rm[2, 2]  # world vertical in the new chart's axes
+        for a in range(ma):
+            for i in range(nx):
+                Kt[a, i] = Pxy[i, a]
+        cho_solve_into(Ly, ma, Kt)  # Kᵀ = P_yy⁻¹ P_xyᵀ
+        Rm = rotmat_t(qm)
+        u0, u1, u2 = Rm[2][0], Rm[2][1], Rm[2][2]  # world vertical in the new chart's axes
         projected = False
         for a in range(ma):
-            if use_h and idx[a] == first[B_HEADING]:
+            if a == row_hk:
                 # heading turns about the vertical only: project its attitude gain onto u
                 ku = u0 * Kt[a, 0] + u1 * Kt[a, 1] + u2 * Kt[a, 2]
                 Kt[a, 0], Kt[a, 1], Kt[a, 2] = u0 * ku, u1 * ku, u2 * ku
                 projected = True
-            elif tilt_v0 and first[B_VEC0] >= 0 and first[B_VEC0] <= idx[a] < first[B_VEC0] + 3:
+            elif tilt_v0 and row_v0k >= 0 and row_v0k <= a < row_v0k + 3:
                 # gravity: keep every group's gain (attitude, rate, bias) off the vertical
                 for g in range(nx // 3):
                     ku = u0 * Kt[a, 3 * g] + u1 * Kt[a, 3 * g + 1] + u2 * Kt[a, 3 * g + 2]
@@ -314,20 +400,21 @@ def mukf_step_ext(
                     Kt[a, 3 * g + 1] -= u1 * ku
                     Kt[a, 3 * g + 2] -= u2 * ku
                 projected = True
-        upd = mtv(Kt, inn_a)
+        for a in range(ma):  # Δx = K (y − ȳ)
+            for i in range(nx):
+                T[ns + 1, _X + i] += Kt[a, i] * inn[a]
         if projected:  # Joseph form, valid for any gain: P − K P_xyᵀ − P_xy Kᵀ + K P_yy Kᵀ
-            KPyy = np.zeros((nx, ma))
             for i in range(nx):
                 for a in range(ma):
                     s_ = 0.0
                     for bb in range(ma):
-                        s_ += Kt[bb, i] * Pyy_a[bb, a]
+                        s_ += Kt[bb, i] * Pyy[bb, a]
                     KPyy[i, a] = s_
             for i in range(nx):
                 for jj in range(nx):
                     s_ = 0.0
                     for a in range(ma):
-                        s_ += (-Kt[a, i] * Pxy_a[jj, a] - Pxy_a[i, a] * Kt[a, jj]
+                        s_ += (-Kt[a, i] * Pxy[jj, a] - Pxy[i, a] * Kt[a, jj]
                                + KPyy[i, a] * Kt[a, jj])
                     Pxx[i, jj] += s_
         else:  # P ← P_xx − K P_yy Kᵀ = P_xx − P_xy Kᵀ
@@ -335,15 +422,20 @@ def mukf_step_ext(
                 for jj in range(nx):
                     s_ = 0.0
                     for a in range(ma):
-                        s_ += Pxy_a[i, a] * Kt[a, jj]
+                        s_ += Pxy[i, a] * Kt[a, jj]
                     Pxx[i, jj] -= s_
     symmetrize(Pxx)
-    qc[:] = qm
-    ebar[:] = saturate(chart, upd[0:3])
-    w[:] = wm_ + upd[3:6]
-    if nx == 9:
-        b[:] = bm + upd[6:9]
-    P[:nx, :nx] = Pxx
+    for i in range(4):
+        qc[i] = qm[i]
+    e = saturate_t(chart, (T[ns + 1, _X], T[ns + 1, _X + 1], T[ns + 1, _X + 2]))
+    for i in range(3):
+        ebar[i] = e[i]
+        w[i] = T[ns, _X + 3 + i] + T[ns + 1, _X + 3 + i]
+        if nx == 9:
+            b[i] = T[ns, _X + 6 + i] + T[ns + 1, _X + 6 + i]
+    for i in range(nx):
+        for jj in range(nx):
+            P[i, jj] = Pxx[i, jj]
     return True
 
 

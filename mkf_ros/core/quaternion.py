@@ -106,20 +106,39 @@ def qnormalize(q: np.ndarray) -> np.ndarray:
 
 
 @jit
+def rotmat_t(q: tuple) -> tuple:
+    """Rotation matrix ``R(q)`` with ``v_E = R(q) v_B`` (§1.2), as a tuple of its rows:
+    ``R[i][j]``."""
+    q0, q1, q2, q3 = q[0], q[1], q[2], q[3]
+    return ((1.0 - 2.0 * (q2 * q2 + q3 * q3), 2.0 * (q1 * q2 - q0 * q3),
+             2.0 * (q1 * q3 + q0 * q2)),
+            (2.0 * (q1 * q2 + q0 * q3), 1.0 - 2.0 * (q1 * q1 + q3 * q3),
+             2.0 * (q2 * q3 - q0 * q1)),
+            (2.0 * (q1 * q3 - q0 * q2), 2.0 * (q2 * q3 + q0 * q1),
+             1.0 - 2.0 * (q1 * q1 + q2 * q2)))
+
+
+@jit
+def t33(a: np.ndarray) -> tuple:
+    """3×3 array → tuple of its rows."""
+    return ((a[0, 0], a[0, 1], a[0, 2]), (a[1, 0], a[1, 1], a[1, 2]),
+            (a[2, 0], a[2, 1], a[2, 2]))
+
+
+@jit
+def a33(t: tuple) -> np.ndarray:
+    """Tuple of three rows → 3×3 array."""
+    r = np.empty((3, 3))
+    for i in range(3):
+        for j in range(3):
+            r[i, j] = t[i][j]
+    return r
+
+
+@jit
 def rotmat(q: np.ndarray) -> np.ndarray:
     """Rotation matrix ``R(q)`` with ``v_E = R(q) v_B`` (§1.2)."""
-    q0, q1, q2, q3 = q[0], q[1], q[2], q[3]
-    r = np.empty((3, 3))
-    r[0, 0] = 1.0 - 2.0 * (q2 * q2 + q3 * q3)
-    r[0, 1] = 2.0 * (q1 * q2 - q0 * q3)
-    r[0, 2] = 2.0 * (q1 * q3 + q0 * q2)
-    r[1, 0] = 2.0 * (q1 * q2 + q0 * q3)
-    r[1, 1] = 1.0 - 2.0 * (q1 * q1 + q3 * q3)
-    r[1, 2] = 2.0 * (q2 * q3 - q0 * q1)
-    r[2, 0] = 2.0 * (q1 * q3 - q0 * q2)
-    r[2, 1] = 2.0 * (q2 * q3 + q0 * q1)
-    r[2, 2] = 1.0 - 2.0 * (q1 * q1 + q2 * q2)
-    return r
+    return a33(rotmat_t(t4(q)))
 
 
 @jit

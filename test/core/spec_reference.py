@@ -74,8 +74,16 @@ def mekf_update_ref(chart, cu, q, w, b, P, nx, vms, vrefs, Rvs, Qvs, wm, Rw):
 
 
 def mukf_step_ref(chart, cu, published, w0, qc, ebar, w, b, P, nx, dt, Qw, Qb, vms, vrefs,
-                  Rvs, Qvs, wm, Rw):
-    """§6 steps 0–7 literally: full augmentation, 2N+1 sigma points, columns of L."""
+                  Rvs, Qvs, wm, Rw, z_var=None, drop=(), nis_out=None):
+    """§6 steps 0–7 literally: full augmentation, 2N+1 sigma points, columns of L.
+
+    ``published`` is the noise mode: 0 (False) consistent, 1 (True) published, 2 integrated
+    (rotation with the mean rate ω + n/2, plus Q_ω Δt³/12 on the attitude). Extensions of
+    ``mukf_step_ext``: ``z_var`` adds the zero-rate pseudo-measurement ``0 = ω + n``; ``drop``
+    leaves out measurement blocks (indices in row order: the vectors, the gyro, the zero rate)
+    after the sums, as the χ² gate does; ``nis_out`` (a list) receives ``rᵀ P_yy⁻¹ r`` of every
+    block, alone."""
+    mode = int(published)
     c = CHARTS[CHART_NAMES[chart]]
     if not cu:
         qc = normalize(qmul(qc, c.from_chart(ebar)))
@@ -83,6 +91,8 @@ def mukf_step_ref(chart, cu, published, w0, qc, ebar, w, b, P, nx, dt, Qw, Qb, v
     P = P.copy()
     if nx == 9:
         P[6:9, 6:9] += Qb * dt
+    if mode == 2:
+        P[0:3, 0:3] += Qw * dt**3 / 12
     nv = len(vms)
     N = nx + 3 + 3 * nv
     xa = np.zeros(N)
@@ -92,7 +102,7 @@ def mukf_step_ref(chart, cu, published, w0, qc, ebar, w, b, P, nx, dt, Qw, Qb, v
         xa[6:9] = b
     Pa = np.zeros((N, N))
     Pa[:nx, :nx] = P
-    Pa[nx:nx + 3, nx:nx + 3] = Qw if published else Qw * dt
+    Pa[nx:nx + 3, nx:nx + 3] = Qw if mode == 1 else Qw * dt
     for k in range(nv):
         i = nx + 3 + 3 * k
         Pa[i:i + 3, i:i + 3] = Qvs[k]
@@ -104,13 +114,15 @@ def mukf_step_ref(chart, cu, published, w0, qc, ebar, w, b, P, nx, dt, Qw, Qb, v
     qs, ws, bs, ys = [], [], [], []
     for x in X:
         qj = normalize(qmul(qc, c.from_chart(c.saturate(x[0:3]))))
-        nw = x[nx:nx + 3]
-        wj = x[3:6] + (nw * dt if published else nw)
+        nw = x[nx:nx + 3] * (dt if mode == 1 else 1.0)
+        wj = x[3:6] + nw
         bj = x[6:9] if nx == 9 else b
-        qj = normalize(qmul(qj, q_omega(wj, dt)))
+        qj = normalize(qmul(qj, q_omega(x[3:6] + nw / 2 if mode == 2 else wj, dt)))
         y = [rotmat(qj).T @ (vrefs[k] + x[nx + 3 + 3 * k:nx + 6 + 3 * k]) for k in range(nv)]
         if wm is not None:
             y.append(wj + bj)
+        if z_var is not None:
+            y.append(wj)
         qs.append(qj)
         ws.append(wj)
         bs.append(bj)
@@ -133,11 +145,23 @@ def mukf_step_ref(chart, cu, published, w0, qc, ebar, w, b, P, nx, dt, Qw, Qb, v
     for k in range(nv):
         Rm[3 * k:3 * k + 3, 3 * k:3 * k + 3] = Rvs[k]
     if wm is not None:
-        Rm[m - 3:, m - 3:] = Rw
+        Rm[3 * nv:3 * nv + 3, 3 * nv:3 * nv + 3] = Rw
+    if z_var is not None:
+        Rm[m - 3:, m - 3:] = z_var * np.eye(3)
     Pyy = Pyy + Rm
-    yv = np.concatenate(list(vms) + ([wm] if wm is not None else []))
-    K = Pxy @ np.linalg.inv(Pyy)
-    dx = K @ (yv - ymean)
+    yv = np.concatenate(list(vms) + ([wm] if wm is not None else [])
+                        + ([np.zeros(3)] if z_var is not None else []))
+    r = yv - ymean
+    keep = np.ones(m, dtype=bool)
+    for blk in range(m // 3):
+        rows = slice(3 * blk, 3 * blk + 3)
+        if nis_out is not None:
+            nis_out.append(r[rows] @ np.linalg.solve(Pyy[rows, rows], r[rows]))
+        if blk in drop:
+            keep[rows] = False
+    Pxy, Pyy, r = Pxy[:, keep], Pyy[np.ix_(keep, keep)], r[keep]
+    K = Pxy @ np.linalg.inv(Pyy) if keep.any() else np.zeros((nx, 0))
+    dx = K @ r
     Pn = Pxx - K @ Pyy @ K.T
     e = c.saturate(dx[0:3])
     b_new = bmean + dx[6:9] if nx == 9 else b

@@ -7,7 +7,13 @@ import pytest
 from spec_reference import mekf_predict_ref, mekf_update_ref
 
 from mkf_ros.core.charts import CHART_NAMES, chart_id
-from mkf_ros.core.mekf import mekf_predict, mekf_update
+from mkf_ros.core.mekf import (
+    mekf_apply,
+    mekf_gyro_update,
+    mekf_predict,
+    mekf_update,
+    mekf_vector_update,
+)
 from mkf_ros.core.quaternion import rotmat
 
 
@@ -130,3 +136,33 @@ def test_not_positive_definite_is_reported_not_nan() -> None:
                      np.eye(3))
     assert not ok
     assert np.all(np.isfinite(q)) and np.all(np.isfinite(P))
+
+
+@pytest.mark.parametrize("nx", [6, 9])
+def test_update_equals_public_blocks(nx: int) -> None:
+    """mekf_update (tuple rotation, one scratch array, inlined blocks) equals the public block
+    kernels the product filter calls, one after another, to the last bit."""
+    rng = np.random.default_rng(11 + nx)
+    q, w, b, P0 = _random_case(rng, nx)
+    vrefs = np.array([[0, 0, 1.0], [0, 0.5, -0.8]])
+    vms = np.array([rotmat(q).T @ v + rng.normal(size=3) * 0.2 for v in vrefs])
+    B = rng.normal(size=(3, 3)) * 0.05
+    Rv, Qv = np.array([1e-3 * np.eye(3), 4e-4 * np.eye(3)]), np.array([1e-2 * np.eye(3), B @ B.T])
+    wm, Rw = w + rng.normal(size=3) * 0.1, 1e-4 * np.eye(3)
+    out = []
+    for public in (False, True):
+        qk, wk, bk = q.copy(), w.copy(), b.copy()
+        Pk = np.zeros((9, 9))
+        Pk[:nx, :nx] = P0
+        if public:
+            R, dx = rotmat(qk), np.zeros(nx)
+            for k in range(2):
+                assert mekf_vector_update(Pk, nx, dx, R, vms[k], vrefs[k], Rv[k], Qv[k],
+                                          np.inf) >= 0
+            assert mekf_gyro_update(Pk, nx, dx, wk, bk, wm, Rw, np.inf) >= 0
+            mekf_apply(2, True, qk, wk, bk, Pk, nx, dx)
+        else:
+            assert mekf_update(2, True, qk, wk, bk, Pk, nx, vms, vrefs, Rv, Qv,
+                               np.array([True, True]), wm, True, Rw)
+        out.append(np.concatenate([qk, wk, bk, Pk.ravel()]))
+    np.testing.assert_array_equal(out[0], out[1])

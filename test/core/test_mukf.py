@@ -7,7 +7,7 @@ import pytest
 from spec_reference import mukf_step_ref
 
 from mkf_ros.core.charts import CHART_NAMES, chart_id
-from mkf_ros.core.mukf import mukf_estimate, mukf_step
+from mkf_ros.core.mukf import mukf_estimate, mukf_step, mukf_step_ext
 from mkf_ros.core.quaternion import angle_between
 
 
@@ -84,3 +84,88 @@ def test_converges_from_the_paper_start(chart: str, cu: bool) -> None:
                   np.array([1e-2 * np.eye(3)]), np.array([True]),
                   rng.normal(size=3) * np.sqrt(R), True, R * np.eye(3))
     assert np.degrees(angle_between(mukf_estimate(chart_id(chart), qc, e), qt)) < 1.0
+
+
+@pytest.mark.parametrize("nx", [6, 9])
+@pytest.mark.parametrize("chart", CHART_NAMES)
+@pytest.mark.parametrize("cu", [True, False])
+@pytest.mark.parametrize("mode", [0, 1, 2])
+def test_ext_equals_full_augmentation(nx: int, chart: str, cu: bool, mode: int) -> None:
+    """mukf_step_ext (sums over the state and rate-noise points only, the gyro and zero-rate
+    rows from P_xx since they are linear, bias-only points not propagated again, gates on the
+    Cholesky factor of each block) against §6 with all 2N+1 points: every noise mode, the
+    zero-rate pseudo-measurement, the NIS of every block and a block left out by its gate."""
+    rng = np.random.default_rng(7 + nx + 10 * chart_id(chart) + 100 * cu + 1000 * mode)
+    for nvec, use_w, use_z, gated in ((1, True, False, False), (2, True, True, False),
+                                      (0, True, True, False), (1, False, True, False),
+                                      (2, True, False, True), (1, True, True, True)):
+        q = rng.normal(size=4)
+        q /= np.linalg.norm(q)
+        A = rng.normal(size=(nx, nx)) * 0.1
+        P0 = A @ A.T + 1e-3 * np.eye(nx)
+        ebar = rng.normal(size=3) * 0.1
+        w = rng.normal(size=3)
+        b = rng.normal(size=3) * 0.01
+        dt = 0.02
+        Qw, Qb = np.diag([1.0, 2.0, 0.5]), 1e-6 * np.eye(3)
+        vrefs = [np.array([0, 0, 1.0]), np.array([0, 0.6, -0.8])][:nvec]
+        vms = [v + rng.normal(size=3) * 0.3 for v in vrefs]
+        Rvs = [1e-3 * np.eye(3), 4e-4 * np.eye(3)][:nvec]
+        B = rng.normal(size=(3, 3)) * 0.05
+        Qvs = [1e-2 * np.eye(3), B @ B.T][:nvec]
+        wm = w + rng.normal(size=3) * 0.1
+        Rw, z_var = 1e-4 * np.eye(3), 1e-3
+        args = (chart_id(chart), cu, mode, 1 / 25, q, ebar, w, b, P0, nx, dt, Qw, Qb, vms, vrefs,
+                Rvs, Qvs, wm if use_w else None, Rw, z_var if use_z else None)
+        nis_ref: list = []
+        ref = mukf_step_ref(*args, nis_out=nis_ref)
+        blocks = [0, 1][:nvec] + ([3] if use_w else [])  # kernel's nis slots, in row order
+        gates = np.full(4, np.inf)
+        drop = ()
+        if gated:  # the first vector fails its gate
+            gates[0] = 0.9 * nis_ref[0]
+            drop = (0,)
+            ref = mukf_step_ref(*args, drop=drop)
+        qc, e, wk, bk = q.copy(), ebar.copy(), w.copy(), b.copy()
+        P = np.zeros((9, 9))
+        P[:nx, :nx] = P0
+        vm_a, vr_a = np.zeros((2, 3)), np.zeros((2, 3))
+        Rv_a, Qv_a = np.zeros((2, 3, 3)), np.zeros((2, 3, 3))
+        for k in range(nvec):
+            vm_a[k], vr_a[k], Rv_a[k], Qv_a[k] = vms[k], vrefs[k], Rvs[k], Qvs[k]
+        nis = np.zeros(4)
+        ok = mukf_step_ext(chart_id(chart), cu, mode, 1 / 25, qc, e, wk, bk, P, nx, dt, Qw, Qb,
+                           vm_a, vr_a, Rv_a, Qv_a, np.array([nvec > 0, nvec > 1]), wm, use_w, Rw,
+                           np.zeros(3), np.zeros(3), False, 0.0, use_z, z_var, gates, nis)
+        assert ok
+        qm, er, wr, br, Pr = ref
+        assert min(np.abs(qc - qm).max(), np.abs(qc + qm).max()) < 1e-10
+        np.testing.assert_allclose(e, er, atol=1e-10)
+        np.testing.assert_allclose(wk, wr, atol=1e-10)
+        np.testing.assert_allclose(bk, br, atol=1e-10)
+        np.testing.assert_allclose(P[:nx, :nx], Pr, atol=1e-10)
+        np.testing.assert_allclose(nis[blocks], nis_ref[:len(blocks)], rtol=1e-9)
+
+
+def test_step_equals_ext_without_gates() -> None:
+    """mukf_step (no gates, no NIS) is mukf_step_ext with infinite gates."""
+    rng = np.random.default_rng(5)
+    q = rng.normal(size=4)
+    q /= np.linalg.norm(q)
+    A = rng.normal(size=(9, 9)) * 0.1
+    P0 = A @ A.T + 1e-3 * np.eye(9)
+    w, b = rng.normal(size=3), rng.normal(size=3) * 0.01
+    vm, vr = rng.normal(size=(2, 3)), np.array([[0, 0, 1.0], [0, 0.6, -0.8]])
+    Rv, Qv = np.array([1e-3 * np.eye(3)] * 2), np.array([1e-2 * np.eye(3)] * 2)
+    out = []
+    for ext in (False, True):
+        qc, e, wk, bk, P = q.copy(), np.full(3, 0.05), w.copy(), b.copy(), P0.copy()
+        common = (1, True, 1, 1 / 25, qc, e, wk, bk, P, 9, 0.01, np.eye(3), 1e-6 * np.eye(3),
+                  vm, vr, Rv, Qv, np.array([True, True]), w + 0.1, True, 1e-4 * np.eye(3))
+        if ext:
+            assert mukf_step_ext(*common, np.zeros(3), np.zeros(3), False, 0.0, False, 0.0,
+                                 np.full(4, np.inf), np.zeros(4))
+        else:
+            assert mukf_step(*common)
+        out.append(np.concatenate([qc, e, wk, bk, P.ravel()]))
+    np.testing.assert_array_equal(out[0], out[1])
