@@ -151,6 +151,7 @@ def warmup() -> None:
     first real sample is not delayed. The first call on a new installation takes about a minute;
     later calls load the cache in well under a second."""
     from mkf_ros.core.filter import AttitudeFilter
+    from mkf_ros.stream import StreamAdapter
 
     n = 4
     gyr = np.zeros((n, 3))
@@ -162,3 +163,7 @@ def warmup() -> None:
         for k in range(n):
             f.step(0.01, gyr[k], acc[k], mag[k])
         _ = f.quaternion
+        s = StreamAdapter(algorithm=algo, use_mag=True)  # the node's and mkf process' kernels
+        for k in range(n):
+            s.on_mag(1.0 + 0.01 * k, mag[k])
+            s.on_imu(1.0 + 0.01 * k, gyr[k], acc[k])

@@ -3,7 +3,10 @@
 :class:`StreamAdapter` holds an :class:`~mkf_ros.core.filter.AttitudeFilter` and every rule
 about time and input that a live sensor stream or a recorded bag needs. It works on arrays and
 stamps in seconds and never imports ROS: the ``estimator`` node is a thin rclpy wrapper around
-it, and offline bag processing drives the same class, so both give identical results.
+it, and offline bag processing drives the same class, so both give identical results. The
+rules below run compiled (:mod:`mkf_ros.stream_kernel`), one message at a time
+(:meth:`StreamAdapter.on_imu`, :meth:`StreamAdapter.on_mag`) or over a whole recording
+(:meth:`StreamAdapter.process`), with the same results either way.
 
 Time rules (stamps in seconds, the IMU stream sets the filter's clock):
 
@@ -33,33 +36,23 @@ Output is never produced before initialisation and never contains NaN.
 
 from __future__ import annotations
 
-import bisect
 import math
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
+from mkf_ros import stream_kernel as sk
 from mkf_ros.core.filter import COUNTER_NAMES as FILTER_COUNTERS
 from mkf_ros.core.filter import AttitudeFilter, build_cfg
 from mkf_ros.core.frames import FROM_ENU
 from mkf_ros.core.params import BY_NAME, PARAMS, FilterParams, Param
 from mkf_ros.core.quaternion import qconj_np, qmul_np, rotmat_np
 
-#: Out-of-order IMU samples in a row after which the stream is taken to have jumped back.
-MAX_BACKWARDS = 10
-#: Magnetometer samples held while waiting for the IMU stream to reach their stamps.
-MAX_PENDING_MAG = 32
-#: Smallest time step of an internal magnetometer-only filter step (the MUKF cannot
-#: factorise its sigma points with zero process noise at dt = 0).
-MIN_STEP = 1e-9
-#: A magnetometer stamp this close to an IMU stamp is fused in the same filter step.
-SAME_STAMP = 1e-6
-#: Published yaw variance (rad²) while the heading is unknown: after a gap the filter keeps
-#: the heading it had, but the sensor may have turned by any angle meanwhile (uniform on ±π).
-YAW_UNKNOWN_VAR = math.pi**2 / 3.0
-_K_GAPS = FILTER_COUNTERS.index("gaps")
+# constants of the rules above, defined with the rules in stream_kernel
+from mkf_ros.stream_kernel import MAX_BACKWARDS as MAX_BACKWARDS
+from mkf_ros.stream_kernel import YAW_UNKNOWN_VAR as YAW_UNKNOWN_VAR
 
 #: Reasons a sample (or part of one) was dropped, rejected or caused a reset; see module doc.
 COUNTER_REASONS: dict[str, str] = {
@@ -101,7 +94,10 @@ _FILTER_REASONS = {
 }
 COUNTER_REASONS.update({n: _FILTER_REASONS.get(n, f"filter counter {n}")
                         for n in FILTER_REPORTED})
-_FILTER_SYNCED = {"gaps", "update_failed", *FILTER_REPORTED}
+#: Where each counter lives: ``(True, i)`` the adapter's ``acnt[i]``, ``(False, i)`` the
+#: filter's ``counters[i]`` (in COUNTER_REASONS order, which diagnostics show).
+_COUNTER_SOURCE = {n: (True, sk.ADAPTER_COUNTERS.index(n)) if n in sk.ADAPTER_COUNTERS
+                   else (False, FILTER_COUNTERS.index(n)) for n in COUNTER_REASONS}
 
 #: Counters that mean data was lost or rejected: diagnostics warn whenever one grows.
 REJECTIONS = (
@@ -137,6 +133,25 @@ class StreamOutput:
     heading_initialized: bool  #: the magnetometer has fixed the heading
 
 
+@dataclass(slots=True)
+class StreamOutputs:
+    """The estimates of :meth:`StreamAdapter.process`, one row per published IMU message: the
+    fields of :class:`StreamOutput` stacked, with NaN rows where that has None."""
+
+    index: np.ndarray  #: (M,) int, the IMU message (row of the input arrays) of each output
+    stamp: np.ndarray  #: (M,) s
+    quat_wxyz: np.ndarray  #: (M, 4)
+    orientation_cov: np.ndarray  #: (M, 3, 3)
+    angular_velocity: np.ndarray  #: (M, 3)
+    angular_velocity_cov: np.ndarray  #: (M, 3, 3)
+    angular_velocity_cov_add: np.ndarray  #: (M, 3, 3)
+    linear_acceleration: np.ndarray  #: (M, 3)
+    omega: np.ndarray  #: (M, 3)
+    bias: np.ndarray  #: (M, 3)
+    bias_stddev: np.ndarray  #: (M, 3)
+    heading_initialized: np.ndarray  #: (M,) bool
+
+
 def _check(p: Param, value: Any) -> Any:
     """``p.validate`` but keeping the case of free-form strings (frame ids)."""
     v = p.validate(value)
@@ -163,44 +178,43 @@ def validate_changes(changes: Mapping[str, Any], base: FilterParams) -> dict[str
     return out
 
 
-def covariance_out(input_cov: Any, stddev: float, add: np.ndarray | None = None) -> np.ndarray:
-    """A published 3×3 covariance (9 values, row major) from the input's (REP-145).
+def covariance_out(input_cov: Any, stddev: float, add: Any = None) -> np.ndarray:
+    """Published 3×3 covariances (9 values, row major) from the input's (REP-145): one
+    (9 values) or a stack (M, 9), with ``add`` as one (3×3) or a stack (M, 3, 3).
 
     An unknown input covariance (all zeros) is filled with ``stddev²`` on the diagonal when
-    ``stddev > 0`` and otherwise stays unknown; ``add`` (3×3) is added to a known one. A
+    ``stddev > 0`` and otherwise stays unknown; ``add`` is added to a known one. A
     covariance with NaN/Inf or the "not reported" marker (-1 first) counts as unknown.
     """
-    c = np.array(input_cov, dtype=float).reshape(9)
-    if c[0] == -1.0 or not math.isfinite(float(c.sum())):
-        c[:] = 0.0
-    if not c.any():
-        if stddev <= 0.0:
-            return c
-        c[0] = c[4] = c[8] = stddev * stddev
-    if add is not None:
-        c += np.asarray(add, dtype=float).reshape(9)
-    return c
+    c = np.array(input_cov, dtype=float)
+    rows = c.reshape(-1, 9)  # a view: ``c`` is filled through it
+    sk.covariance_rows(rows, float(stddev), _NO_ADD if add is None else
+                       np.ascontiguousarray(add, dtype=float).reshape(-1, 9))
+    return c.reshape(-1) if c.ndim < 2 or c.shape == (3, 3) else rows
 
 
-#: A gyro reading faster than this (rad/s, ~9500 rpm) is beyond any MEMS range: invalid.
-MAX_RATE = 1000.0
+_NO_ADD = np.zeros((0, 9))
+_NAN3 = np.full(3, math.nan)
 
 
-def _classify(v: np.ndarray, vector: bool) -> int:
-    """0 valid, 1 missing (all NaN), 2 invalid (partly non-finite, or a zero vector)."""
-    if math.isfinite(float(v[0] + v[1] + v[2])):  # NaN and ±Inf propagate through the sum
-        return 2 if vector and v[0] == 0.0 and v[1] == 0.0 and v[2] == 0.0 else 0
-    return 1 if math.isnan(v[0]) and math.isnan(v[1]) and math.isnan(v[2]) else 2
-
-
-def _rotate_back(v: np.ndarray, rotvec: np.ndarray) -> np.ndarray:
-    """``Exp(−θ) v`` (Rodrigues): a world-fixed vector seen after the body turned by ``θ``."""
-    th = math.hypot(*rotvec)
-    if not 1e-12 < th < 1e3:  # no rotation, or a diverged rate: leave the vector as it is
+def _vec(v: Any, kind: str) -> Any:
+    """One sensor vector as 3 numbers; None (not reported) as all NaN, which the rules treat
+    alike (missing). ValueError for another number of components."""
+    if v is None:
+        return _NAN3
+    if type(v) is np.ndarray and v.shape == (3,):  # the common case, without a copy
         return v
-    k = -rotvec / th
-    c, s = math.cos(th), math.sin(th)
-    return v * c + np.cross(k, v) * s + k * (float(k @ v) * (1.0 - c))
+    a = np.asarray(v, dtype=float)
+    if a.size != 3:
+        raise ValueError(f"{kind} sample must have 3 components, got shape {np.shape(v)}")
+    return a.reshape(3)
+
+
+def _rows(v: Any, n: int, kind: str) -> np.ndarray:
+    a = np.asarray(v, dtype=float)
+    if a.shape != (n, 3):
+        raise ValueError(f"{kind} must have shape ({n}, 3), got {a.shape}")
+    return a
 
 
 class StreamAdapter:
@@ -210,8 +224,12 @@ class StreamAdapter:
     >>> out = s.on_imu(0.00, [0, 0, 0], [0, 0, 9.81])   # initialises, returns the estimate
     >>> out = s.on_imu(0.01, [0, 0, 0], [0, 0, 9.81])
     >>> s.on_mag(0.012, [20e-6, 0, -40e-6])              # held until the IMU reaches 0.012 s
+    >>> res = s.process(t, gyr, acc, t_mag, mag)         # a whole recording: arrays of outputs
 
     Parameters are every entry of :data:`mkf_ros.core.params.PARAMS` (filter and node scope).
+    The state is a few arrays that the compiled rules (:mod:`mkf_ros.stream_kernel`) update
+    in place: the filter's, the time state ``_ts``, the held magnetometer samples ``_pend``,
+    the adapter's counters ``_acnt`` and the node parameters ``_npar``.
     """
 
     def __init__(self, params: Mapping[str, Any] | None = None, **overrides: Any) -> None:
@@ -223,17 +241,19 @@ class StreamAdapter:
             p.name: _check(p, p.default) for p in PARAMS if p.scope == "node"
         }
         self._node.update({k: v for k, v in vals.items() if BY_NAME[k].scope == "node"})
-        self.counters: dict[str, int] = dict.fromkeys(COUNTER_REASONS, 0)
         self.last_reset_reason = ""
-        self.acc_norm = math.nan  #: m/s², magnitude of the latest finite accelerometer sample
-        self.mag_norm = math.nan  #: T, magnitude of the latest finite magnetometer sample
-        self.mag_offset = math.nan  #: s, latest magnetometer stamp − filter time at its arrival
-        self.last_imu_stamp = math.nan
-        self.last_mag_stamp = math.nan
-        self._filter_seen = np.zeros(len(self.filter.counters), dtype=np.int64)
-        self._dt_stats = [0, math.inf, 0.0, 0.0]  # n, min, sum, max since pop_dt_stats()
+        self._acnt = np.zeros(sk.A_SIZE, dtype=np.int64)
+        self._ts = np.zeros(sk.T_SIZE)
+        self._ts[[sk.T_ACC_NORM, sk.T_MAG_NORM, sk.T_MAG_OFFSET, sk.T_LAST_IMU,
+                  sk.T_LAST_MAG]] = math.nan
+        self._pend = np.zeros((sk.PEND_ROWS, 4))
+        self._reset_dt_stats()
+        # the one-event sequences of on_imu / on_mag
+        self._ev = np.zeros((1, sk.E_SIZE))
+        self._ev_imu = np.array([[sk.EV_IMU, 0]], dtype=np.int64)
+        self._ev_mag = np.array([[sk.EV_MAG, 0]], dtype=np.int64)
+        self._out = np.zeros((1, sk.O_SIZE))
         self._derive()
-        self._clear_time()
 
     # --- parameters ------------------------------------------------------------------------
     def validate(self, changes: Mapping[str, Any]) -> dict[str, Any]:
@@ -249,7 +269,7 @@ class StreamAdapter:
             self.filter.set_params(**filt)
         self._node.update({k: v for k, v in vals.items() if BY_NAME[k].scope == "node"})
         if not self.filter.params.use_mag:
-            self._pending.clear()
+            self._ts[sk.T_NPEND] = 0
         self._derive()
 
     @property
@@ -258,29 +278,32 @@ class StreamAdapter:
         return {**self.filter.params.values, **self._node}
 
     def _derive(self) -> None:
+        """The node parameters as the kernels read them (``npar``, layout ``P_*``)."""
         n, f = self._node, self.filter.params
-        self._const_dt = float(n["constant_dt"])
         q_w = FROM_ENU[f.world_frame]
         psi = float(n["yaw_offset"] - n["declination"])
         qz = np.array([math.cos(psi / 2), 0.0, 0.0, math.sin(psi / 2)])
-        self._q_off = qmul_np(qmul_np(q_w, qz), qconj_np(q_w))  # about world up, in W axes
-        self._r_off = rotmat_np(self._q_off)
-        self._has_off = abs(psi) > 0.0
-        self._up_w = rotmat_np(q_w) @ np.array([0.0, 0.0, 1.0])  # world up in W axes
+        q_off = qmul_np(qmul_np(q_w, qz), qconj_np(q_w))  # about world up, in W axes
+        p = np.zeros(sk.P_SIZE)
+        p[sk.P_CONST_DT] = n["constant_dt"]
+        p[sk.P_JUMP] = n["time_jump_threshold"]
+        p[sk.P_ACC_TOL] = n["acc_magnitude_tolerance"]
+        p[sk.P_MAG_DELAY] = n["mag_max_delay"]
+        p[sk.P_HAS_OFF] = abs(psi) > 0.0
+        p[sk.P_Q_OFF:sk.P_Q_OFF + 4] = q_off
+        p[sk.P_R_OFF:sk.P_R_OFF + 9] = rotmat_np(q_off).reshape(9)
+        p[sk.P_UP_W:sk.P_UP_W + 3] = rotmat_np(q_w) @ np.array([0.0, 0.0, 1.0])  # world up
+        p[sk.P_ORI_SD] = n["orientation_stddev"]
+        p[sk.P_AV_SRC] = sk.AV_SOURCES.index(n["angular_velocity_source"])
+        p[sk.P_NO_GRAVITY] = bool(n["remove_gravity_vector"])
+        self._npar = p
 
     # --- state -----------------------------------------------------------------------------
-    def _clear_time(self) -> None:
-        self._t: float | None = None  # stamp of the filter state (= last accepted IMU stamp)
-        self._yaw_lost = False  # a gap: heading unknown until the magnetometer fixes it
-        self._backwards = 0
-        self._pending: list[tuple[float, int, np.ndarray]] = []  # (stamp, seq, mag) sorted
-        self._seq = 0
-
     def reset(self, reason: str = "requested") -> None:
         """Forget the estimate; the next IMU sample re-initialises. Counters are kept."""
         self.filter.reset()
-        self._clear_time()
-        self.counters["resets"] += 1
+        self._ts[[sk.T_T, sk.T_VALID, sk.T_YAW_LOST, sk.T_BACK, sk.T_NPEND]] = 0.0
+        self._acnt[sk.A_RESETS] += 1
         self.last_reset_reason = reason
 
     @property
@@ -290,252 +313,168 @@ class StreamAdapter:
     @property
     def time(self) -> float | None:
         """Stamp (s) of the filter's state, None before the first IMU sample."""
-        return self._t
+        return float(self._ts[sk.T_T]) if self._ts[sk.T_VALID] else None
+
+    @property
+    def acc_norm(self) -> float:
+        """m/s², magnitude of the latest finite accelerometer sample."""
+        return float(self._ts[sk.T_ACC_NORM])
+
+    @property
+    def mag_norm(self) -> float:
+        """T, magnitude of the latest finite magnetometer sample."""
+        return float(self._ts[sk.T_MAG_NORM])
+
+    @property
+    def mag_offset(self) -> float:
+        """s, latest magnetometer stamp − filter time at its arrival."""
+        return float(self._ts[sk.T_MAG_OFFSET])
+
+    @property
+    def last_imu_stamp(self) -> float:
+        return float(self._ts[sk.T_LAST_IMU])
+
+    @property
+    def last_mag_stamp(self) -> float:
+        return float(self._ts[sk.T_LAST_MAG])
+
+    def _reset_dt_stats(self) -> None:
+        self._ts[[sk.T_DT_N, sk.T_DT_MIN, sk.T_DT_SUM, sk.T_DT_MAX]] = (0.0, math.inf, 0.0, 0.0)
 
     def pop_dt_stats(self) -> tuple[int, float, float, float]:
         """``(n, min, mean, max)`` of the IMU time steps (s) since the previous call."""
-        n, lo, s, hi = self._dt_stats
-        self._dt_stats = [0, math.inf, 0.0, 0.0]
-        return (n, lo, s / n, hi) if n else (0, math.nan, math.nan, math.nan)
+        n, lo, s, hi = self._ts[sk.T_DT_N:sk.T_DT_MAX + 1].tolist()
+        self._reset_dt_stats()
+        return (int(n), lo, s / n, hi) if n else (0, math.nan, math.nan, math.nan)
+
+    @property
+    def counters(self) -> dict[str, int]:
+        """Every counter of :data:`COUNTER_REASONS` (the adapter's and the filter's)."""
+        a, f = self._acnt, self.filter.counters
+        return {n: int(a[i] if own else f[i]) for n, (own, i) in _COUNTER_SOURCE.items()}
 
     def all_counters(self) -> dict[str, int]:
         """Adapter counters plus the filter's own sample/gap/update counters."""
-        self._sync_filter_counters()
-        return dict(self.counters)
-
-    def _sync_filter_counters(self) -> None:
-        fc = self.filter.counters
-        d = fc - self._filter_seen
-        for i, name in enumerate(FILTER_COUNTERS):
-            if d[i] > 0 and name in _FILTER_SYNCED:
-                self.counters[name] += int(d[i])
-        self._filter_seen = fc.copy()
+        return self.counters
 
     # --- input -----------------------------------------------------------------------------
-    def _vec(self, v: Any, kind: str) -> np.ndarray | None:
-        """Classify one sensor vector; None if it is to be skipped (counted)."""
-        if v is None:
-            self.counters[kind + "_missing"] += 1
-            return None
-        # a fresh C-contiguous writable copy: a read-only or strided view would make numba
-        # compile another variant of the kernels in the middle of the stream
-        a = np.array(v, dtype=float).reshape(-1)
-        if a.shape != (3,):
-            raise ValueError(f"{kind} sample must have 3 components, got shape {np.shape(v)}")
-        c = _classify(a, kind != "gyr")
-        if c == 0 and kind == "gyr" and math.hypot(*a) > MAX_RATE:
-            c = 2
-        if c:
-            self.counters[kind + ("_missing" if c == 1 else "_invalid")] += 1
-            return None
-        return a
-
     def on_imu(self, stamp: float, gyr: Any, acc: Any) -> StreamOutput | None:
         """Process one IMU sample (rad/s, m/s²; None or all-NaN = not reported).
 
         Returns the estimate at ``stamp``, or None when nothing is to be published (sample
         dropped, filter not initialised yet).
         """
-        self.counters["imu_received"] += 1
-        stamp = float(stamp)
-        if self._const_dt > 0.0:
-            dt = self._const_dt if self._t is not None else 0.0
-            t_new = (self._t + dt) if self._t is not None else 0.0
-        else:
-            if not math.isfinite(stamp) or stamp == 0.0:
-                self.counters["imu_bad_stamp"] += 1
-                return None
-            t_new = stamp
-            if self._t is not None:
-                dt = stamp - self._t
-                if dt <= 0.0:
-                    if dt == 0.0:
-                        self.counters["imu_duplicate"] += 1
-                        return None
-                    self._backwards += 1
-                    thr = float(self._node["time_jump_threshold"])
-                    if -dt <= thr and self._backwards < MAX_BACKWARDS:
-                        self.counters["imu_out_of_order"] += 1
-                        return None
-                    self.counters["resets_time_jump"] += 1
-                    self.reset("time jump")
-                    dt = 0.0
-            else:
-                dt = 0.0
-        self._backwards = 0
-        self.last_imu_stamp = stamp
-        g = self._vec(gyr, "gyr")
-        a_in = a = self._vec(acc, "acc")
-        if a is not None:
-            norm = math.hypot(*a)
-            self.acc_norm = norm
-            grav = self.filter.params.gravity
-            if abs(norm / grav - 1.0) > self._node["acc_magnitude_tolerance"]:
-                self.counters["acc_implausible"] += 1
-                a = None
-        if self._t is not None and dt > 0.0:
-            n = self._dt_stats
-            n[0] += 1
-            n[1] = min(n[1], dt)
-            n[2] += dt
-            n[3] = max(n[3], dt)
-
-        mag = self._take_pending(t_new, dt)
-        f = self.filter
-        gaps = f.counters[_K_GAPS]
-        if self._t is None or self._const_dt > 0.0:
-            f.step(dt, g, a, mag)
-        else:
-            f.step(t_new - self._t, g, a, mag)
-        if f.counters[_K_GAPS] != gaps:
-            self._yaw_lost = True
-        if mag is not None:
-            self.counters["mag_fused"] += 1
-        self._t = t_new
-        return self._output(stamp, g, a_in)
-
-    def _take_pending(self, t_new: float, dt: float) -> np.ndarray | None:
-        """Fuse held magnetometer samples stamped before ``t_new``; return one stamped at
-        ``t_new`` (or, on the first sample, the latest recent one) to fuse with the IMU."""
-        pend = self._pending
-        if not pend:
+        e = self._ev[0]
+        e[sk.E_V:sk.E_V + 3] = _vec(gyr, "gyr")
+        e[sk.E_A:sk.E_A + 3] = _vec(acc, "acc")
+        e[sk.E_STAMP] = stamp = float(stamp)
+        self._run(self._ev, self._ev_imu, self._out, 0, 1)
+        o = self._out[0]
+        flags = int(o[sk.O_FLAGS])
+        if not flags:
             return None
-        if self._t is None:  # first sample: initialise with the latest recent magnetometer
-            delay = self._node["mag_max_delay"]
-            keep = [p for p in pend if p[0] > t_new + SAME_STAMP]
-            near = [p for p in pend if abs(t_new - p[0]) <= max(delay, SAME_STAMP)
-                    and p[0] <= t_new + SAME_STAMP]
-            self.counters["mag_too_old"] += len(pend) - len(keep) - min(len(near), 1)
-            self._pending = keep
-            return near[-1][2] if near else None
-        if dt > self.filter.params.max_dt:  # a gap: the held samples cannot be placed
-            old = bisect.bisect_right(pend, (t_new - self._node["mag_max_delay"], -1))
-            self.counters["mag_too_old"] += old
-            del pend[:old]
-        same = None
-        while pend and pend[0][0] <= t_new + SAME_STAMP:
-            tm, _, m = pend.pop(0)
-            if abs(tm - t_new) <= SAME_STAMP:
-                if same is not None:
-                    self._fuse_mag_now(same, 0.0)
-                same = m
-            elif tm <= self._t:  # held before a reset moved the time: treat as late
-                self._fuse_late(tm, m)
-            else:
-                self.filter.step(max(tm - self._t, MIN_STEP), None, None, m)
-                self.counters["mag_fused"] += 1
-                self._t = tm
-        return same
+        o = o.copy()  # the fields below are views of this copy
+        return StreamOutput(
+            stamp=stamp, quat_wxyz=o[sk.O_Q:sk.O_Q + 4],
+            orientation_cov=o[sk.O_COV:sk.O_COV + 9].reshape(3, 3),
+            angular_velocity=o[sk.O_W:sk.O_W + 3] if flags & sk.OF_W else None,
+            angular_velocity_cov=(o[sk.O_WCOV:sk.O_WCOV + 9].reshape(3, 3)
+                                  if flags & sk.OF_WCOV else None),
+            angular_velocity_cov_add=(np.diag(o[sk.O_WADD:sk.O_WADD + 3])
+                                      if flags & sk.OF_WADD else None),
+            linear_acceleration=o[sk.O_LIN:sk.O_LIN + 3] if flags & sk.OF_LIN else None,
+            omega=o[sk.O_OMEGA:sk.O_OMEGA + 3], bias=o[sk.O_BIAS:sk.O_BIAS + 3],
+            bias_stddev=o[sk.O_BSTD:sk.O_BSTD + 3],
+            heading_initialized=bool(flags & sk.OF_HEADING))
 
     def on_mag(self, stamp: float, mag: Any) -> None:
         """Process one magnetometer sample (any unit, tesla by REP-145; all NaN = none)."""
-        self.counters["mag_received"] += 1
-        stamp = float(stamp)
-        if not self.filter.params.use_mag:
-            self.counters["mag_unused"] += 1
-            return
-        m = self._vec(mag, "mag")
-        if m is None:
-            return
-        # hard/soft-iron calibration (mag_bias_*, mag_soft_iron) is applied by the core filter
-        norm = math.hypot(*m)
-        self.mag_norm = norm
-        if not 0.0 < norm < math.inf:
-            self.counters["mag_invalid"] += 1
-            return
-        # the raw field goes to the filter: it calibrates it and checks magnitude and dip
-        self.last_mag_stamp = stamp
-        if self._const_dt > 0.0:  # stamps are not trusted: fuse at the current time
-            if self._t is None:
-                self._pending = [(0.0, 0, m)]
-            else:
-                self._fuse_mag_now(m, 0.0)
-            return
-        if not math.isfinite(stamp):
-            self.counters["mag_invalid"] += 1
-            return
-        if self._t is None:  # before the first IMU sample: keep the latest few
-            self._hold(stamp, m)
-            return
-        d = stamp - self._t
-        self.mag_offset = d
-        if d > self.filter.params.max_dt:
-            self.counters["mag_ahead"] += 1
-        elif d > SAME_STAMP:
-            self._hold(stamp, m)
-        else:
-            self._fuse_late(stamp, m)
+        e = self._ev[0]
+        e[sk.E_V:sk.E_V + 3] = _vec(mag, "mag")
+        e[sk.E_STAMP] = stamp
+        self._run(self._ev, self._ev_mag, self._out, 0, 1)
 
-    def _hold(self, stamp: float, m: np.ndarray) -> None:
-        self._seq += 1
-        bisect.insort(self._pending, (stamp, self._seq, m))
-        if len(self._pending) > MAX_PENDING_MAG:
-            self._pending.pop(0)
-            self.counters["mag_overflow"] += 1
+    def process(self, imu_stamp: Any, gyr: Any, acc: Any, mag_stamp: Any = None,
+                mag: Any = None, *, imu_arrival: Any = None, mag_arrival: Any = None,
+                progress: Callable[[int], None] | None = None,
+                chunk: int = 4096) -> StreamOutputs:
+        """A whole recording, with the results of :meth:`on_imu` / :meth:`on_mag` called
+        message by message in arrival order (bit for bit), in compiled code.
 
-    def _fuse_late(self, stamp: float, m: np.ndarray) -> None:
-        assert self._t is not None
-        age = self._t - stamp
-        if age > self._node["mag_max_delay"] + SAME_STAMP:
-            self.counters["mag_too_old"] += 1
-            return
-        self._fuse_mag_now(m, max(age, 0.0))
+        ``imu_stamp`` (N,) s, ``gyr``/``acc`` (N, 3) (a NaN row: not reported);
+        ``mag_stamp`` (K,) s and ``mag`` (K, 3), or None. The two streams are merged by
+        arrival time, ``imu_arrival`` (N,) and ``mag_arrival`` (K,) in any one unit (e.g. a
+        bag's log times; default: the stamps), the magnetometer first at equal times, each
+        stream in its own order among equal times. ``progress(n)`` is called after every
+        ``chunk`` events. The adapter's state carries over from and to per-message calls.
+        """
+        ts = np.asarray(imu_stamp, dtype=float).reshape(-1)
+        n = len(ts)
+        k = 0 if mag_stamp is None else len(mag_stamp)
+        ev_f = np.full((n + k, sk.E_SIZE), math.nan)
+        ev_f[:n, sk.E_STAMP] = ts
+        ev_f[:n, sk.E_V:sk.E_V + 3] = _rows(gyr, n, "gyr")
+        ev_f[:n, sk.E_A:sk.E_A + 3] = _rows(acc, n, "acc")
+        ev_i = np.zeros((n + k, 2), dtype=np.int64)
+        ev_i[:n, 1] = np.arange(n)
+        ev_i[n:, 0] = sk.EV_MAG
+        if k:
+            ev_f[n:, sk.E_STAMP] = mag_stamp
+            ev_f[n:, sk.E_V:sk.E_V + 3] = _rows(mag, k, "mag")
+            when = np.concatenate([ts if imu_arrival is None else imu_arrival,
+                                   mag_stamp if mag_arrival is None else mag_arrival])
+            order = np.lexsort((ev_i[:, 0] != sk.EV_MAG, when))  # stable: each stream's order
+            ev_f, ev_i = ev_f[order], ev_i[order]
+        elif imu_arrival is not None:
+            order = np.argsort(imu_arrival, kind="stable")
+            ev_f, ev_i = ev_f[order], ev_i[order]
+        out = np.zeros((n, sk.O_SIZE))
+        for k0 in range(0, n + k, chunk):
+            k1 = min(k0 + chunk, n + k)
+            self._run(ev_f, ev_i, out, k0, k1)
+            if progress is not None:
+                progress(k1 - k0)
+        return _outputs(out, ts)
 
-    def _fuse_mag_now(self, m: np.ndarray, age: float) -> None:
-        """Fuse at the filter's current time, ``m`` rotated forward over its ``age`` (s)."""
-        if age > 0.0 and self.filter.initialized:
-            m = _rotate_back(m, self.filter.omega * age)
-        self.filter.step(MIN_STEP, None, None, m)
-        self.counters["mag_fused"] += 1
+    def _run(self, ev_f: np.ndarray, ev_i: np.ndarray, out: np.ndarray, k0: int,
+             k1: int) -> None:
+        """Events ``k0 … k1-1`` through the compiled rules. Only resets come back here: the
+        filter gets new state arrays, then the loop resumes."""
+        resume = False
+        while True:
+            f = self.filter
+            k, why = sk.run_events(f._cfg, f._nz, f._st, f._P, f._fl, f.counters,
+                                   f._q_from_enu, self._npar, self._ts, self._pend,
+                                   self._acnt, ev_f, ev_i, out, k0, k1, resume)
+            if why == sk.R_DONE:
+                return
+            if why == sk.R_TIME_JUMP:  # the same sample again, re-initialising from it
+                self.reset("time jump")
+                k0, resume = k, True
+            else:  # R_NONFINITE: nothing published for that sample
+                self.reset("non-finite estimate")
+                k0, resume = k + 1, False
 
-    # --- output ----------------------------------------------------------------------------
-    def _output(self, stamp: float, g: np.ndarray | None,
-                a: np.ndarray | None) -> StreamOutput | None:
-        f = self.filter
-        if not f.initialized:
-            return None
-        n = self._node
-        q = f.quaternion
-        cov = f.covariance
-        omega = f.omega
-        bias = f.bias
-        bstd = f.bias_stddev
-        if not math.isfinite(float(q.sum() + cov.sum() + omega.sum() + bias.sum())):
-            self.counters["output_nonfinite"] += 1
-            self.reset("non-finite estimate")
-            return None
-        if self._has_off:
-            q = qmul_np(self._q_off, q)
-            cov = self._r_off @ cov @ self._r_off.T
-            if q[0] < 0.0:
-                q = -q
-        if self._yaw_lost:
-            if f.heading_initialized:
-                self._yaw_lost = False
-            elif cov[2, 2] < YAW_UNKNOWN_VAR:
-                cov = cov.copy()
-                cov[2, 2] = YAW_UNKNOWN_VAR  # world z is vertical in ENU, NED and NWU
-        sd = n["orientation_stddev"]
-        if sd > 0.0:
-            cov = np.diag([sd * sd] * 3)
-        src = n["angular_velocity_source"]
-        w_cov = w_add = None
-        if src == "estimate":
-            w = omega
-            w_cov = f.state_covariance[3:6, 3:6]
-        elif g is None:
-            w = None
-        elif src == "bias_corrected":
-            w = g - bias
-            w_add = np.diag(bstd * bstd)
-        else:
-            w = g
-        lin = a
-        if lin is not None and n["remove_gravity_vector"]:
-            up_b = rotmat_np(q).T @ self._up_w
-            lin = lin - f.params.gravity * up_b
-        return StreamOutput(stamp=stamp, quat_wxyz=q, orientation_cov=cov, angular_velocity=w,
-                            angular_velocity_cov=w_cov, angular_velocity_cov_add=w_add,
-                            linear_acceleration=lin, omega=omega,
-                            bias=bias, bias_stddev=bstd,
-                            heading_initialized=f.heading_initialized)
+
+def _outputs(out: np.ndarray, stamps: np.ndarray) -> StreamOutputs:
+    """The published rows of a table of ``O_*`` rows (one per IMU message) as arrays (views
+    of the table, absent optional fields NaN)."""
+    flags = out[:, sk.O_FLAGS].astype(np.int64)
+    if flags.all():
+        idx = np.arange(len(out))
+    else:
+        idx = np.flatnonzero(flags)
+        out, flags = out[idx], flags[idx]
+    m = len(idx)
+    wadd = np.zeros((m, 3, 3))
+    wadd[:, (0, 1, 2), (0, 1, 2)] = out[:, sk.O_WADD:sk.O_WADD + 3]
+    wadd[(flags & sk.OF_WADD) == 0] = math.nan
+    return StreamOutputs(
+        index=idx, stamp=stamps[idx], quat_wxyz=out[:, sk.O_Q:sk.O_Q + 4],
+        orientation_cov=out[:, sk.O_COV:sk.O_COV + 9].reshape(m, 3, 3),
+        angular_velocity=out[:, sk.O_W:sk.O_W + 3],
+        angular_velocity_cov=out[:, sk.O_WCOV:sk.O_WCOV + 9].reshape(m, 3, 3),
+        angular_velocity_cov_add=wadd, linear_acceleration=out[:, sk.O_LIN:sk.O_LIN + 3],
+        omega=out[:, sk.O_OMEGA:sk.O_OMEGA + 3], bias=out[:, sk.O_BIAS:sk.O_BIAS + 3],
+        bias_stddev=out[:, sk.O_BSTD:sk.O_BSTD + 3],
+        heading_initialized=(flags & sk.OF_HEADING) > 0)

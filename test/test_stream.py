@@ -19,10 +19,12 @@ from mkf_ros.stream import (
     COUNTER_REASONS,
     MAX_BACKWARDS,
     StreamAdapter,
-    _rotate_back,
+    StreamOutput,
+    StreamOutputs,
     covariance_out,
     validate_param,
 )
+from mkf_ros.stream_kernel import rotate_back
 
 G = [0.0, 0.0, 9.80665]
 Z = [0.0, 0.0, 0.0]
@@ -41,22 +43,24 @@ def rec():
     return simulate("slow_rotation", duration=20.0, rate=200.0, seed=3)
 
 
-def run_async(rec, delay: float, **params) -> tuple[np.ndarray, np.ndarray, StreamAdapter]:
-    """Deliver IMU and magnetometer in arrival order, the magnetometer ``delay`` s late."""
+def run_async(rec, delay: float, stamped_on_arrival: bool = False,
+              **params) -> tuple[np.ndarray, np.ndarray, StreamAdapter]:
+    """Deliver IMU and magnetometer in arrival order, the magnetometer ``delay`` s late (and
+    with ``stamped_on_arrival``, stamped when it arrives instead of when it was measured)."""
     s = StreamAdapter(use_mag=True, **params)
     n = len(rec.t)
     events = [(rec.t[k], 0, k) for k in range(0, n, 2)]
     events += [(rec.t[k] + delay, 1, k) for k in range(1, n, 4)]
     events.sort()
     qs, ks = [], []
-    for _, kind, k in events:
+    for t, kind, k in events:
         if kind == 0:
             o = s.on_imu(T0 + rec.t[k], rec.gyr[k], rec.acc[k])
             if o is not None:
                 qs.append(o.quat_wxyz)
                 ks.append(k)
         else:
-            s.on_mag(T0 + rec.t[k], rec.mag[k])
+            s.on_mag(T0 + (t if stamped_on_arrival else rec.t[k]), rec.mag[k])
     return np.array(qs), np.array(ks), s
 
 
@@ -83,16 +87,11 @@ def test_async_magnetometer_accuracy(rec, algorithm: str, delay: float) -> None:
 
 
 def test_late_magnetometer_is_rotated_forward(rec) -> None:
-    """Without the forward rotation a 60 ms late magnetometer biases the heading."""
+    """Without the forward rotation a 60 ms late magnetometer biases the heading: the same
+    samples stamped on arrival are fused as if measured then, which is what fusing them late
+    without rotating them would do."""
     q_ok, k_ok, _ = run_async(rec, 0.06, algorithm="mekf")
-    import mkf_ros.stream as stream
-
-    orig = stream._rotate_back
-    try:
-        stream._rotate_back = lambda v, rotvec: v  # type: ignore[assignment]
-        q_bad, k_bad, _ = run_async(rec, 0.06, algorithm="mekf")
-    finally:
-        stream._rotate_back = orig
+    q_bad, k_bad, _ = run_async(rec, 0.06, stamped_on_arrival=True, algorithm="mekf")
     h_ok = rmse_deg(orientation_errors(q_ok, rec.quat[k_ok])["heading"][k_ok > 400])
     h_bad = rmse_deg(orientation_errors(q_bad, rec.quat[k_bad])["heading"][k_bad > 400])
     assert h_ok < 0.4 < h_bad
@@ -105,7 +104,7 @@ def test_rotate_back_matches_quaternion_rotation() -> None:
         ang = np.linalg.norm(th)
         q = np.concatenate([[math.cos(ang / 2)], math.sin(ang / 2) * th / ang])
         # a world-fixed vector seen from a body that turned by q: R(q)ᵀ v
-        np.testing.assert_allclose(_rotate_back(v, th), rotmat_np(q).T @ v, atol=1e-12)
+        np.testing.assert_allclose(rotate_back(v, th), rotmat_np(q).T @ v, atol=1e-12)
 
 
 def test_magnetometer_before_first_imu_sets_heading() -> None:
@@ -435,3 +434,183 @@ def test_algorithm_switch_keeps_estimate() -> None:
     b = feed(s, 1, t0=T0 + 0.5, gyr=[0.2, -0.1, 0.4], acc=[1.0, 2.0, 9.0])[0]
     step = 2 * math.acos(min(1.0, abs(float(a.quat_wxyz @ b.quat_wxyz))))
     assert math.degrees(step) < 0.5  # one 10 ms step at ≤ 0.46 rad/s is 0.26°
+
+
+# ---------------------------------------------------------------- batch entry
+
+
+def messy_recording(rec) -> dict[str, np.ndarray]:
+    """IMU (100 Hz) and magnetometer (50 Hz) messages with arrival times and every kind of
+    trouble: duplicates, out-of-order and bad stamps, a gap, a small backwards run and a bag
+    loop (both reset), missing/invalid/implausible vectors, a burst of garbage, and a
+    magnetometer that is early, late, too late, too far ahead, empty or invalid."""
+    rng = np.random.default_rng(11)
+    imu = [(rec.t[k], rec.t[k], rec.gyr[k].copy(), rec.acc[k].copy())
+           for k in range(0, 1200, 2)]  # (arrival, stamp, gyr, acc), stamps relative to T0
+    imu[30] = (imu[30][0], imu[29][1], *imu[30][2:])  # duplicate
+    imu[40] = (imu[40][0], imu[38][1] - 0.005, *imu[40][2:])  # out of order
+    imu[50] = (imu[50][0], math.nan, *imu[50][2:])  # bad stamps
+    imu[51] = (imu[51][0], -T0, *imu[51][2:])
+    for k in range(60, 60 + MAX_BACKWARDS):  # a persistent small jump back: reset
+        imu[k] = (imu[k][0], imu[k][1] - 0.3, *imu[k][2:])
+    imu = [x for i, x in enumerate(imu) if not 150 <= i < 250]  # a 2 s gap
+    for k in range(300, 400):  # the bag starts again: a 5 s jump back
+        imu[k] = (imu[k][0], imu[k][1] - 5.0, *imu[k][2:])
+    imu[100][2][:] = math.nan  # gyro missing
+    imu[101][2][1] = math.inf  # gyro invalid
+    imu[102][3][:] = 0.0  # accelerometer invalid
+    imu[103][3][2] = math.nan
+    imu[104][3][:] *= 3.0  # implausible
+    imu[105][2][:] = 2000.0  # faster than any gyro
+    for k in range(420, 440):  # garbage burst (NaN, Inf, 1e300 ...): never raises, never NaN
+        for v in imu[k][2:]:
+            v[rng.integers(3)] = rng.choice([math.nan, math.inf, 0.0, 1e300, -1e-300])
+    mag = []
+    for k in range(1, 1200, 4):
+        delay = rng.choice([0.0, 0.002, 0.03, 0.08, 0.3])  # 0.3 s: too old (mag_max_delay)
+        mag.append((rec.t[k] + delay, rec.t[k], rec.mag[k].copy()))
+    mag[10] = (mag[10][0], mag[10][1] + 3.0, mag[10][2])  # ahead by more than max_dt
+    mag[20][2][:] = math.nan  # "no sample"
+    mag[21][2][0] = math.inf
+    mag[22][2][:] = 0.0
+    mag[23] = (mag[23][0], imu[25][1], mag[23][2])  # the stamp of an IMU sample
+    mag[24] = (mag[24][0], mag[23][1], mag[24][2])  # twice
+    mag.insert(0, (-0.05, -0.01, rec.mag[0].copy()))  # before the first IMU sample
+
+    def cols(rows: list, *names: str) -> dict[str, np.ndarray]:
+        return {n: np.array([r[i] for r in rows]) for i, n in enumerate(names)}
+
+    out = cols(imu, "imu_arrival", "imu_stamp", "gyr", "acc")
+    out.update(cols(mag, "mag_arrival", "mag_stamp", "mag"))
+    out["imu_stamp"] = out["imu_stamp"] + T0
+    out["mag_stamp"] = out["mag_stamp"] + T0
+    return out
+
+
+def garbage_recording(seed: int, n: int = 3000) -> dict[str, np.ndarray]:
+    """Random garbage (NaN, Inf, zeros, huge values, stamps back and forth) in any mix, as in
+    :func:`test_fuzz_never_raises_never_nan`; arrival = call order."""
+    rng = np.random.default_rng(seed)
+    t = T0
+    bad = [math.nan, math.inf, -math.inf, 0.0, 1e300, -1e-300]
+    imu, mag = [], []
+    for i in range(n):
+        t += rng.choice([0.01, 0.01, 0.01, 0.0, -0.005, 3.0, -20.0, 1e-7])
+        vs = [rng.normal(size=3), rng.normal(size=3) + G, rng.normal(size=3)]
+        for v in vs:
+            if rng.random() < 0.1:
+                v[rng.integers(3)] = rng.choice(bad)
+        if rng.random() < 0.3:
+            mag.append((2 * i, t + rng.normal(0, 0.05), vs[2] * 1e-5))
+        imu.append((2 * i + 1, t, vs[0], vs[1]))
+    r = {k: np.array([x[j] for x in imu]) for j, k in enumerate(
+        ("imu_arrival", "imu_stamp", "gyr", "acc"))}
+    r.update({k: np.array([x[j] for x in mag]) for j, k in enumerate(
+        ("mag_arrival", "mag_stamp", "mag"))})
+    return r
+
+
+def per_message(s: StreamAdapter, r: dict[str, np.ndarray]) -> list[StreamOutput | None]:
+    """on_imu / on_mag in arrival order (the magnetometer first at equal times); an all-NaN
+    gyro reading given as None (not reported), which the batch sees as NaN."""
+    events = sorted([(t, 0, i) for i, t in enumerate(r["mag_arrival"])]
+                    + [(t, 1, i) for i, t in enumerate(r["imu_arrival"])])
+    outs: list[StreamOutput | None] = [None] * len(r["imu_stamp"])
+    for _, kind, i in events:
+        if kind == 0:
+            s.on_mag(r["mag_stamp"][i], r["mag"][i])
+        else:
+            g = r["gyr"][i]
+            outs[i] = s.on_imu(r["imu_stamp"][i], None if np.isnan(g).all() else g, r["acc"][i])
+    return outs
+
+
+def process(s: StreamAdapter, r: dict[str, np.ndarray], **kw) -> StreamOutputs:
+    return s.process(r["imu_stamp"], r["gyr"], r["acc"], r["mag_stamp"], r["mag"],
+                     imu_arrival=r["imu_arrival"], mag_arrival=r["mag_arrival"], **kw)
+
+
+def part(r: dict[str, np.ndarray], lo: float, hi: float) -> dict[str, np.ndarray]:
+    """The messages that arrive in ``[lo, hi)``."""
+    keep = {k: (lo <= r[k + "_arrival"]) & (r[k + "_arrival"] < hi) for k in ("imu", "mag")}
+    return {k: v[keep["mag" if k.startswith("mag") else "imu"]] for k, v in r.items()}
+
+
+def assert_same(outs: list[StreamOutput | None], b: StreamOutputs) -> None:
+    """Bit for bit; None (not published, or a field absent) ↔ not in ``b`` or a NaN row."""
+    idx = [i for i, o in enumerate(outs) if o is not None]
+    np.testing.assert_array_equal(b.index, idx)
+    for f in StreamOutputs.__slots__:
+        got = getattr(b, f)
+        if f == "index":
+            continue
+        nan = np.full(got.shape[1:], math.nan)
+        want = [nan if getattr(outs[i], f) is None else getattr(outs[i], f) for i in idx]
+        np.testing.assert_array_equal(got, np.array(want).reshape(got.shape), err_msg=f)
+
+
+BATCH_PARAMS = [
+    dict(use_mag=True, max_dt=0.5, time_jump_threshold=1.0),
+    dict(use_mag=True, algorithm="mukf", chart="mrp", world_frame="ned", yaw_offset=0.3,
+         declination=-0.1, estimate_gyro_bias=True, angular_velocity_source="bias_corrected",
+         remove_gravity_vector=True),
+    dict(use_mag=True, angular_velocity_source="estimate", orientation_stddev=0.05,
+         mag_max_delay=0.05),
+    dict(use_mag=False, constant_dt=0.01),
+]
+
+
+@pytest.mark.parametrize("params", BATCH_PARAMS)
+def test_batch_equals_per_message(rec, params: dict) -> None:
+    """``process`` over a whole recording gives what ``on_imu``/``on_mag`` give message by
+    message — outputs, counters and state, bit for bit — also in chunks and when batches and
+    per-message calls take turns on one adapter."""
+    r = messy_recording(rec)
+    one = StreamAdapter(params)
+    outs = per_message(one, r)
+    c = one.all_counters()
+    assert c["imu_received"] == len(r["imu_stamp"]) and c["mag_received"] == len(r["mag"])
+    if not params.get("constant_dt"):  # the recording has every kind of trouble
+        assert c["resets_time_jump"] == 2 and c["imu_duplicate"] and c["imu_out_of_order"]
+        assert c["imu_bad_stamp"] == 2 and c["gaps"]
+    if params["use_mag"]:
+        assert all(c[k] for k in ("mag_fused", "mag_too_old", "mag_ahead", "mag_missing",
+                                  "mag_invalid"))
+    ticks: list[int] = []
+    batch = StreamAdapter(params)
+    assert_same(outs, process(batch, r, progress=ticks.append, chunk=37))
+    assert sum(ticks) == len(r["imu_stamp"]) + len(r["mag"]) and len(ticks) > 1
+
+    # a batch, a few messages one by one, another batch
+    s = StreamAdapter(params)
+    t1, t2 = r["imu_arrival"][[200, 203]]
+    assert_same(outs[:200], process(s, part(r, -math.inf, t1)))
+    for want, got in zip(outs[200:203], per_message(s, part(r, t1, t2)), strict=True):
+        assert (want is None) == (got is None)
+        for f in StreamOutput.__slots__ if want is not None else ():
+            np.testing.assert_array_equal(getattr(got, f), getattr(want, f), err_msg=f)
+    assert_same(outs[203:], process(s, part(r, t2, math.inf)))
+    for x in (batch, s):
+        assert x.all_counters() == c
+        for attr in ("time", "acc_norm", "mag_norm", "mag_offset", "last_imu_stamp",
+                     "last_mag_stamp", "last_reset_reason", "initialized"):
+            assert repr(getattr(x, attr)) == repr(getattr(one, attr)), attr
+        np.testing.assert_array_equal(x.filter.quaternion, one.filter.quaternion)
+    assert batch.pop_dt_stats() == one.pop_dt_stats()
+
+
+@pytest.mark.parametrize(("seed", "params"), [
+    (7, dict(use_mag=True, estimate_gyro_bias=True, angular_velocity_source="bias_corrected")),
+    (8, dict(use_mag=True, algorithm="mukf", angular_velocity_source="estimate")),
+])
+def test_batch_equals_per_message_on_garbage(seed: int, params: dict) -> None:
+    """The same on garbage, which also makes the estimate non-finite (a reset inside a batch
+    that resumes after the sample, not at it)."""
+    r = garbage_recording(seed)
+    one = StreamAdapter(params)
+    outs = per_message(one, r)
+    assert one.all_counters()["output_nonfinite"] > 0
+    batch = StreamAdapter(params)
+    assert_same(outs, process(batch, r, chunk=500))
+    assert batch.all_counters() == one.all_counters()
+    assert batch.last_reset_reason == one.last_reset_reason

@@ -8,7 +8,8 @@ and linear acceleration like the node (``mkf_ros.ros.convert.fill_imu``). So a b
 and the same bag replayed through the node give the same messages.
 
 Bulk work (reading, decoding, encoding, writing) is vectorised (see :mod:`mkf_ros.bags.cdr`);
-the adapter is driven one message at a time (it has no batch entry yet).
+the adapter runs the whole recording in compiled code (:meth:`StreamAdapter.process`, in chunks
+for the progress bar), with the results of the node's message-by-message calls.
 """
 
 from __future__ import annotations
@@ -82,90 +83,51 @@ def _decode(raws: np.ndarray | list[bytes], layout: cdr.Layout, topic: str,
         raise BagError(f"{path}: {e}") from None
 
 
-def _field_or_none(values: np.ndarray, cov0: np.ndarray) -> list[np.ndarray | None]:
-    """Rows of ``values``; None where covariance[0] is -1 (REP-145 "not reported")."""
-    rows: list[np.ndarray | None] = list(values)
-    for i in np.flatnonzero(cov0 == -1.0).tolist():
-        rows[i] = None
-    return rows
+def _field(values: np.ndarray, cov0: np.ndarray) -> np.ndarray:
+    """``values`` as (N, 3) floats; NaN rows where covariance[0] is -1 (REP-145 "not
+    reported", which the adapter treats like a missing reading)."""
+    v = np.array(values, dtype=float)
+    v[cov0 == -1.0] = math.nan
+    return v
 
 
 def run_stream(adapter: Any, imu: cdr.Decoded, imu_log: np.ndarray, mag: cdr.Decoded | None,
                mag_log: np.ndarray | None, node_params: Mapping[str, Any],
                progress: Callable[[int], None] | None = None) -> Outputs:
-    """Drive ``adapter`` with the messages in recording order; collect what it publishes."""
+    """Run ``adapter`` over the messages in recording order (by log time, the magnetometer
+    first at equal times, as ``mkf synth`` writes); the ``imu/data`` fields it publishes."""
     from mkf_ros.stream import covariance_out
 
-    n = len(imu_log)
+    def seconds(stamp_ns: np.ndarray) -> np.ndarray:  # as the node: sec + nanosec · 1e-9
+        return stamp_ns // 1_000_000_000 + (stamp_ns % 1_000_000_000) * 1e-9
+
     f = imu.fields
-    gyr = _field_or_none(f["angular_velocity"], f["angular_velocity_covariance"][:, 0])
-    acc = _field_or_none(f["linear_acceleration"], f["linear_acceleration_covariance"][:, 0])
-    stamps = (imu.stamp_ns // 1_000_000_000 + (imu.stamp_ns % 1_000_000_000) * 1e-9).tolist()
-    if mag is not None and mag_log is not None and len(mag_log):
-        log = np.concatenate([imu_log, mag_log])
-        # recording order; at equal log times the magnetometer first (as mkf synth writes)
-        kind = np.concatenate([np.ones(n, np.int8), np.zeros(len(mag_log), np.int8)])
-        order = np.lexsort((kind, log))
-        is_mag = (kind[order] == 0).tolist()
-        idx = np.where(kind[order] == 0, order - n, order).tolist()
-        m_st = (mag.stamp_ns // 1_000_000_000 + (mag.stamp_ns % 1_000_000_000) * 1e-9).tolist()
-        m_val = list(mag.fields["magnetic_field"])
-    else:
-        is_mag = [False] * n
-        idx = list(range(n))
-        m_st, m_val = [], []
-    av_sd = float(node_params["angular_velocity_stddev"])
-    la_sd = float(node_params["linear_acceleration_stddev"])
     av_in = f["angular_velocity_covariance"]
     la_in = f["linear_acceleration_covariance"]
-    res_i: list[int] = []
-    res_q: list[np.ndarray] = []
-    res_c: list[np.ndarray] = []
-    res_w: list[np.ndarray] = []
-    res_wc: list[np.ndarray] = []
-    res_a: list[np.ndarray] = []
-    res_ac: list[np.ndarray] = []
-    on_imu, on_mag = adapter.on_imu, adapter.on_mag
-    zeros3 = np.zeros(3)
-    step = max(1, len(is_mag) // 200)
-    for k, (mk, i) in enumerate(zip(is_mag, idx, strict=True)):
-        if progress is not None and k % step == 0 and k:
-            progress(step)
-        if mk:
-            on_mag(m_st[i], m_val[i])
-            continue
-        out = on_imu(stamps[i], gyr[i], acc[i])
-        if out is None:
-            continue
-        res_i.append(i)
-        res_q.append(out.quat_wxyz)
-        res_c.append(out.orientation_cov)
-        w = out.angular_velocity
-        if w is None:
-            res_w.append(zeros3)
-            res_wc.append(NOT_REPORTED)
-        else:
-            res_w.append(w)
-            res_wc.append(out.angular_velocity_cov if out.angular_velocity_cov is not None
-                          else covariance_out(av_in[i], av_sd, out.angular_velocity_cov_add))
-        a = out.linear_acceleration
-        if a is None:
-            res_a.append(zeros3)
-            res_ac.append(NOT_REPORTED)
-        else:
-            res_a.append(a)
-            res_ac.append(covariance_out(la_in[i], la_sd))
-    if progress is not None:
-        progress(len(is_mag) - (len(is_mag) - 1) // step * step if is_mag else 0)
-    m = len(res_i)
-
-    def stack(rows: list[np.ndarray], width: int) -> np.ndarray:
-        return (np.asarray(rows, dtype=float).reshape(m, width) if m
-                else np.zeros((0, width)))
-
-    return Outputs(index=np.asarray(res_i, dtype=np.int64), quat=stack(res_q, 4),
-                   cov=stack(res_c, 9), angvel=stack(res_w, 3), angvel_cov=stack(res_wc, 9),
-                   linacc=stack(res_a, 3), linacc_cov=stack(res_ac, 9))
+    gyr = _field(f["angular_velocity"], av_in[:, 0])
+    acc = _field(f["linear_acceleration"], la_in[:, 0])
+    m_st = m_val = None
+    if mag is not None and mag_log is not None and len(mag_log):
+        m_st, m_val = seconds(mag.stamp_ns), mag.fields["magnetic_field"]
+    res = adapter.process(seconds(imu.stamp_ns), gyr, acc, m_st, m_val, imu_arrival=imu_log,
+                          mag_arrival=mag_log, progress=progress)
+    i = res.index
+    m = len(i)
+    w_ok = ~np.isnan(res.angular_velocity[:, 0])
+    a_ok = ~np.isnan(res.linear_acceleration[:, 0])
+    w_est = ~np.isnan(res.angular_velocity_cov[:, 0, 0])  # the filter's: replaces the input's
+    w_in = w_ok & ~w_est
+    add = res.angular_velocity_cov_add[w_in]
+    w_cov = np.tile(NOT_REPORTED, (m, 1))
+    w_cov[w_est] = res.angular_velocity_cov[w_est].reshape(-1, 9)
+    w_cov[w_in] = covariance_out(av_in[i[w_in]], float(node_params["angular_velocity_stddev"]),
+                                 None if np.isnan(add).all() else add)
+    a_cov = np.tile(NOT_REPORTED, (m, 1))
+    a_cov[a_ok] = covariance_out(la_in[i[a_ok]], float(node_params["linear_acceleration_stddev"]))
+    return Outputs(index=i, quat=res.quat_wxyz, cov=res.orientation_cov.reshape(m, 9),
+                   angvel=np.where(w_ok[:, None], res.angular_velocity, 0.0), angvel_cov=w_cov,
+                   linacc=np.where(a_ok[:, None], res.linear_acceleration, 0.0),
+                   linacc_cov=a_cov)
 
 
 def encode_outputs(imu: cdr.Decoded, batch: Any, out: Outputs) -> np.ndarray | list[bytes]:

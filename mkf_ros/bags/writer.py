@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import contextlib
 import shutil
+import sqlite3
 import tempfile
 from pathlib import Path
 from typing import Any
@@ -32,9 +33,15 @@ def _writer_class() -> type:
         fsync: the bag is built under a temporary name and only renamed when complete."""
 
         def __init__(self, path: Path, compression: Any) -> None:
-            super().__init__(path, compression)
+            # rosbags' constructor (compression is only ever set for MCAP), with the pragmas
+            # before the schema: otherwise each statement of it is a synced transaction of
+            # its own (~0.15 s per bag)
+            self.path = path / f"{path.name}.db3"
+            self.conn = sqlite3.connect(f"file:{self.path}", uri=True)
             self.conn.execute("PRAGMA synchronous=OFF")
             self.conn.execute("PRAGMA journal_mode=OFF")
+            self.conn.executescript(self.SQLITE_SCHEMA)
+            self.cursor = self.conn.cursor()
 
         def write_batch(self, cids: np.ndarray, ts: np.ndarray,
                         data: np.ndarray | list[bytes]) -> None:
