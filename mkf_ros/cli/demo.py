@@ -209,24 +209,27 @@ class _Demo:
         ex.add_node(node)
         show = not self.a.quiet_nodes
         t_start = time.monotonic()
-        # both start at once; the player waits until the estimator and this monitor subscribe
+        # the estimator first; the player once this monitor has matched the estimator's output
+        # (otherwise the first estimates can pass before discovery completes and go unseen); the
+        # player then waits until the estimator and this monitor subscribe to its topics
         est = _Child("estimator", est_cmd, env, show)
-        ply = _Child("player", ply_cmd, env, show)
+        ply: _Child | None = None
         try:
             while sub.get_publisher_count() == 0:
                 ex.spin_once(timeout_sec=0.05)
-                for c in (est, ply):
-                    if c.proc.poll() is not None:
-                        return self._failed(c, f"the {c.name} exited during start-up")
+                if est.proc.poll() is not None:
+                    return self._failed(est, "the estimator exited during start-up")
                 if time.monotonic() - t_start > STARTUP_TIMEOUT:
                     return self._failed(est, "the estimator did not come up")
+            ply = _Child("player", ply_cmd, env, show)
             code = self._monitor(ex, est, ply, t_start)
         except KeyboardInterrupt:
             self.say("\n  interrupted")
             code = 130
         finally:
             for c in (ply, est):
-                c.stop()
+                if c is not None:
+                    c.stop()
             ex.shutdown()
             node.destroy_node()
             rclpy.try_shutdown(context=ctx)
