@@ -126,7 +126,7 @@ P0_PAPER = 100.0  # §8 item 9
 YAW0_STDDEV = 1e-3  # rad: heading is defined by the start-up heading when no magnetometer
 
 
-@jit
+@jit_inline
 def _classify(v: tuple, is_vector: bool) -> int:
     """0 valid, 1 missing (all NaN), 2 invalid (partly non-finite, or a zero vector)."""
     nan = 0
@@ -145,13 +145,13 @@ def _classify(v: tuple, is_vector: bool) -> int:
     return 0
 
 
-@jit
+@jit_inline
 def _unit_t(v: tuple) -> tuple:
     n = np.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
     return (v[0] / n, v[1] / n, v[2] / n)
 
 
-@jit
+@jit_inline
 def _n33(nz: np.ndarray, k: int) -> tuple:
     """Noise matrix ``k`` of :func:`build_noise` as a tuple of rows (no array view)."""
     return ((nz[k, 0, 0], nz[k, 0, 1], nz[k, 0, 2]), (nz[k, 1, 0], nz[k, 1, 1], nz[k, 1, 2]),
@@ -342,7 +342,7 @@ def build_noise(cfg: np.ndarray) -> np.ndarray:
     return nz
 
 
-@jit
+@jit_inline
 def calibrate_mag(cfg: np.ndarray, mag: tuple) -> tuple:
     """Hard- and soft-iron correction ``m = S (m_raw − h)`` (extension; sensor units)."""
     v0, v1, v2 = mag[0] - cfg[C_MAG_HI], mag[1] - cfg[C_MAG_HI + 1], mag[2] - cfg[C_MAG_HI + 2]
@@ -351,7 +351,7 @@ def calibrate_mag(cfg: np.ndarray, mag: tuple) -> tuple:
             cfg[C_MAG_SI + 6] * v0 + cfg[C_MAG_SI + 7] * v1 + cfg[C_MAG_SI + 8] * v2)
 
 
-@jit
+@jit_inline
 def _mag_plausible(cfg: np.ndarray, st: np.ndarray, fl: np.ndarray, cnt: np.ndarray,
                    R: tuple, m_body: tuple, m_norm: float) -> bool:
     """Field magnitude and dip against the learned reference (extension); counted if not."""
@@ -540,17 +540,19 @@ def sensor_step(cfg: np.ndarray, nz: np.ndarray, st: np.ndarray, P: np.ndarray,
                 mag: np.ndarray) -> None:
     """Process one sample: any of ``gyr`` (rad/s), ``acc`` (m/s², +g up at rest) and ``mag``
     (any unit) may be NaN (missing). ``dt`` is the time since the previous sample."""
-    _sensor_step(cfg, nz, st, P, fl, cnt, dt, t3(gyr), t3(acc), t3(mag))
+    _sensor_step(cfg, nz, st, P, fl, cnt, dt, t3(gyr), t3(acc), t3(mag), np.empty(NX_MAX),
+                 mekf_scratch(NX_MAX))
 
 
 @jit_inline
 def _sensor_step(cfg: np.ndarray, nz: np.ndarray, st: np.ndarray, P: np.ndarray,
                  fl: np.ndarray, cnt: np.ndarray, dt: float, gyr: tuple, acc: tuple,
-                 mag: tuple) -> None:
-    """:func:`sensor_step` with the readings as 3-tuples. Speed: the common path (MEKF, every
-    sensor valid) works on tuples and elements of ``st``, ``nz`` and ``P``: no allocation but
-    the MEKF's two scratch arrays, no array views (each costs reference counting, atomic
-    operations that outweigh a small filter's arithmetic); the rare paths build arrays."""
+                 mag: tuple, dx: np.ndarray, work: np.ndarray) -> None:
+    """:func:`sensor_step` with the readings as 3-tuples and the MEKF's scratch given (``dx``:
+    9 values, ``work``: ``mekf_scratch(9)``). Speed: the common path (MEKF, every sensor valid)
+    works on tuples and elements of ``st``, ``nz`` and ``P``: no allocation, no array views
+    (each costs reference counting, atomic operations that outweigh a small filter's
+    arithmetic); the rare paths build arrays."""
     cnt[K_SAMPLES] += 1
     use_mag = cfg[C_USE_MAG] > 0
     gs = _classify(gyr, False)
@@ -664,8 +666,8 @@ def _sensor_step(cfg: np.ndarray, nz: np.ndarray, st: np.ndarray, P: np.ndarray,
         b = (st[S_B], st[S_B + 1], st[S_B + 2])
         q = mekf_predict_t(q, w, P, nx, dt, _n33(nz, N_QW), _n33(nz, N_QB))
         R = rotmat_t(q)
-        dx = np.zeros(nx)
-        work = mekf_scratch(nx)
+        for i in range(nx):
+            dx[i] = 0.0
         if has_a:
             acc_nis = mekf_vector_update_t(P, nx, dx, R, a_body, (0.0, 0.0, 1.0),
                                            _n33(nz, N_RA), Qa, acc_gate,
@@ -836,9 +838,12 @@ def run_batch(cfg: np.ndarray, st: np.ndarray, P: np.ndarray, fl: np.ndarray, cn
     (element by element: no array views in the loop)."""
     nx = int(cfg[C_NX])
     nz = build_noise(cfg)
+    dx = np.empty(NX_MAX)
+    work = mekf_scratch(NX_MAX)
     for n in range(dts.shape[0]):
         _sensor_step(cfg, nz, st, P, fl, cnt, dts[n], (gyr[n, 0], gyr[n, 1], gyr[n, 2]),
-                     (acc[n, 0], acc[n, 1], acc[n, 2]), (mag[n, 0], mag[n, 1], mag[n, 2]))
+                     (acc[n, 0], acc[n, 1], acc[n, 2]), (mag[n, 0], mag[n, 1], mag[n, 2]), dx,
+                     work)
         q, cov = _world_output_t(cfg, st, P, q_from_enu)
         init = fl[F_INIT] > 0
         out_init[n] = init
