@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from mkf_ros.core._jit import jit
+from mkf_ros.core._jit import jit, jit_inline
 from mkf_ros.core.baselines import (
     body_cov_to_euler,
     euler_cov_to_body,
@@ -35,22 +35,35 @@ from mkf_ros.core.baselines import (
     quat_to_euler,
     yaw_update,
 )
-from mkf_ros.core.charts import chart_id, from_chart, t_matrix
+from mkf_ros.core.charts import chart_id, from_chart, from_chart_t, t_matrix, t_matrix_t
 from mkf_ros.core.frames import FROM_ENU, align_tilt, heading_correction, keep_yaw
 from mkf_ros.core.linalg import congruence, eye, mm
 from mkf_ros.core.mekf import (
     heading_residual,
-    mekf_apply,
-    mekf_gyro_update,
+    mekf_apply_t,
     mekf_heading_update,
-    mekf_predict,
-    mekf_rate_update,
-    mekf_vector_update,
+    mekf_predict_t,
+    mekf_rate_update_t,
+    mekf_scratch,
+    mekf_vector_update_t,
     transport_covariance,
 )
 from mkf_ros.core.mukf import B_HEADING, B_VEC0, B_VEC1, NOISE_MODES, mukf_step_ext
 from mkf_ros.core.params import ALGORITHMS, FilterParams
-from mkf_ros.core.quaternion import qmul, qnormalize, rotate, rotate_inv, rotmat
+from mkf_ros.core.quaternion import (
+    a33,
+    qmul,
+    qmul_t,
+    qnormalize,
+    qnormalize_t,
+    rotate,
+    rotate_inv,
+    rotmat,
+    rotmat_t,
+    t3,
+    t4,
+    t33,
+)
 
 # --- layout of the configuration vector --------------------------------------------------------
 C_ALGO, C_CHART, C_CU, C_USE_MAG, C_NX = 0, 1, 2, 3, 4
@@ -113,8 +126,8 @@ P0_PAPER = 100.0  # §8 item 9
 YAW0_STDDEV = 1e-3  # rad: heading is defined by the start-up heading when no magnetometer
 
 
-@jit
-def _classify(v: np.ndarray, is_vector: bool) -> int:
+@jit_inline
+def _classify(v: tuple, is_vector: bool) -> int:
     """0 valid, 1 missing (all NaN), 2 invalid (partly non-finite, or a zero vector)."""
     nan = 0
     bad = False
@@ -130,6 +143,19 @@ def _classify(v: np.ndarray, is_vector: bool) -> int:
     if is_vector and v[0] * v[0] + v[1] * v[1] + v[2] * v[2] < 1e-300:
         return 2
     return 0
+
+
+@jit_inline
+def _unit_t(v: tuple) -> tuple:
+    n = np.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
+    return (v[0] / n, v[1] / n, v[2] / n)
+
+
+@jit_inline
+def _n33(nz: np.ndarray, k: int) -> tuple:
+    """Noise matrix ``k`` of :func:`build_noise` as a tuple of rows (no array view)."""
+    return ((nz[k, 0, 0], nz[k, 0, 1], nz[k, 0, 2]), (nz[k, 1, 0], nz[k, 1, 1], nz[k, 1, 2]),
+            (nz[k, 2, 0], nz[k, 2, 1], nz[k, 2, 2]))
 
 
 @jit
@@ -316,29 +342,25 @@ def build_noise(cfg: np.ndarray) -> np.ndarray:
     return nz
 
 
-@jit
-def calibrate_mag(cfg: np.ndarray, mag: np.ndarray) -> np.ndarray:
+@jit_inline
+def calibrate_mag(cfg: np.ndarray, mag: tuple) -> tuple:
     """Hard- and soft-iron correction ``m = S (m_raw − h)`` (extension; sensor units)."""
-    v = np.empty(3)
-    for i in range(3):
-        v[i] = mag[i] - cfg[C_MAG_HI + i]
-    out = np.empty(3)
-    for i in range(3):
-        out[i] = (cfg[C_MAG_SI + 3 * i] * v[0] + cfg[C_MAG_SI + 3 * i + 1] * v[1]
-                  + cfg[C_MAG_SI + 3 * i + 2] * v[2])
-    return out
+    v0, v1, v2 = mag[0] - cfg[C_MAG_HI], mag[1] - cfg[C_MAG_HI + 1], mag[2] - cfg[C_MAG_HI + 2]
+    return (cfg[C_MAG_SI] * v0 + cfg[C_MAG_SI + 1] * v1 + cfg[C_MAG_SI + 2] * v2,
+            cfg[C_MAG_SI + 3] * v0 + cfg[C_MAG_SI + 4] * v1 + cfg[C_MAG_SI + 5] * v2,
+            cfg[C_MAG_SI + 6] * v0 + cfg[C_MAG_SI + 7] * v1 + cfg[C_MAG_SI + 8] * v2)
 
 
-@jit
+@jit_inline
 def _mag_plausible(cfg: np.ndarray, st: np.ndarray, fl: np.ndarray, cnt: np.ndarray,
-                   R: np.ndarray, m_body: np.ndarray, m_norm: float) -> bool:
+                   R: tuple, m_body: tuple, m_norm: float) -> bool:
     """Field magnitude and dip against the learned reference (extension); counted if not."""
     if fl[F_MCOUNT] < 10:
         return True  # reference still being learned
     if abs(m_norm / st[S_MNORM] - 1.0) > cfg[C_MAG_TOL]:
         cnt[K_MAG_REJ_NORM] += 1
         return False
-    mz = R[2, 0] * m_body[0] + R[2, 1] * m_body[1] + R[2, 2] * m_body[2]
+    mz = R[2][0] * m_body[0] + R[2][1] * m_body[1] + R[2][2] * m_body[2]
     dip = np.arcsin(max(-1.0, min(1.0, mz)))
     dip_ref = np.arcsin(max(-1.0, min(1.0, st[S_MREF + 2])))
     if abs(dip - dip_ref) > cfg[C_DIP_TOL]:
@@ -518,6 +540,19 @@ def sensor_step(cfg: np.ndarray, nz: np.ndarray, st: np.ndarray, P: np.ndarray,
                 mag: np.ndarray) -> None:
     """Process one sample: any of ``gyr`` (rad/s), ``acc`` (m/s², +g up at rest) and ``mag``
     (any unit) may be NaN (missing). ``dt`` is the time since the previous sample."""
+    _sensor_step(cfg, nz, st, P, fl, cnt, dt, t3(gyr), t3(acc), t3(mag), np.empty(NX_MAX),
+                 mekf_scratch(NX_MAX))
+
+
+@jit_inline
+def _sensor_step(cfg: np.ndarray, nz: np.ndarray, st: np.ndarray, P: np.ndarray,
+                 fl: np.ndarray, cnt: np.ndarray, dt: float, gyr: tuple, acc: tuple,
+                 mag: tuple, dx: np.ndarray, work: np.ndarray) -> None:
+    """:func:`sensor_step` with the readings as 3-tuples and the MEKF's scratch given (``dx``:
+    9 values, ``work``: ``mekf_scratch(9)``). Speed: the common path (MEKF, every sensor valid)
+    works on tuples and elements of ``st``, ``nz`` and ``P``: no allocation, no array views
+    (each costs reference counting, atomic operations that outweigh a small filter's
+    arithmetic); the rare paths build arrays."""
     cnt[K_SAMPLES] += 1
     use_mag = cfg[C_USE_MAG] > 0
     gs = _classify(gyr, False)
@@ -531,9 +566,10 @@ def sensor_step(cfg: np.ndarray, nz: np.ndarray, st: np.ndarray, P: np.ndarray,
     if use_mag and ms > 0:
         cnt[K_MAG_MISSING if ms == 1 else K_MAG_INVALID] += 1
     has_g, has_a, has_m = gs == 0, as_ == 0, ms == 0
-    g = gyr if has_g else np.zeros(3)
+    zero3 = (0.0, 0.0, 0.0)
+    g = gyr if has_g else zero3
     m_norm = np.sqrt(m_cal[0] ** 2 + m_cal[1] ** 2 + m_cal[2] ** 2) if has_m else 0.0
-    m_body = _unit(m_cal) if has_m else np.zeros(3)
+    m_body = _unit_t(m_cal) if has_m else zero3
 
     if fl[F_INIT] > 0 and dt > cfg[C_MAXDT]:
         cnt[K_GAPS] += 1
@@ -543,7 +579,8 @@ def sensor_step(cfg: np.ndarray, nz: np.ndarray, st: np.ndarray, P: np.ndarray,
             _paper_init(cfg, st, P, fl)
             from_canonical(cfg, st, P)
         elif has_a:
-            _align(cfg, st, P, fl, g, has_g, acc, m_body, m_norm, has_m)
+            _align(cfg, st, P, fl, np.array(g), has_g, np.array(acc), np.array(m_body), m_norm,
+                   has_m)
             from_canonical(cfg, st, P)
             return
         else:
@@ -554,18 +591,15 @@ def sensor_step(cfg: np.ndarray, nz: np.ndarray, st: np.ndarray, P: np.ndarray,
     chart = int(cfg[C_CHART])
     if has_m and fl[F_HEADING] == 0:
         _bl_export(cfg, st, P)  # baselines: the sensor layer works on (q̄, P_ee, ...)
-        _heading_init(cfg, st, P, fl, m_body, m_norm)
+        _heading_init(cfg, st, P, fl, np.array(m_body), m_norm)
         from_canonical(cfg, st, P)
         has_m = False  # this sample set the heading; do not count it twice
-    qc = st[S_QC:S_QC + 4]
-    w = st[S_W:S_W + 3]
-    b = st[S_B:S_B + 3]
     st[S_T_ACC] += dt
     if st[S_T_MAG] > 0.0:  # inside a period of disagreement with a plausible field
         st[S_T_MAG] += dt
 
     # accelerometer: magnitude test; the excess over gravity also widens the disturbance
-    a_body = _unit(acc) if has_a else np.zeros(3)
+    a_body = _unit_t(acc) if has_a else zero3
     acc_gate = cfg[C_ACC_GATE] if cfg[C_ACC_GATE] > 0 else np.inf
     a_excess = 0.0
     if has_a:
@@ -583,13 +617,15 @@ def sensor_step(cfg: np.ndarray, nz: np.ndarray, st: np.ndarray, P: np.ndarray,
         elif abs(a_excess) > cfg[C_ACC_TOL]:
             cnt[K_ACC_REJ_NORM] += 1
             has_a = False
-    Qa = nz[N_QA].copy()
-    for i in range(3):
-        Qa[i, i] += a_excess * a_excess
+    # Q_acc widened by the excess: nz[N_QA] + a_excess² I
+    Qa = _n33(nz, N_QA)
+    ex2 = a_excess * a_excess
+    Qa = ((Qa[0][0] + ex2, Qa[0][1], Qa[0][2]), (Qa[1][0], Qa[1][1] + ex2, Qa[1][2]),
+          (Qa[2][0], Qa[2][1], Qa[2][2] + ex2))
     # rest detection: the body is still → zero-rate pseudo-measurement sharpens the bias
     rest = False
     if cfg[C_REST] > 0 and has_g and has_a:
-        wr = (g[0] - b[0]) ** 2 + (g[1] - b[1]) ** 2 + (g[2] - b[2]) ** 2
+        wr = (g[0] - st[S_B]) ** 2 + (g[1] - st[S_B + 1]) ** 2 + (g[2] - st[S_B + 2]) ** 2
         if wr < cfg[C_REST_GYR] ** 2 and abs(a_excess) * cfg[C_GRAVITY] < cfg[C_REST_ACC]:
             st[S_T_REST] += dt
             rest = st[S_T_REST] >= cfg[C_REST_TIME]
@@ -601,69 +637,67 @@ def sensor_step(cfg: np.ndarray, nz: np.ndarray, st: np.ndarray, P: np.ndarray,
         acc_gate = mag_gate = np.inf
     # magnetometer: a field whose magnitude or dip is off is disturbed — skip it, and it also
     # ends any period of disagreement (that is evidence of disturbance, not of a wrong heading)
-    if has_m and not _mag_plausible(cfg, st, fl, cnt, rotmat(qc), m_body, m_norm):
+    if has_m and not _mag_plausible(cfg, st, fl, cnt, rotmat_t(
+            (st[S_QC], st[S_QC + 1], st[S_QC + 2], st[S_QC + 3])), m_body, m_norm):
         has_m = False
         st[S_T_MAG] = 0.0
     elif has_m and cfg[C_PAPER] <= 0 and st[S_T_MAG] > cfg[C_MAG_RECOVER]:
         # a plausible field has disagreed with the estimate for this long, without a break:
         # the heading is suspect; take it from the field in closed form, as at start-up
         _bl_export(cfg, st, P)
-        _heading_init(cfg, st, P, fl, m_body, m_norm)
+        _heading_init(cfg, st, P, fl, np.array(m_body), m_norm)
         from_canonical(cfg, st, P)
         has_m = False
     ok = True
     acc_nis = 0.0
     mag_nis = 0.0
-    if int(cfg[C_ALGO]) >= ALGO_EULER_KF:  # baselines: no rate/bias state to sharpen at rest
+    mref = (st[S_MREF], st[S_MREF + 1], st[S_MREF + 2])
+    h = np.sqrt(st[S_MREF] ** 2 + st[S_MREF + 1] ** 2)
+    href = (st[S_MREF] / h, st[S_MREF + 1] / h, 0.0) if has_m and heading else zero3
+    algo = int(cfg[C_ALGO])
+    if algo >= ALGO_EULER_KF:  # baselines: no rate/bias state to sharpen at rest
         rest = False
-        ok, acc_nis, mag_nis = _baseline_update(cfg, nz, st, P, cnt, dt, g, has_g, a_body,
-                                                has_a, Qa[0, 0], m_body, has_m, acc_gate,
-                                                mag_gate)
-    elif int(cfg[C_ALGO]) == 0:  # MEKF: predict, one block per sensor, one move to the manifold
-        mekf_predict(qc, w, P, nx, dt, nz[N_QW], nz[N_QB])
-        R = rotmat(qc)
-        dx = np.zeros(nx)
+        ok, acc_nis, mag_nis = _baseline_update(cfg, nz, st, P, cnt, dt, np.array(g), has_g,
+                                                np.array(a_body), has_a, Qa[0][0],
+                                                np.array(m_body), has_m, acc_gate, mag_gate)
+    elif algo == ALGO_MEKF:  # predict, one block per sensor, one move to the manifold
+        q = (st[S_QC], st[S_QC + 1], st[S_QC + 2], st[S_QC + 3])
+        w = (st[S_W], st[S_W + 1], st[S_W + 2])
+        b = (st[S_B], st[S_B + 1], st[S_B + 2])
+        q = mekf_predict_t(q, w, P, nx, dt, _n33(nz, N_QW), _n33(nz, N_QB))
+        R = rotmat_t(q)
+        for i in range(nx):
+            dx[i] = 0.0
         if has_a:
-            acc_nis = mekf_vector_update(P, nx, dx, R, a_body, UP, nz[N_RA], Qa, acc_gate,
-                                         cfg[C_ACC_MODE] == ACC_TILT)
+            acc_nis = mekf_vector_update_t(P, nx, dx, R, a_body, (0.0, 0.0, 1.0),
+                                           _n33(nz, N_RA), Qa, acc_gate,
+                                           cfg[C_ACC_MODE] == ACC_TILT, work)
         if has_m:
             if heading:
-                h = np.sqrt(st[S_MREF] ** 2 + st[S_MREF + 1] ** 2)
-                href = np.array((st[S_MREF] / h, st[S_MREF + 1] / h, 0.0))
-                mag_nis = mekf_heading_update(P, nx, dx, R, m_body, href,
-                                              _mag_yaw_var(cfg, st[S_MREF:S_MREF + 3]), mag_gate)
+                mag_nis = mekf_heading_update(P, nx, dx, a33(R), np.array(m_body),
+                                              np.array(href), _mag_yaw_var(cfg, np.array(mref)),
+                                              mag_gate)
             else:
-                mag_nis = mekf_vector_update(P, nx, dx, R, m_body, st[S_MREF:S_MREF + 3],
-                                             nz[N_RM], nz[N_QM], mag_gate)
+                mag_nis = mekf_vector_update_t(P, nx, dx, R, m_body, mref, _n33(nz, N_RM),
+                                               _n33(nz, N_QM), mag_gate, False, work)
         if has_g:
-            ok &= mekf_gyro_update(P, nx, dx, w, b, g, nz[N_RW], np.inf) >= 0
+            ok &= mekf_rate_update_t(P, nx, dx, w, b, g, _n33(nz, N_RW), True, np.inf,
+                                     work) >= 0
         if rest:
-            ok &= mekf_rate_update(P, nx, dx, w, b, np.zeros(3), eye(3, cfg[C_REST_VAR]), False,
-                                   np.inf) >= 0
-        mekf_apply(chart, cfg[C_CU] > 0, qc, w, b, P, nx, dx)
+            vz = cfg[C_REST_VAR]
+            ok &= mekf_rate_update_t(P, nx, dx, w, b, zero3, ((vz, 0.0, 0.0), (0.0, vz, 0.0),
+                                                             (0.0, 0.0, vz)), False, np.inf,
+                                     work) >= 0
+        q, w, b = mekf_apply_t(chart, cfg[C_CU] > 0, q, w, b, P, nx, dx)
+        for i in range(4):
+            st[S_QC + i] = q[i]
+        for i in range(3):
+            st[S_W + i] = w[i]
+            st[S_B + i] = b[i]
     else:  # MUKF: stacked measurement through the sigma points
-        vm = np.zeros((2, 3))
-        vref = np.zeros((2, 3))
-        use_v = np.zeros(2, dtype=np.bool_)
-        Rv = np.empty((2, 3, 3))
-        Qv = np.empty((2, 3, 3))
-        Rv[0], Qv[0], Rv[1], Qv[1] = nz[N_RA], Qa, nz[N_RM], nz[N_QM]
-        use_v[0], use_v[1] = has_a, has_m and not heading
-        vm[0], vref[0] = a_body, UP
-        href = np.zeros(3)
-        if has_m:
-            vm[1], vref[1] = m_body, st[S_MREF:S_MREF + 3]
-            h = np.sqrt(st[S_MREF] ** 2 + st[S_MREF + 1] ** 2)
-            href[0], href[1] = st[S_MREF] / h, st[S_MREF + 1] / h
-        gates = np.array((acc_gate, mag_gate, mag_gate, np.inf))
-        nis = np.zeros(4)
-        ok = mukf_step_ext(chart, cfg[C_CU] > 0, int(cfg[C_MUKF_NOISE]), cfg[C_W0], qc,
-                           st[S_E:S_E + 3], w, b, P, nx, dt, nz[N_QW], nz[N_QB], vm, vref, Rv,
-                           Qv, use_v, g, has_g, nz[N_RW], m_body, href, has_m and heading,
-                           _mag_yaw_var(cfg, st[S_MREF:S_MREF + 3]), rest, cfg[C_REST_VAR],
-                           gates, nis, cfg[C_ACC_MODE] == ACC_TILT)
-        acc_nis = nis[B_VEC0] if has_a else 0.0
-        mag_nis = nis[B_HEADING] if heading else nis[B_VEC1]
+        ok, acc_nis, mag_nis = _mukf_sensor_update(cfg, nz, st, P, nx, chart, dt, g, has_g,
+                                                   a_body, has_a, Qa, m_body, has_m, heading,
+                                                   mref, href, rest, acc_gate, mag_gate)
     if not ok or acc_nis < 0 or mag_nis < 0:
         cnt[K_UPDATE_FAILED] += 1
         for i in range(nx):  # regularise so that the next step can factorise again
@@ -682,7 +716,103 @@ def sensor_step(cfg: np.ndarray, nz: np.ndarray, st: np.ndarray, P: np.ndarray,
             st[S_T_MAG] = max(st[S_T_MAG], 1e-12)  # start (or continue) the disagreement clock
         else:
             st[S_T_MAG] = 0.0
-            _learn_mag_ref(cfg, st, fl, m_body, m_norm)
+            if fl[F_MCOUNT] < MAG_REF_SAMPLES:
+                _learn_mag_ref(cfg, st, fl, np.array(m_body), m_norm)
+
+
+@jit
+def _mukf_sensor_update(cfg: np.ndarray, nz: np.ndarray, st: np.ndarray, P: np.ndarray,
+                        nx: int, chart: int, dt: float, g: tuple, has_g: bool, a_body: tuple,
+                        has_a: bool, Qa: tuple, m_body: tuple, has_m: bool, heading: bool,
+                        mref: tuple, href: tuple, rest: bool, acc_gate: float,
+                        mag_gate: float) -> tuple[bool, float, float]:
+    """The MUKF step of :func:`sensor_step`: the stacked measurement through the sigma points.
+    Returns ``(ok, acc NIS, mag NIS)``."""
+    heading_m = has_m and heading
+    nb = 2 * 3 + 3 + 2 + 4 + 4  # rows of one scratch table (below)
+    A = np.zeros((nb, 3))  # vm(2), vref(2), gyro, hm/href, gates/nis (as rows of 3 … 4)
+    Rv = np.empty((2, 3, 3))
+    Qv = np.empty((2, 3, 3))
+    use_v = np.zeros(2, dtype=np.bool_)
+    for i in range(3):
+        for j in range(3):
+            Rv[0, i, j], Qv[0, i, j] = nz[N_RA, i, j], Qa[i][j]
+            Rv[1, i, j], Qv[1, i, j] = nz[N_RM, i, j], nz[N_QM, i, j]
+    use_v[0], use_v[1] = has_a, has_m and not heading
+    vm = A[0:2]
+    vref = A[2:4]
+    wm = A[4]
+    hm = A[5]
+    hr = A[6]
+    for i in range(3):
+        vm[0, i], vref[0, i] = a_body[i], (0.0, 0.0, 1.0)[i]
+        wm[i] = g[i]
+        if has_m:
+            vm[1, i], vref[1, i] = m_body[i], mref[i]
+            hm[i], hr[i] = m_body[i], href[i]
+    gn = np.empty((2, 4))
+    gates = gn[0]
+    nis = gn[1]
+    gates[0], gates[1], gates[2], gates[3] = acc_gate, mag_gate, mag_gate, np.inf
+    nis[:] = 0.0
+    ok = mukf_step_ext(chart, cfg[C_CU] > 0, int(cfg[C_MUKF_NOISE]), cfg[C_W0],
+                       st[S_QC:S_QC + 4], st[S_E:S_E + 3], st[S_W:S_W + 3], st[S_B:S_B + 3], P,
+                       nx, dt, nz[N_QW], nz[N_QB], vm, vref, Rv, Qv, use_v, wm, has_g, nz[N_RW],
+                       hm, hr, heading_m, _mag_yaw_var(cfg, np.array(mref)), rest,
+                       cfg[C_REST_VAR], gates, nis, cfg[C_ACC_MODE] == ACC_TILT)
+    acc_nis = nis[B_VEC0] if has_a else 0.0
+    mag_nis = nis[B_HEADING] if heading else nis[B_VEC1]
+    return ok, acc_nis, mag_nis
+
+
+@jit_inline
+def _world_output_t(cfg: np.ndarray, st: np.ndarray, P: np.ndarray,
+                    q_from_enu: np.ndarray) -> tuple[tuple, tuple]:
+    """:func:`world_output` as tuples (the quaternion, the covariance's rows): reads ``st`` and
+    ``P`` element by element, so that the per-sample output of :func:`run_batch` allocates
+    nothing and creates no array views (each costs reference counting)."""
+    if int(cfg[C_ALGO]) >= ALGO_EULER_KF:
+        qa, Pa = _baseline_estimate(cfg, st, P)
+        q, Pb = t4(qa), t33(Pa)
+    else:  # estimate_enu: q̂ = q̄_c * φ⁻¹(ē), Σ_body = T P_ee Tᵀ (identity for ē = 0)
+        q = (st[S_QC], st[S_QC + 1], st[S_QC + 2], st[S_QC + 3])
+        Pb = ((P[0, 0], P[0, 1], P[0, 2]), (P[1, 0], P[1, 1], P[1, 2]),
+              (P[2, 0], P[2, 1], P[2, 2]))
+        e = (st[S_E], st[S_E + 1], st[S_E + 2])
+        if not (e[0] == 0.0 and e[1] == 0.0 and e[2] == 0.0):
+            chart = int(cfg[C_CHART])
+            d = from_chart_t(chart, e)
+            q = qnormalize_t(qmul_t(q, d))
+            Pb = _congruence_t(t_matrix_t(chart, d), Pb)
+    q = qmul_t(t4(q_from_enu), q)
+    n = np.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
+    if q[0] < 0.0:
+        n = -n
+    q = (q[0] / n, q[1] / n, q[2] / n, q[3] / n)
+    return q, _congruence_t(rotmat_t(q), Pb)
+
+
+@jit
+def _congruence_t(A: tuple, B: tuple) -> tuple:
+    """``A B Aᵀ`` for 3×3 tuples of rows: ``C[i][j] = Σ_k A[i][k] (Σ_l B[k][l] A[j][l])``."""
+    BAt = ((B[0][0] * A[0][0] + B[0][1] * A[0][1] + B[0][2] * A[0][2],
+            B[0][0] * A[1][0] + B[0][1] * A[1][1] + B[0][2] * A[1][2],
+            B[0][0] * A[2][0] + B[0][1] * A[2][1] + B[0][2] * A[2][2]),
+           (B[1][0] * A[0][0] + B[1][1] * A[0][1] + B[1][2] * A[0][2],
+            B[1][0] * A[1][0] + B[1][1] * A[1][1] + B[1][2] * A[1][2],
+            B[1][0] * A[2][0] + B[1][1] * A[2][1] + B[1][2] * A[2][2]),
+           (B[2][0] * A[0][0] + B[2][1] * A[0][1] + B[2][2] * A[0][2],
+            B[2][0] * A[1][0] + B[2][1] * A[1][1] + B[2][2] * A[1][2],
+            B[2][0] * A[2][0] + B[2][1] * A[2][1] + B[2][2] * A[2][2]))
+    return ((A[0][0] * BAt[0][0] + A[0][1] * BAt[1][0] + A[0][2] * BAt[2][0],
+             A[0][0] * BAt[0][1] + A[0][1] * BAt[1][1] + A[0][2] * BAt[2][1],
+             A[0][0] * BAt[0][2] + A[0][1] * BAt[1][2] + A[0][2] * BAt[2][2]),
+            (A[1][0] * BAt[0][0] + A[1][1] * BAt[1][0] + A[1][2] * BAt[2][0],
+             A[1][0] * BAt[0][1] + A[1][1] * BAt[1][1] + A[1][2] * BAt[2][1],
+             A[1][0] * BAt[0][2] + A[1][1] * BAt[1][2] + A[1][2] * BAt[2][2]),
+            (A[2][0] * BAt[0][0] + A[2][1] * BAt[1][0] + A[2][2] * BAt[2][0],
+             A[2][0] * BAt[0][1] + A[2][1] * BAt[1][1] + A[2][2] * BAt[2][1],
+             A[2][0] * BAt[0][2] + A[2][1] * BAt[1][2] + A[2][2] * BAt[2][2]))
 
 
 @jit
@@ -690,20 +820,12 @@ def world_output(cfg: np.ndarray, st: np.ndarray, P: np.ndarray, q_from_enu: np.
                  q_out: np.ndarray, cov_out: np.ndarray) -> None:
     """Orientation in the world frame (``q0 ≥ 0``) and its 3×3 covariance about world axes:
     ``Σ_W = R(q_W) Σ_body R(q_W)ᵀ`` (the error is body-side, ``q = q̂ * δ(e)``)."""
-    q, Pb = estimate_enu(cfg, st, P)
-    q = qmul(q_from_enu, q)
-    n = np.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
-    if q[0] < 0.0:
-        n = -n
+    q, cov = _world_output_t(cfg, st, P, q_from_enu)
     for i in range(4):
-        q_out[i] = q[i] / n
-    R = rotmat(q_out)
+        q_out[i] = q[i]
     for i in range(3):
         for j in range(3):
-            s = 0.0
-            for k in range(3):
-                s += R[i, k] * (Pb[k, 0] * R[j, 0] + Pb[k, 1] * R[j, 1] + Pb[k, 2] * R[j, 2])
-            cov_out[i, j] = s
+            cov_out[i, j] = cov[i][j]
 
 
 @jit
@@ -712,20 +834,29 @@ def run_batch(cfg: np.ndarray, st: np.ndarray, P: np.ndarray, fl: np.ndarray, cn
               q_from_enu: np.ndarray, out_q: np.ndarray, out_cov: np.ndarray,
               out_w: np.ndarray, out_b: np.ndarray, out_bvar: np.ndarray,
               out_init: np.ndarray) -> None:
-    """:func:`sensor_step` over a whole recording, writing the outputs of every sample."""
+    """:func:`sensor_step` over a whole recording, writing the outputs of every sample
+    (element by element: no array views in the loop)."""
     nx = int(cfg[C_NX])
     nz = build_noise(cfg)
+    dx = np.empty(NX_MAX)
+    work = mekf_scratch(NX_MAX)
     for n in range(dts.shape[0]):
-        sensor_step(cfg, nz, st, P, fl, cnt, dts[n], gyr[n], acc[n], mag[n])
-        world_output(cfg, st, P, q_from_enu, out_q[n], out_cov[n])
-        out_init[n] = fl[F_INIT] > 0
-        out_w[n] = st[S_W:S_W + 3]
-        out_b[n] = st[S_B:S_B + 3]
+        _sensor_step(cfg, nz, st, P, fl, cnt, dts[n], (gyr[n, 0], gyr[n, 1], gyr[n, 2]),
+                     (acc[n, 0], acc[n, 1], acc[n, 2]), (mag[n, 0], mag[n, 1], mag[n, 2]), dx,
+                     work)
+        q, cov = _world_output_t(cfg, st, P, q_from_enu)
+        init = fl[F_INIT] > 0
+        out_init[n] = init
+        for i in range(4):
+            out_q[n, i] = q[i]
         for i in range(3):
-            out_bvar[n, i] = P[6 + i, 6 + i] if nx == 9 else 0.0
-        if fl[F_INIT] == 0:
-            for i in range(3):
+            for j in range(3):
+                out_cov[n, i, j] = cov[i][j]
+            if not init:
                 out_cov[n, i, i] = np.pi ** 2  # not initialised: attitude unknown
+            out_w[n, i] = st[S_W + i]
+            out_b[n, i] = st[S_B + i]
+            out_bvar[n, i] = P[6 + i, 6 + i] if nx == 9 else 0.0
 
 
 def build_cfg(p: FilterParams) -> np.ndarray:

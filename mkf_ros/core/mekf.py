@@ -26,15 +26,48 @@ from mkf_ros.core.quaternion import q_omega_t, qmul_t, qnormalize_t, rotmat_t, t
 
 # Speed (the arithmetic of a 6-state update is a few hundred flops): 3-vectors, quaternions and
 # 3×3 matrices are tuples (``R[i][j]``), the nx×3 and 3×3 intermediates of a block live in one
-# scratch array (:func:`_scratch`) since numba allocates every array on the heap, and the
+# scratch array (:func:`mekf_scratch`) since numba allocates every array on the heap, and the
 # per-sample kernels and their blocks are inlined (``jit_inline``) so that passing arrays costs
 # no reference counting.
 
 
+# Scratch layout of one block update (``work``, :func:`mekf_scratch`), by row offsets rather than
+# views (every view costs reference counting): rows ``0:nx`` ``P Hᵀ``, ``nx:2nx`` the gain ``K``,
+# ``2nx:2nx+3`` ``S``, then (projected updates) ``ℓ_g = (P Hᵀ)_gᵀ u`` per group ``g`` and the
+# 3×3 ``c_gh = ℓ_gᵀ S⁻¹ ℓ_h``.
 @jit_inline
-def _scratch(nx: int) -> np.ndarray:
-    """Scratch for the block updates: rows ``0:nx`` ``P Hᵀ``, ``nx:2nx`` ``K``, then ``S``."""
-    return np.empty((2 * nx + 3, 3))
+def mekf_scratch(nx: int) -> np.ndarray:
+    """Scratch for the block updates (layout above)."""
+    return np.empty((2 * nx + 9, 3))
+
+
+@jit_inline
+def mekf_predict_t(q: tuple, w: tuple, P: np.ndarray, nx: int, dt: float, Qw: tuple,
+                   Qb: tuple) -> tuple:
+    """:func:`mekf_predict` on tuples (``Qw``, ``Qb`` tuples of rows); returns ``q̄⁻``."""
+    dq = q_omega_t(w, dt)
+    q = qnormalize_t(qmul_t(q, dq))
+    dt2 = dt * dt
+    for i in range(3):  # P + Q̂
+        for j in range(3):
+            qw = Qw[i][j]
+            P[i, j] += qw * dt2 * dt / 3.0
+            P[i, 3 + j] -= 0.5 * qw * dt2
+            P[3 + i, j] -= 0.5 * qw * dt2
+            P[3 + i, 3 + j] += qw * dt
+            if nx == 9:
+                P[6 + i, 6 + j] += Qb[i][j] * dt
+    # F (P + Q̂) Fᵀ by blocks: F only mixes the attitude rows, e ← A e + Δt ω, A = R(Δq)ᵀ
+    R = rotmat_t(dq)  # A[i][k] = R[k][i]
+    for j in range(nx):  # rows: F (P + Q̂), column by column
+        p0, p1, p2 = P[0, j], P[1, j], P[2, j]
+        for i in range(3):
+            P[i, j] = R[0][i] * p0 + R[1][i] * p1 + R[2][i] * p2 + dt * P[3 + i, j]
+    for i in range(nx):  # columns: (F (P + Q̂)) Fᵀ
+        p0, p1, p2 = P[i, 0], P[i, 1], P[i, 2]
+        for k in range(3):
+            P[i, k] = p0 * R[0][k] + p1 * R[1][k] + p2 * R[2][k] + dt * P[i, 3 + k]
+    return q
 
 
 @jit_inline
@@ -48,38 +81,16 @@ def mekf_predict(
     ``Q̂ = [[Q_ω Δt³/3, −Q_ω Δt²/2], [−Q_ω Δt²/2, Q_ω Δt]]`` (the authors' form, §8 item 2). The
     bias block gets ``Q_b Δt`` (random walk, extension).
     """
-    dq = q_omega_t(t3(w), dt)
-    q = qnormalize_t(qmul_t(t4(qc), dq))
+    q = mekf_predict_t(t4(qc), t3(w), P, nx, dt, t33(Qw), t33(Qb))
     for i in range(4):
         qc[i] = q[i]
-    dt2 = dt * dt
-    for i in range(3):  # P + Q̂
-        for j in range(3):
-            qw = Qw[i, j]
-            P[i, j] += qw * dt2 * dt / 3.0
-            P[i, 3 + j] -= 0.5 * qw * dt2
-            P[3 + i, j] -= 0.5 * qw * dt2
-            P[3 + i, 3 + j] += qw * dt
-            if nx == 9:
-                P[6 + i, 6 + j] += Qb[i, j] * dt
-    # F (P + Q̂) Fᵀ by blocks: F only mixes the attitude rows, e ← A e + Δt ω, A = R(Δq)ᵀ
-    R = rotmat_t(dq)  # A[i][k] = R[k][i]
-    for j in range(nx):  # rows: F (P + Q̂), column by column
-        p0, p1, p2 = P[0, j], P[1, j], P[2, j]
-        for i in range(3):
-            P[i, j] = R[0][i] * p0 + R[1][i] * p1 + R[2][i] * p2 + dt * P[3 + i, j]
-    for i in range(nx):  # columns: (F (P + Q̂)) Fᵀ
-        p0, p1, p2 = P[i, 0], P[i, 1], P[i, 2]
-        for k in range(3):
-            P[i, k] = p0 * R[0][k] + p1 * R[1][k] + p2 * R[2][k] + dt * P[i, 3 + k]
 
 
 @jit
-def inv3_spd_t(S: np.ndarray) -> tuple[bool, tuple]:
+def inv3_spd_t(S: tuple) -> tuple[bool, tuple]:
     """Inverse of a symmetric 3×3 matrix by cofactors, as its rows; False unless positive
-    definite."""
-    a, b, c = S[0, 0], S[0, 1], S[0, 2]
-    d, e, f = S[1, 1], S[1, 2], S[2, 2]
+    definite. ``S`` is its upper triangle ``(S00, S01, S02, S11, S12, S22)``."""
+    a, b, c, d, e, f = S
     c00 = d * f - e * e
     c01 = c * e - b * f
     c02 = b * e - c * d
@@ -95,7 +106,7 @@ def inv3_spd_t(S: np.ndarray) -> tuple[bool, tuple]:
 @jit
 def inv3_spd(S: np.ndarray, out: np.ndarray) -> bool:
     """Inverse of a symmetric 3×3 matrix by cofactors; False unless positive definite."""
-    ok, Si = inv3_spd_t(S)
+    ok, Si = inv3_spd_t((S[0, 0], S[0, 1], S[0, 2], S[1, 1], S[1, 2], S[2, 2]))
     if ok:
         for i in range(3):
             for j in range(3):
@@ -113,79 +124,103 @@ def _nis3(r: tuple, Si: tuple) -> float:
     return nis
 
 
-@jit
-def _gain_row(PHt: np.ndarray, i: int, Si: tuple) -> tuple:
-    """Row ``i`` of ``K = P Hᵀ S⁻¹``."""
-    p0, p1, p2 = PHt[i, 0], PHt[i, 1], PHt[i, 2]
+@jit_inline
+def _gain_row(work: np.ndarray, i: int, Si: tuple) -> tuple:
+    """Row ``i`` of ``K = P Hᵀ S⁻¹`` (``P Hᵀ`` in the rows ``0:nx`` of ``work``)."""
+    p0, p1, p2 = work[i, 0], work[i, 1], work[i, 2]
     return (p0 * Si[0][0] + p1 * Si[1][0] + p2 * Si[2][0],
             p0 * Si[0][1] + p1 * Si[1][1] + p2 * Si[2][1],
             p0 * Si[0][2] + p1 * Si[1][2] + p2 * Si[2][2])
 
 
 @jit_inline
-def _block_update(P: np.ndarray, nx: int, dx: np.ndarray, PHt: np.ndarray, S: np.ndarray,
-                  r: tuple, gate: float) -> float:
-    """Kalman update for one 3-row block given ``P Hᵀ`` (nx×3), ``S`` and the innovation ``r``
-    (already corrected for earlier blocks): ``K = P Hᵀ S⁻¹``, ``Δx += K r``, ``P −= K (P Hᵀ)ᵀ``.
+def _block_update(P: np.ndarray, nx: int, dx: np.ndarray, work: np.ndarray, r: tuple,
+                  gate: float) -> float:
+    """Kalman update for one 3-row block given ``P Hᵀ`` (nx×3) and ``S`` in ``work`` (layout
+    above) and the innovation ``r`` (already corrected for earlier blocks): ``K = P Hᵀ S⁻¹``,
+    ``Δx += K r``, ``P −= K (P Hᵀ)ᵀ`` (symmetric: the upper triangle, mirrored).
     Returns the normalised innovation squared ``rᵀ S⁻¹ r``; ``-1`` if ``S`` is not positive
     definite, and nothing changes when that value exceeds ``gate``."""
-    ok, Si = inv3_spd_t(S)
+    s0 = 2 * nx
+    ok, Si = inv3_spd_t((work[s0, 0], work[s0, 1], work[s0, 2], work[s0 + 1, 1],
+                         work[s0 + 1, 2], work[s0 + 2, 2]))
     if not ok:
         return -1.0
     nis = _nis3(r, Si)
     if nis > gate:
         return nis
     for i in range(nx):  # row i of K, then of Δx and P (P Hᵀ is a copy: P may change)
-        k0, k1, k2 = _gain_row(PHt, i, Si)
+        k0, k1, k2 = _gain_row(work, i, Si)
         dx[i] += k0 * r[0] + k1 * r[1] + k2 * r[2]
-        for j in range(nx):
-            P[i, j] -= k0 * PHt[j, 0] + k1 * PHt[j, 1] + k2 * PHt[j, 2]
+        for j in range(i, nx):
+            p = P[i, j] - (k0 * work[j, 0] + k1 * work[j, 1] + k2 * work[j, 2])
+            P[i, j] = p
+            P[j, i] = p
     return nis
 
 
 @jit_inline
-def _joseph_projected(P: np.ndarray, nx: int, dx: np.ndarray, PHt: np.ndarray, S: np.ndarray,
-                      r: tuple, gate: float, u: tuple, K: np.ndarray) -> float:
+def _joseph_projected(P: np.ndarray, nx: int, dx: np.ndarray, work: np.ndarray, r: tuple,
+                      gate: float, u: tuple) -> float:
     """:func:`_block_update` with the gain of every 3-row group (attitude, rate, bias) projected
     off the direction ``u`` (the world vertical in body axes), so that this measurement cannot
-    change heading, vertical rate or vertical bias; ``P`` by the Joseph form, valid for any
-    gain: ``(I − K H) P (I − K H)ᵀ + K R Kᵀ = P − K (PHᵀ)ᵀ − PHᵀ Kᵀ + K S Kᵀ``. ``K`` is nx×3
-    scratch."""
-    ok, Si = inv3_spd_t(S)
+    change heading, vertical rate or vertical bias: ``K = Π K₀``, ``K₀ = P Hᵀ S⁻¹``,
+    ``Π = blockdiag(I − u uᵀ)`` per group. ``P`` by the Joseph form, valid for any gain:
+    ``(I − K H) P (I − K H)ᵀ + K R Kᵀ = P − K (PHᵀ)ᵀ − PHᵀ Kᵀ + K S Kᵀ``, which with
+    ``M = K₀ (PHᵀ)ᵀ = PHᵀ S⁻¹ (PHᵀ)ᵀ`` is ``P − ΠM − MΠ + ΠMΠ = P − M + (I − Π) M (I − Π)``;
+    its group block ``(g, h)`` is ``P_gh − M_gh + c_gh u uᵀ``, ``c_gh = ℓ_gᵀ S⁻¹ ℓ_h``,
+    ``ℓ_g = (PHᵀ)_gᵀ u``."""
+    s0 = 2 * nx
+    ok, Si = inv3_spd_t((work[s0, 0], work[s0, 1], work[s0, 2], work[s0 + 1, 1],
+                         work[s0 + 1, 2], work[s0 + 2, 2]))
     if not ok:
         return -1.0
     nis = _nis3(r, Si)
     if nis > gate:
         return nis
-    for i in range(nx):
-        K[i, 0], K[i, 1], K[i, 2] = _gain_row(PHt, i, Si)
-    for g in range(nx // 3):  # K_g ← (I − u uᵀ) K_g
-        for j in range(3):
-            ku = u[0] * K[3 * g, j] + u[1] * K[3 * g + 1, j] + u[2] * K[3 * g + 2, j]
+    ng = nx // 3
+    for i in range(nx):  # K₀
+        work[nx + i, 0], work[nx + i, 1], work[nx + i, 2] = _gain_row(work, i, Si)
+    for g in range(ng):
+        # Δx_g += (I − u uᵀ) K₀_g r
+        k = nx + 3 * g
+        a0 = work[k, 0] * r[0] + work[k, 1] * r[1] + work[k, 2] * r[2]
+        a1 = work[k + 1, 0] * r[0] + work[k + 1, 1] * r[1] + work[k + 1, 2] * r[2]
+        a2 = work[k + 2, 0] * r[0] + work[k + 2, 1] * r[1] + work[k + 2, 2] * r[2]
+        au = u[0] * a0 + u[1] * a1 + u[2] * a2
+        dx[3 * g] += a0 - u[0] * au
+        dx[3 * g + 1] += a1 - u[1] * au
+        dx[3 * g + 2] += a2 - u[2] * au
+        for j in range(3):  # ℓ_g = (P Hᵀ)_gᵀ u
+            work[s0 + 3 + g, j] = (u[0] * work[3 * g, j] + u[1] * work[3 * g + 1, j]
+                                   + u[2] * work[3 * g + 2, j])
+    for g in range(ng):  # c_gh = ℓ_gᵀ S⁻¹ ℓ_h
+        lg = (work[s0 + 3 + g, 0], work[s0 + 3 + g, 1], work[s0 + 3 + g, 2])
+        for h in range(g, ng):
+            c = 0.0
             for i in range(3):
-                K[3 * g + i, j] -= u[i] * ku
-    for i in range(nx):
-        dx[i] += K[i, 0] * r[0] + K[i, 1] * r[1] + K[i, 2] * r[2]
-    # Joseph form: P' = P − K PHtᵀ − PHt Kᵀ + K S Kᵀ  (S = H P Hᵀ + R; equals the Joseph form)
-    for i in range(nx):
-        ks0 = K[i, 0] * S[0, 0] + K[i, 1] * S[1, 0] + K[i, 2] * S[2, 0]  # row i of K S
-        ks1 = K[i, 0] * S[0, 1] + K[i, 1] * S[1, 1] + K[i, 2] * S[2, 1]
-        ks2 = K[i, 0] * S[0, 2] + K[i, 1] * S[1, 2] + K[i, 2] * S[2, 2]
-        for j in range(nx):
-            s_ = 0.0
-            s_ += -K[i, 0] * PHt[j, 0] - PHt[i, 0] * K[j, 0] + ks0 * K[j, 0]
-            s_ += -K[i, 1] * PHt[j, 1] - PHt[i, 1] * K[j, 1] + ks1 * K[j, 1]
-            s_ += -K[i, 2] * PHt[j, 2] - PHt[i, 2] * K[j, 2] + ks2 * K[j, 2]
-            P[i, j] += s_
+                for j in range(3):
+                    c += lg[i] * Si[i][j] * work[s0 + 3 + h, j]
+            work[s0 + 6 + g, h] = c
+            work[s0 + 6 + h, g] = c
+    for i in range(nx):  # P ← P − K₀ (P Hᵀ)ᵀ + c_gh u uᵀ (upper triangle, mirrored)
+        k0, k1, k2 = work[nx + i, 0], work[nx + i, 1], work[nx + i, 2]
+        cu = u[i % 3]
+        for j in range(i, nx):
+            p = (P[i, j] - (k0 * work[j, 0] + k1 * work[j, 1] + k2 * work[j, 2])
+                 + work[s0 + 6 + i // 3, j // 3] * cu * u[j % 3])
+            P[i, j] = p
+            P[j, i] = p
     return nis
 
 
 @jit_inline
-def _vector_update(
-    P: np.ndarray, nx: int, dx: np.ndarray, R: tuple, vm: np.ndarray, vref: np.ndarray,
-    Rv: np.ndarray, Qv: np.ndarray, gate: float, tilt_only: bool, work: np.ndarray,
+def mekf_vector_update_t(
+    P: np.ndarray, nx: int, dx: np.ndarray, R: tuple, vm: tuple, vref: tuple, Rv: tuple,
+    Qv: tuple, gate: float, tilt_only: bool, work: np.ndarray,
 ) -> float:
-    """:func:`mekf_vector_update` with ``R`` as a tuple of rows and scratch ``work``."""
+    """:func:`mekf_vector_update` on tuples (``R``, ``Rv``, ``Qv`` tuples of rows) with scratch
+    ``work``."""
     vb = (R[0][0] * vref[0] + R[1][0] * vref[1] + R[2][0] * vref[2],  # v̄ = R(q̄⁻)ᵀ v
           R[0][1] * vref[0] + R[1][1] * vref[1] + R[2][1] * vref[2],
           R[0][2] * vref[0] + R[1][2] * vref[1] + R[2][2] * vref[2])
@@ -193,35 +228,33 @@ def _vector_update(
     r = (vm[0] - vb[0] - (vb[1] * dx[2] - vb[2] * dx[1]),
          vm[1] - vb[1] - (vb[2] * dx[0] - vb[0] * dx[2]),
          vm[2] - vb[2] - (vb[0] * dx[1] - vb[1] * dx[0]))
-    # P Hᵀ = P[:, 0:3] [v̄]×ᵀ = −P[:, 0:3] [v̄]×
-    PHt = work[:nx]
+    # P Hᵀ = P[:, 0:3] [v̄]×ᵀ = −P[:, 0:3] [v̄]×   (rows 0:nx of work)
     for i in range(nx):
         p0, p1, p2 = P[i, 0], P[i, 1], P[i, 2]
-        PHt[i, 0] = -(p1 * vb[2] - p2 * vb[1])
-        PHt[i, 1] = -(p2 * vb[0] - p0 * vb[2])
-        PHt[i, 2] = -(p0 * vb[1] - p1 * vb[0])
-    # S = [v̄]× (P Hᵀ)[0:3] + R(q̄⁻)ᵀ Q_v R(q̄⁻) + R_v
-    S = work[2 * nx:2 * nx + 3]
+        work[i, 0] = -(p1 * vb[2] - p2 * vb[1])
+        work[i, 1] = -(p2 * vb[0] - p0 * vb[2])
+        work[i, 2] = -(p0 * vb[1] - p1 * vb[0])
+    # S = [v̄]× (P Hᵀ)[0:3] + R(q̄⁻)ᵀ Q_v R(q̄⁻) + R_v   (rows 2nx:2nx+3 of work)
+    isotropic = (Qv[0][1] == 0.0 and Qv[0][2] == 0.0 and Qv[1][2] == 0.0
+                 and Qv[0][0] == Qv[1][1] and Qv[1][1] == Qv[2][2])
+    s0 = 2 * nx
     for j in range(3):
-        S[0, j] = vb[1] * PHt[2, j] - vb[2] * PHt[1, j]
-        S[1, j] = vb[2] * PHt[0, j] - vb[0] * PHt[2, j]
-        S[2, j] = vb[0] * PHt[1, j] - vb[1] * PHt[0, j]
-    isotropic = (Qv[0, 1] == 0.0 and Qv[0, 2] == 0.0 and Qv[1, 2] == 0.0
-                 and Qv[0, 0] == Qv[1, 1] and Qv[1, 1] == Qv[2, 2])
+        work[s0, j] = vb[1] * work[2, j] - vb[2] * work[1, j]
+        work[s0 + 1, j] = vb[2] * work[0, j] - vb[0] * work[2, j]
+        work[s0 + 2, j] = vb[0] * work[1, j] - vb[1] * work[0, j]
     for i in range(3):
         for j in range(3):
             if isotropic:  # Rᵀ (σ² I) R = σ² I
-                qb = Qv[i, j]
+                qb = Qv[i][j]
             else:
                 qb = 0.0
                 for k in range(3):
                     for m in range(3):
-                        qb += R[k][i] * Qv[k, m] * R[m][j]
-            S[i, j] += qb + Rv[i, j]
+                        qb += R[k][i] * Qv[k][m] * R[m][j]
+            work[s0 + i, j] += qb + Rv[i][j]
     if tilt_only:
-        return _joseph_projected(P, nx, dx, PHt, S, r, gate, R[2],  # R(q̄)ᵀ ẑ
-                                 work[nx:2 * nx])
-    return _block_update(P, nx, dx, PHt, S, r, gate)
+        return _joseph_projected(P, nx, dx, work, r, gate, R[2])  # u = R(q̄)ᵀ ẑ
+    return _block_update(P, nx, dx, work, r, gate)
 
 
 @jit
@@ -233,28 +266,28 @@ def mekf_vector_update(
     ``H = [[v̄]×, 0]``, noise ``R(q̄⁻)ᵀ Q_v R(q̄⁻) + R_v``. ``R`` is ``R(q̄⁻)``. With
     ``tilt_only`` (extension, for gravity) the gain is kept off the world vertical
     (:func:`_joseph_projected`). Returns the NIS (see :func:`_block_update`)."""
-    return _vector_update(P, nx, dx, t33(R), vm, vref, Rv, Qv, gate, tilt_only, _scratch(nx))
+    return mekf_vector_update_t(P, nx, dx, t33(R), t3(vm), t3(vref), t33(Rv), t33(Qv), gate,
+                                tilt_only, mekf_scratch(nx))
 
 
 @jit_inline
-def _rate_update(
-    P: np.ndarray, nx: int, dx: np.ndarray, w: np.ndarray, b: np.ndarray, wm: np.ndarray,
-    Rw: np.ndarray, with_bias: bool, gate: float, work: np.ndarray,
+def mekf_rate_update_t(
+    P: np.ndarray, nx: int, dx: np.ndarray, w: tuple, b: tuple, wm: tuple, Rw: tuple,
+    with_bias: bool, gate: float, work: np.ndarray,
 ) -> float:
-    """:func:`mekf_rate_update` with scratch ``work``."""
+    """:func:`mekf_rate_update` on tuples (``Rw`` a tuple of rows) with scratch ``work``."""
     bias = with_bias and nx == 9
     r0 = wm[0] - w[0] - dx[3] - ((b[0] + dx[6]) if bias else (b[0] if with_bias else 0.0))
     r1 = wm[1] - w[1] - dx[4] - ((b[1] + dx[7]) if bias else (b[1] if with_bias else 0.0))
     r2 = wm[2] - w[2] - dx[5] - ((b[2] + dx[8]) if bias else (b[2] if with_bias else 0.0))
-    PHt = work[:nx]
-    for i in range(nx):
+    for i in range(nx):  # P Hᵀ, H = [0, I, I] (or [0, I, 0])
         for j in range(3):
-            PHt[i, j] = P[i, 3 + j] + (P[i, 6 + j] if bias else 0.0)
-    S = work[2 * nx:2 * nx + 3]
-    for i in range(3):
+            work[i, j] = P[i, 3 + j] + (P[i, 6 + j] if bias else 0.0)
+    s0 = 2 * nx
+    for i in range(3):  # S = H P Hᵀ + R_ω
         for j in range(3):
-            S[i, j] = PHt[3 + i, j] + (PHt[6 + i, j] if bias else 0.0) + Rw[i, j]
-    return _block_update(P, nx, dx, PHt, S, (r0, r1, r2), gate)
+            work[s0 + i, j] = work[3 + i, j] + (work[6 + i, j] if bias else 0.0) + Rw[i][j]
+    return _block_update(P, nx, dx, work, (r0, r1, r2), gate)
 
 
 @jit
@@ -265,7 +298,8 @@ def mekf_rate_update(
     """A rate measurement: the gyro (eq. 23, ``ȳ = ω̄⁻ + b̄``, ``H = [0, I, I]``, or ``[0, I]``
     without bias) or, with ``with_bias=False``, the zero-rate pseudo-measurement of rest
     detection (``ȳ = ω̄⁻``, ``H = [0, I, 0]``)."""
-    return _rate_update(P, nx, dx, w, b, wm, Rw, with_bias, gate, _scratch(nx))
+    return mekf_rate_update_t(P, nx, dx, t3(w), t3(b), t3(wm), t33(Rw), with_bias, gate,
+                              mekf_scratch(nx))
 
 
 @jit
@@ -274,7 +308,8 @@ def mekf_gyro_update(
     Rw: np.ndarray, gate: float,
 ) -> float:
     """The gyro (eq. 23): ``ȳ = ω̄⁻ + b̄``, ``H = [0, I, I]`` (``[0, I]`` without bias)."""
-    return _rate_update(P, nx, dx, w, b, wm, Rw, True, gate, _scratch(nx))
+    return mekf_rate_update_t(P, nx, dx, t3(w), t3(b), t3(wm), t33(Rw), True, gate,
+                              mekf_scratch(nx))
 
 
 @jit
@@ -347,22 +382,32 @@ def mekf_heading_update(
 
 
 @jit_inline
+def mekf_apply_t(chart: int, chart_update: bool, q: tuple, w: tuple, b: tuple, P: np.ndarray,
+                 nx: int, dx: np.ndarray) -> tuple[tuple, tuple, tuple]:
+    """:func:`mekf_apply` on tuples: returns ``(q̄⁺, ω̄⁺, b̄⁺)``."""
+    d = from_chart_t(chart, saturate_t(chart, (dx[0], dx[1], dx[2])))
+    q = qnormalize_t(qmul_t(q, d))
+    w = (w[0] + dx[3], w[1] + dx[4], w[2] + dx[5])
+    if nx == 9:
+        b = (b[0] + dx[6], b[1] + dx[7], b[2] + dx[8])
+    if chart_update:
+        transport_covariance_t(P, nx, t_matrix_t(chart, d))
+    symmetrize_leading(P, nx)
+    return q, w, b
+
+
+@jit_inline
 def mekf_apply(chart: int, chart_update: bool, qc: np.ndarray, w: np.ndarray, b: np.ndarray,
                P: np.ndarray, nx: int, dx: np.ndarray) -> None:
     """Multiplicative update and chart update (§5): ``ē = sat(Δx_e)``, ``δ̄ = φ⁻¹(ē)``,
     ``q̄⁺ = q̄⁻ * δ̄``, ``ω̄⁺ = ω̄⁻ + Δω``; with the chart update ``P⁺ = T̃ P' T̃ᵀ``,
     ``T̃ = blockdiag(T(δ̄), I)`` (eq. 47b), otherwise ``P⁺ = P'`` (reset). ``P`` symmetrised."""
-    d = from_chart_t(chart, saturate_t(chart, (dx[0], dx[1], dx[2])))
-    q = qnormalize_t(qmul_t(t4(qc), d))
+    q, w1, b1 = mekf_apply_t(chart, chart_update, t4(qc), t3(w), t3(b), P, nx, dx)
     for i in range(4):
         qc[i] = q[i]
     for i in range(3):
-        w[i] += dx[3 + i]
-        if nx == 9:
-            b[i] += dx[6 + i]
-    if chart_update:
-        transport_covariance_t(P, nx, t_matrix_t(chart, d))
-    symmetrize_leading(P, nx)
+        w[i] = w1[i]
+        b[i] = b1[i]
 
 
 @jit_inline
@@ -408,15 +453,16 @@ def mekf_update(
     item 4). Returns False if an innovation covariance was not positive definite (that block is
     skipped).
     """
-    R = rotmat_t(t4(qc))
+    q, wt, bt = t4(qc), t3(w), t3(b)
+    R = rotmat_t(q)
     dx = np.zeros(nx)
-    work = _scratch(nx)
+    work = mekf_scratch(nx)
     ok = True
     for k in range(use_v.shape[0]):
         if use_v[k]:
-            ok &= _vector_update(P, nx, dx, R, vm[k], vref[k], Rv[k], Qv[k], np.inf, False,
-                                 work) >= 0
+            ok &= mekf_vector_update_t(P, nx, dx, R, t3(vm[k]), t3(vref[k]), t33(Rv[k]), t33(Qv[k]),
+                                 np.inf, False, work) >= 0
     if use_w:
-        ok &= _rate_update(P, nx, dx, w, b, wm, Rw, True, np.inf, work) >= 0
+        ok &= mekf_rate_update_t(P, nx, dx, wt, bt, t3(wm), t33(Rw), True, np.inf, work) >= 0
     mekf_apply(chart, chart_update, qc, w, b, P, nx, dx)
     return ok

@@ -410,20 +410,22 @@ def _mukf_step(
                     for bb in range(ma):
                         s_ += Kt[bb, i] * Pyy[bb, a]
                     KPyy[i, a] = s_
-            for i in range(nx):
-                for jj in range(nx):
+            for i in range(nx):  # symmetric: the upper triangle, mirrored
+                for jj in range(i, nx):
                     s_ = 0.0
                     for a in range(ma):
                         s_ += (-Kt[a, i] * Pxy[jj, a] - Pxy[i, a] * Kt[a, jj]
                                + KPyy[i, a] * Kt[a, jj])
                     Pxx[i, jj] += s_
+                    Pxx[jj, i] = Pxx[i, jj]
         else:  # P ← P_xx − K P_yy Kᵀ = P_xx − P_xy Kᵀ
-            for i in range(nx):
-                for jj in range(nx):
+            for i in range(nx):  # P_xy P_yy⁻¹ P_xyᵀ is symmetric: upper triangle, mirrored
+                for jj in range(i, nx):
                     s_ = 0.0
                     for a in range(ma):
                         s_ += Pxy[i, a] * Kt[a, jj]
                     Pxx[i, jj] -= s_
+                    Pxx[jj, i] = Pxx[i, jj]
     symmetrize(Pxx)
     for i in range(4):
         qc[i] = qm[i]
