@@ -29,7 +29,7 @@ setup(
         "setuptools",
         "numpy>=1.24",
         "numba>=0.59",
-        "rosbags>=0.11",
+        "rosbags>=0.11,<0.12",  # mkf_ros.bags.writer extends its storage writers' internals
         "matplotlib>=3.7",
         "tqdm>=4.60",
         "pyyaml",
