@@ -721,7 +721,7 @@ def _sensor_step(cfg: np.ndarray, nz: np.ndarray, st: np.ndarray, P: np.ndarray,
                 _learn_mag_ref(cfg, st, fl, np.array(m_body), m_norm)
 
 
-@jit
+@jit_inline
 def _mukf_sensor_update(cfg: np.ndarray, nz: np.ndarray, st: np.ndarray, P: np.ndarray,
                         nx: int, chart: int, dt: float, g: tuple, has_g: bool, a_body: tuple,
                         has_a: bool, Qa: tuple, m_body: tuple, has_m: bool, heading: bool,

@@ -86,13 +86,30 @@ _X, _Q, _Y = 0, 9, 13
 
 
 @jit_inline
-def _wsum(T: np.ndarray, ns: int, w_0: float, wj: float, a: int, b: int) -> float:
-    """``Σ_s W_s T[s, a] T[s, b]`` over the sigma points ``s < ns`` (``W_0 = w_0``, else ``wj``),
-    accumulated in point order."""
-    acc = (w_0 * T[0, a]) * T[0, b]
-    for s in range(1, ns):
-        acc += (wj * T[s, a]) * T[s, b]
-    return acc
+def _wsums(T: np.ndarray, ns: int, w_0: float, wj: float, a: int, b: int, n: int,
+           out: np.ndarray, r: int) -> None:
+    """``out[r, k] = Σ_s W_s T[s, a] T[s, b + k]`` for ``k < n``, over the sigma points ``s < ns``
+    (``W_0 = w_0``, else ``wj``), each accumulated in point order in a register; four columns at
+    a time (independent sums: the additions overlap instead of waiting for each other)."""
+    k = 0
+    while k + 4 <= n:
+        wa = w_0 * T[0, a]
+        c0, c1 = wa * T[0, b + k], wa * T[0, b + k + 1]
+        c2, c3 = wa * T[0, b + k + 2], wa * T[0, b + k + 3]
+        for s in range(1, ns):
+            wa = wj * T[s, a]
+            c0 += wa * T[s, b + k]
+            c1 += wa * T[s, b + k + 1]
+            c2 += wa * T[s, b + k + 2]
+            c3 += wa * T[s, b + k + 3]
+        out[r, k], out[r, k + 1], out[r, k + 2], out[r, k + 3] = c0, c1, c2, c3
+        k += 4
+    while k < n:
+        c0 = (w_0 * T[0, a]) * T[0, b + k]
+        for s in range(1, ns):
+            c0 += (wj * T[s, a]) * T[s, b + k]
+        out[r, k] = c0
+        k += 1
 
 
 @jit
@@ -349,16 +366,12 @@ def mukf_step_t(
             T[s, cc] -= T[ns, cc]
         for cc in range(_Y, _Y + m_nl):
             T[s, cc] -= T[ns, cc]
-    # P_xx = Σ_s W_s Δx_s Δx_sᵀ (lower triangle), P_xy = Σ_s W_s Δx_s Δy_sᵀ, P_yy likewise;
-    # each element summed over the points in a register (columns a, b of T), in point order
+    # P_xx = Σ_s W_s Δx_s Δx_sᵀ (lower triangle), P_xy = Σ_s W_s Δx_s Δy_sᵀ, P_yy likewise
     for i in range(nx):
-        for jj in range(i + 1):
-            Pxx[i, jj] = _wsum(T, ns, w_0, wj, _X + i, _X + jj)
-        for jj in range(m_nl):
-            Pxy[i, jj] = _wsum(T, ns, w_0, wj, _X + i, _Y + jj)
+        _wsums(T, ns, w_0, wj, _X + i, _X, i + 1, Pxx, i)
+        _wsums(T, ns, w_0, wj, _X + i, _Y, m_nl, Pxy, i)
     for i in range(m_nl):
-        for jj in range(i + 1):
-            Pyy[i, jj] = _wsum(T, ns, w_0, wj, _Y + i, _Y + jj)
+        _wsums(T, ns, w_0, wj, _Y + i, _Y, i + 1, Pyy, i)
     for i in range(nx):  # the loops above filled the lower triangles
         for jj in range(i):
             Pxx[jj, i] = Pxx[i, jj]
