@@ -15,7 +15,7 @@ import numpy as np
 
 from mkf_ros.core._jit import jit, jit_inline
 from mkf_ros.core.charts import from_chart_at, from_chart_at_t, from_chart_t, saturate_t, to_chart_t
-from mkf_ros.core.linalg import cho_solve_into, cholesky_into, symmetrize
+from mkf_ros.core.linalg import cho_solve_into, cholesky_into
 from mkf_ros.core.mekf import heading_residual_t
 from mkf_ros.core.quaternion import (
     q_omega_t,
@@ -83,6 +83,34 @@ _BLOCK_SIZE = (3, 3, 1, 3)
 # columns of the sigma-point table of mukf_step_ext: state part x = (e, ω, b), quaternion q⁻,
 # measurement y
 _X, _Q, _Y = 0, 9, 13
+
+
+@jit_inline
+def _wmeans(T: np.ndarray, ns: int, w_0: float, wj: float, c0: int, c1: int) -> None:
+    """``T[ns, c] = Σ_s W_s T[s, c]`` for columns ``c0 ≤ c < c1`` over the sigma points
+    ``s < ns`` (``W_0 = w_0``, else ``wj``), accumulated from 0 in point order in registers,
+    four columns at a time."""
+    c = c0
+    while c < c1:
+        n = min(4, c1 - c)
+        a0 = a1 = a2 = a3 = 0.0
+        for s in range(ns):
+            ws_ = w_0 if s == 0 else wj
+            a0 += ws_ * T[s, c]
+            if n > 1:
+                a1 += ws_ * T[s, c + 1]
+            if n > 2:
+                a2 += ws_ * T[s, c + 2]
+            if n > 3:
+                a3 += ws_ * T[s, c + 3]
+        T[ns, c] = a0
+        if n > 1:
+            T[ns, c + 1] = a1
+        if n > 2:
+            T[ns, c + 2] = a2
+        if n > 3:
+            T[ns, c + 3] = a3
+        c += 4
 
 
 @jit_inline
@@ -261,7 +289,6 @@ def mukf_step_t(
     S_nx = scratch[3]  # row ranges: P_xx, Kᵀ
     Pxx = S_nx[:nx]
     Kt = S_nx[nx:nx + m]
-    inn = T[ns + 1, _Y:]  # (m values used)
     if not cholesky_into(P, L, 0, nx):
         return False, qc_t, ebar, w, b, nis
     if dt > 0.0 or published:
@@ -333,12 +360,9 @@ def mukf_step_t(
             for i in range(4):
                 T[s, _Q + i] = -T[s, _Q + i]
     # 5. means: normalised weighted quaternion sum, weighted rate, bias and measurement
-    for cc in range(_Y + m_nl):
+    for cc in range(_X + 3):
         T[ns, cc] = 0.0
-    for s in range(ns):
-        ws_ = w_0 if s == 0 else wj
-        for cc in range(_X + 3, _Y + m_nl):  # ω, b, q, the non-linear rows of y
-            T[ns, cc] += ws_ * T[s, cc]
+    _wmeans(T, ns, w_0, wj, _X + 3, _Y + m_nl)  # ω, b, q, the non-linear rows of y
     qs = (T[ns, _Q], T[ns, _Q + 1], T[ns, _Q + 2], T[ns, _Q + 3])
     nq = np.sqrt(qs[0] * qs[0] + qs[1] * qs[1] + qs[2] * qs[2] + qs[3] * qs[3])
     qm = (qs[0] / nq, qs[1] / nq, qs[2] / nq, qs[3] / nq)
@@ -397,19 +421,19 @@ def mukf_step_t(
                         for bb in range(3):
                             qb += R0[a][i] * Qv[k][a][bb] * R0[bb][jj]
                     Pyy[r0 + i, r0 + jj] += Rv[k][i][jj] + qb
-                inn[r0 + i] = vm[k][i] - T[ns, _Y + r0 + i]
+                T[ns + 1, _Y + r0 + i] = vm[k][i] - T[ns, _Y + r0 + i]
     if use_h:
         Pyy[row_h, row_h] += var_h
-        inn[row_h] = -T[ns, _Y + row_h]
+        T[ns + 1, _Y + row_h] = -T[ns, _Y + row_h]
     if use_w:
         for i in range(3):
             for jj in range(3):
                 Pyy[row_g + i, row_g + jj] += Rw[i][jj]
-            inn[row_g + i] = wm[i] - T[ns, _Y + row_g + i]
+            T[ns + 1, _Y + row_g + i] = wm[i] - T[ns, _Y + row_g + i]
     if use_z:
         for i in range(3):
             Pyy[row_z + i, row_z + i] += var_z
-            inn[row_z + i] = -T[ns, _Y + row_z + i]
+            T[ns + 1, _Y + row_z + i] = -T[ns, _Y + row_z + i]
     # χ² gate per block: rᵀ P_yy⁻¹ r = ‖L⁻¹ r‖² of its rows alone (P_yy = L Lᵀ; Ly and the
     # first row of KPyy are free here)
     rejected = 0  # bit mask of blocks
@@ -425,7 +449,7 @@ def mukf_step_t(
             return False, qc_t, ebar, w, b, nis
         v = 0.0
         for i in range(nb):  # z = L⁻¹ r
-            z = inn[r0 + i]
+            z = T[ns + 1, _Y + r0 + i]
             for k in range(i):
                 z -= Ly[i, k] * KPyy[0, k]
             KPyy[0, i] = z / Ly[i, i]
@@ -447,7 +471,7 @@ def mukf_step_t(
                 row_hk = ma
             if r == row_v0k:
                 row_v0k = ma
-            inn[ma] = inn[r]
+            T[ns + 1, _Y + ma] = T[ns + 1, _Y + r]
             for i in range(nx):
                 Pxy[i, ma] = Pxy[i, r]
             a = 0
@@ -485,7 +509,7 @@ def mukf_step_t(
                 projected = True
         for a in range(ma):  # Δx = K (y − ȳ)
             for i in range(nx):
-                T[ns + 1, _X + i] += Kt[a, i] * inn[a]
+                T[ns + 1, _X + i] += Kt[a, i] * T[ns + 1, _Y + a]
         if projected:  # Joseph form, valid for any gain: P − K P_xyᵀ − P_xy Kᵀ + K P_yy Kᵀ
             for i in range(nx):
                 for a in range(ma):
@@ -509,7 +533,7 @@ def mukf_step_t(
                         s_ += Pxy[i, a] * Kt[a, jj]
                     Pxx[i, jj] -= s_
                     Pxx[jj, i] = Pxx[i, jj]
-    symmetrize(Pxx)
+    # (P_xx is exactly symmetric: every update above wrote one triangle and mirrored it)
     e = saturate_t(chart, (T[ns + 1, _X], T[ns + 1, _X + 1], T[ns + 1, _X + 2]))
     w = (T[ns, _X + 3] + T[ns + 1, _X + 3], T[ns, _X + 4] + T[ns + 1, _X + 4],
          T[ns, _X + 5] + T[ns + 1, _X + 5])
