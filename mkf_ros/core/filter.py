@@ -48,7 +48,7 @@ from mkf_ros.core.mekf import (
     mekf_vector_update_t,
     transport_covariance,
 )
-from mkf_ros.core.mukf import B_HEADING, B_VEC0, B_VEC1, NOISE_MODES, mukf_step_ext
+from mkf_ros.core.mukf import B_HEADING, B_VEC0, B_VEC1, NOISE_MODES, mukf_scratch, mukf_step_t
 from mkf_ros.core.params import ALGORITHMS, FilterParams
 from mkf_ros.core.quaternion import (
     a33,
@@ -541,18 +541,18 @@ def sensor_step(cfg: np.ndarray, nz: np.ndarray, st: np.ndarray, P: np.ndarray,
     """Process one sample: any of ``gyr`` (rad/s), ``acc`` (m/s², +g up at rest) and ``mag``
     (any unit) may be NaN (missing). ``dt`` is the time since the previous sample."""
     _sensor_step(cfg, nz, st, P, fl, cnt, dt, t3(gyr), t3(acc), t3(mag), np.empty(NX_MAX),
-                 mekf_scratch(NX_MAX))
+                 mekf_scratch(NX_MAX), mukf_scratch(int(cfg[C_NX])))
 
 
 @jit_inline
 def _sensor_step(cfg: np.ndarray, nz: np.ndarray, st: np.ndarray, P: np.ndarray,
                  fl: np.ndarray, cnt: np.ndarray, dt: float, gyr: tuple, acc: tuple,
-                 mag: tuple, dx: np.ndarray, work: np.ndarray) -> None:
-    """:func:`sensor_step` with the readings as 3-tuples and the MEKF's scratch given (``dx``:
-    9 values, ``work``: ``mekf_scratch(9)``). Speed: the common path (MEKF, every sensor valid)
-    works on tuples and elements of ``st``, ``nz`` and ``P``: no allocation, no array views
-    (each costs reference counting, atomic operations that outweigh a small filter's
-    arithmetic); the rare paths build arrays."""
+                 mag: tuple, dx: np.ndarray, work: np.ndarray, mwork: tuple) -> None:
+    """:func:`sensor_step` with the readings as 3-tuples and the filters' scratch given (``dx``:
+    9 values, ``work``: ``mekf_scratch(9)``, ``mwork``: ``mukf_scratch(nx)``). Speed: the
+    common path (MEKF or MUKF, every sensor valid) works on tuples and elements of ``st``,
+    ``nz`` and ``P``: no allocation, no array views (each costs reference counting, atomic
+    operations that outweigh a small filter's arithmetic); the rare paths build arrays."""
     cnt[K_SAMPLES] += 1
     use_mag = cfg[C_USE_MAG] > 0
     gs = _classify(gyr, False)
@@ -697,7 +697,8 @@ def _sensor_step(cfg: np.ndarray, nz: np.ndarray, st: np.ndarray, P: np.ndarray,
     else:  # MUKF: stacked measurement through the sigma points
         ok, acc_nis, mag_nis = _mukf_sensor_update(cfg, nz, st, P, nx, chart, dt, g, has_g,
                                                    a_body, has_a, Qa, m_body, has_m, heading,
-                                                   mref, href, rest, acc_gate, mag_gate)
+                                                   mref, href, rest, acc_gate, mag_gate,
+                                                   mwork)
     if not ok or acc_nis < 0 or mag_nis < 0:
         cnt[K_UPDATE_FAILED] += 1
         for i in range(nx):  # regularise so that the next step can factorise again
@@ -720,46 +721,36 @@ def _sensor_step(cfg: np.ndarray, nz: np.ndarray, st: np.ndarray, P: np.ndarray,
                 _learn_mag_ref(cfg, st, fl, np.array(m_body), m_norm)
 
 
-@jit
+@jit_inline
 def _mukf_sensor_update(cfg: np.ndarray, nz: np.ndarray, st: np.ndarray, P: np.ndarray,
                         nx: int, chart: int, dt: float, g: tuple, has_g: bool, a_body: tuple,
                         has_a: bool, Qa: tuple, m_body: tuple, has_m: bool, heading: bool,
                         mref: tuple, href: tuple, rest: bool, acc_gate: float,
-                        mag_gate: float) -> tuple[bool, float, float]:
-    """The MUKF step of :func:`sensor_step`: the stacked measurement through the sigma points.
-    Returns ``(ok, acc NIS, mag NIS)``."""
+                        mag_gate: float, mwork: tuple) -> tuple[bool, float, float]:
+    """The MUKF step of :func:`sensor_step`: the stacked measurement through the sigma points
+    (:func:`~mkf_ros.core.mukf.mukf_step_t`, scratch ``mwork``). Returns ``(ok, acc NIS,
+    mag NIS)``. Reads and writes ``st`` element by element: no allocation, no array views."""
     heading_m = has_m and heading
-    nb = 2 * 3 + 3 + 2 + 4 + 4  # rows of one scratch table (below)
-    A = np.zeros((nb, 3))  # vm(2), vref(2), gyro, hm/href, gates/nis (as rows of 3 … 4)
-    Rv = np.empty((2, 3, 3))
-    Qv = np.empty((2, 3, 3))
-    use_v = np.zeros(2, dtype=np.bool_)
+    use_vm = has_m and not heading
+    x = ((st[S_QC], st[S_QC + 1], st[S_QC + 2], st[S_QC + 3]),
+         (st[S_E], st[S_E + 1], st[S_E + 2]), (st[S_W], st[S_W + 1], st[S_W + 2]),
+         (st[S_B], st[S_B + 1], st[S_B + 2]))
+    zero3 = (0.0, 0.0, 0.0)
+    var_h = _mag_yaw_var(cfg, np.array(mref)) if heading_m else 0.0
+    ok, q, e, w, b, nis = mukf_step_t(
+        chart, cfg[C_CU] > 0, int(cfg[C_MUKF_NOISE]), cfg[C_W0], x, P, nx, dt,
+        _n33(nz, N_QW), _n33(nz, N_QB), (a_body, m_body if has_m else zero3),
+        ((0.0, 0.0, 1.0), mref if has_m else zero3), (_n33(nz, N_RA), _n33(nz, N_RM)),
+        (Qa, _n33(nz, N_QM)), (has_a, use_vm), g, has_g, _n33(nz, N_RW),
+        m_body if has_m else zero3, href if has_m else zero3, heading_m, var_h, rest,
+        cfg[C_REST_VAR], (acc_gate, mag_gate, mag_gate, np.inf), True,
+        cfg[C_ACC_MODE] == ACC_TILT, mwork)
+    for i in range(4):  # (on failure as far as changed: the reset variant's re-centring)
+        st[S_QC + i] = q[i]
     for i in range(3):
-        for j in range(3):
-            Rv[0, i, j], Qv[0, i, j] = nz[N_RA, i, j], Qa[i][j]
-            Rv[1, i, j], Qv[1, i, j] = nz[N_RM, i, j], nz[N_QM, i, j]
-    use_v[0], use_v[1] = has_a, has_m and not heading
-    vm = A[0:2]
-    vref = A[2:4]
-    wm = A[4]
-    hm = A[5]
-    hr = A[6]
-    for i in range(3):
-        vm[0, i], vref[0, i] = a_body[i], (0.0, 0.0, 1.0)[i]
-        wm[i] = g[i]
-        if has_m:
-            vm[1, i], vref[1, i] = m_body[i], mref[i]
-            hm[i], hr[i] = m_body[i], href[i]
-    gn = np.empty((2, 4))
-    gates = gn[0]
-    nis = gn[1]
-    gates[0], gates[1], gates[2], gates[3] = acc_gate, mag_gate, mag_gate, np.inf
-    nis[:] = 0.0
-    ok = mukf_step_ext(chart, cfg[C_CU] > 0, int(cfg[C_MUKF_NOISE]), cfg[C_W0],
-                       st[S_QC:S_QC + 4], st[S_E:S_E + 3], st[S_W:S_W + 3], st[S_B:S_B + 3], P,
-                       nx, dt, nz[N_QW], nz[N_QB], vm, vref, Rv, Qv, use_v, wm, has_g, nz[N_RW],
-                       hm, hr, heading_m, _mag_yaw_var(cfg, np.array(mref)), rest,
-                       cfg[C_REST_VAR], gates, nis, cfg[C_ACC_MODE] == ACC_TILT)
+        st[S_E + i] = e[i]
+        st[S_W + i] = w[i]
+        st[S_B + i] = b[i]
     acc_nis = nis[B_VEC0] if has_a else 0.0
     mag_nis = nis[B_HEADING] if heading else nis[B_VEC1]
     return ok, acc_nis, mag_nis
@@ -840,10 +831,11 @@ def run_batch(cfg: np.ndarray, st: np.ndarray, P: np.ndarray, fl: np.ndarray, cn
     nz = build_noise(cfg)
     dx = np.empty(NX_MAX)
     work = mekf_scratch(NX_MAX)
+    mwork = mukf_scratch(nx)
     for n in range(dts.shape[0]):
         _sensor_step(cfg, nz, st, P, fl, cnt, dts[n], (gyr[n, 0], gyr[n, 1], gyr[n, 2]),
                      (acc[n, 0], acc[n, 1], acc[n, 2]), (mag[n, 0], mag[n, 1], mag[n, 2]), dx,
-                     work)
+                     work, mwork)
         q, cov = _world_output_t(cfg, st, P, q_from_enu)
         init = fl[F_INIT] > 0
         out_init[n] = init

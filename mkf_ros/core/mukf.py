@@ -15,7 +15,7 @@ import numpy as np
 
 from mkf_ros.core._jit import jit, jit_inline
 from mkf_ros.core.charts import from_chart_at, from_chart_at_t, from_chart_t, saturate_t, to_chart_t
-from mkf_ros.core.linalg import cho_solve_into, cholesky_into, symmetrize
+from mkf_ros.core.linalg import cho_solve_into, cholesky_into
 from mkf_ros.core.mekf import heading_residual_t
 from mkf_ros.core.quaternion import (
     q_omega_t,
@@ -26,6 +26,7 @@ from mkf_ros.core.quaternion import (
     rotmat_t,
     t3,
     t4,
+    t33,
 )
 
 NOISE_CONSISTENT, NOISE_PUBLISHED, NOISE_INTEGRATED = 0, 1, 2
@@ -63,12 +64,80 @@ def mukf_step(
                       none, none, False)
 
 
+# measurement rows at most: two vectors, heading, gyro, zero rate
+_M_MAX = 3 + 3 + 1 + 3 + 3
+
+
+@jit
+def mukf_scratch(nx: int) -> tuple:
+    """Scratch of :func:`mukf_step_t` for ``nx`` states (see its step 2): ``L``, the sigma-point
+    table ``T``, and the blocks of width ``m`` (at most) and of width ``nx``."""
+    nd = nx + 3
+    return (np.empty((nd, nd)), np.empty((2 * nd + 3, _Y + _M_MAX)),
+            np.empty((2 * nx + 2 * _M_MAX, _M_MAX)), np.empty((nx + _M_MAX, nx)))
+
+
 # measurement blocks of mukf_step_ext, in row order; index into its `gates` / `nis` arrays
 B_VEC0, B_VEC1, B_HEADING, B_GYRO = 0, 1, 2, 3
 _BLOCK_SIZE = (3, 3, 1, 3)
 # columns of the sigma-point table of mukf_step_ext: state part x = (e, ω, b), quaternion q⁻,
 # measurement y
 _X, _Q, _Y = 0, 9, 13
+
+
+@jit_inline
+def _wmeans(T: np.ndarray, ns: int, w_0: float, wj: float, c0: int, c1: int) -> None:
+    """``T[ns, c] = Σ_s W_s T[s, c]`` for columns ``c0 ≤ c < c1`` over the sigma points
+    ``s < ns`` (``W_0 = w_0``, else ``wj``), accumulated from 0 in point order in registers,
+    four columns at a time."""
+    c = c0
+    while c < c1:
+        n = min(4, c1 - c)
+        a0 = a1 = a2 = a3 = 0.0
+        for s in range(ns):
+            ws_ = w_0 if s == 0 else wj
+            a0 += ws_ * T[s, c]
+            if n > 1:
+                a1 += ws_ * T[s, c + 1]
+            if n > 2:
+                a2 += ws_ * T[s, c + 2]
+            if n > 3:
+                a3 += ws_ * T[s, c + 3]
+        T[ns, c] = a0
+        if n > 1:
+            T[ns, c + 1] = a1
+        if n > 2:
+            T[ns, c + 2] = a2
+        if n > 3:
+            T[ns, c + 3] = a3
+        c += 4
+
+
+@jit_inline
+def _wsums(T: np.ndarray, ns: int, w_0: float, wj: float, a: int, b: int, n: int,
+           out: np.ndarray, r: int) -> None:
+    """``out[r, k] = Σ_s W_s T[s, a] T[s, b + k]`` for ``k < n``, over the sigma points ``s < ns``
+    (``W_0 = w_0``, else ``wj``), each accumulated in point order in a register; four columns at
+    a time (independent sums: the additions overlap instead of waiting for each other)."""
+    k = 0
+    while k + 4 <= n:
+        wa = w_0 * T[0, a]
+        c0, c1 = wa * T[0, b + k], wa * T[0, b + k + 1]
+        c2, c3 = wa * T[0, b + k + 2], wa * T[0, b + k + 3]
+        for s in range(1, ns):
+            wa = wj * T[s, a]
+            c0 += wa * T[s, b + k]
+            c1 += wa * T[s, b + k + 1]
+            c2 += wa * T[s, b + k + 2]
+            c3 += wa * T[s, b + k + 3]
+        out[r, k], out[r, k + 1], out[r, k + 2], out[r, k + 3] = c0, c1, c2, c3
+        k += 4
+    while k < n:
+        c0 = (w_0 * T[0, a]) * T[0, b + k]
+        for s in range(1, ns):
+            c0 += (wj * T[s, a]) * T[s, b + k]
+        out[r, k] = c0
+        k += 1
 
 
 @jit
@@ -115,29 +184,73 @@ def _mukf_step(
     hm: np.ndarray, href: np.ndarray, use_h: bool, var_h: float,
     use_z: bool, var_z: float, gates: np.ndarray, nis: np.ndarray, tilt_v0: bool,
 ) -> bool:
-    """The body of :func:`mukf_step_ext` (inlined into it and into :func:`mukf_step`). With
-    ``gates`` empty no block is gated and ``nis`` is not written. (At most 30 arguments: numba
-    cannot inline a call with more.)"""
+    """The body of :func:`mukf_step_ext` (inlined into it and into :func:`mukf_step`): the
+    arrays as tuples for :func:`mukf_step_t`. With ``gates`` empty no block is gated and ``nis``
+    is not written. (At most 30 arguments: numba cannot inline a call with more.)"""
+    z3 = (0.0, 0.0, 0.0)
+    z33 = (z3, z3, z3)
+    nv = use_v.shape[0]
+    v0, v1 = nv > 0 and bool(use_v[0]), nv > 1 and bool(use_v[1])
+    gated = gates.shape[0] > 0
+    inf4 = (np.inf, np.inf, np.inf, np.inf)
+    ok, q, e, w_, b_, nis_ = mukf_step_t(
+        chart, chart_update, noise_mode, w0, (t4(qc), t3(ebar), t3(w), t3(b)), P, nx, dt,
+        t33(Qw), t33(Qb),
+        (t3(vm[0]) if v0 else z3, t3(vm[1]) if v1 else z3),
+        (t3(vref[0]) if v0 else z3, t3(vref[1]) if v1 else z3),
+        (t33(Rv[0]) if v0 else z33, t33(Rv[1]) if v1 else z33),
+        (t33(Qv[0]) if v0 else z33, t33(Qv[1]) if v1 else z33), (v0, v1),
+        t3(wm) if use_w else z3, use_w, t33(Rw) if use_w else z33,
+        t3(hm) if use_h else z3, t3(href) if use_h else z3, use_h, var_h, use_z, var_z,
+        (gates[0], gates[1], gates[2], gates[3]) if gated else inf4, gated, tilt_v0,
+        mukf_scratch(nx))
+    if gated:
+        for i in range(4):
+            nis[i] = nis_[i]
+    for i in range(4):  # (on failure as far as changed: step 0's re-centring)
+        qc[i] = q[i]
+    for i in range(3):
+        ebar[i] = e[i]
+        w[i] = w_[i]
+        b[i] = b_[i]
+    return ok
+
+
+@jit
+def mukf_step_t(
+    chart: int, chart_update: bool, noise_mode: int, w0: float, x: tuple, P: np.ndarray,
+    nx: int, dt: float, Qw: tuple, Qb: tuple,
+    vm: tuple, vref: tuple, Rv: tuple, Qv: tuple, use_v: tuple,
+    wm: tuple, use_w: bool, Rw: tuple,
+    hm: tuple, href: tuple, use_h: bool, var_h: float,
+    use_z: bool, var_z: float, gates: tuple, gated: bool, tilt_v0: bool, scratch: tuple,
+) -> tuple:
+    """:func:`mukf_step_ext` on tuples: ``x = (q̄_c, ē, ω̄, b̄)``; ``Qw``, ``Qb``, ``Rw`` and the
+    two vector sensors' ``Rv[k]``, ``Qv[k]`` tuples of rows, ``vm``, ``vref`` pairs of 3-tuples,
+    ``use_v`` a pair of flags; ``gates`` one per block, used only if ``gated``; ``scratch`` from
+    :func:`mukf_scratch` for ``nx`` states. ``P`` is updated in place. Returns
+    ``(ok, q̄_c, ē, ω̄, b̄, nis)``; if a factorisation fails, ``ok`` is False and the rest as far
+    as computed (step 0's re-centring, the bias noise added to ``P``). Speed: no allocation,
+    only a few views; every small input a tuple (no reference counting)."""
+    qc_t, ebar, w, b = x
+    nis = (0.0, 0.0, 0.0, 0.0)
     # 0. reset variant: re-centre at the estimate, keep P
     if not chart_update:
-        q = from_chart_at_t(chart, t4(qc), t3(ebar))
-        for i in range(4):
-            qc[i] = q[i]
-        ebar[:] = 0.0
+        qc_t = from_chart_at_t(chart, qc_t, ebar)
+        ebar = (0.0, 0.0, 0.0)
     if nx == 9:  # bias random walk, added before the sigma points so that it reaches P_xy
         for i in range(3):
             for j in range(3):
-                P[6 + i, 6 + j] += Qb[i, j] * dt
+                P[6 + i, 6 + j] += Qb[i][j] * dt
     published = noise_mode == NOISE_PUBLISHED
     if noise_mode == NOISE_INTEGRATED:  # Brownian-bridge part of the attitude increment
         k3 = dt * dt * dt / 12.0
         for i in range(3):
             for j in range(3):
-                P[i, j] += Qw[i, j] * k3
+                P[i, j] += Qw[i][j] * k3
     # measurement rows, in this order: vectors (3 each), heading (1), gyro (3), zero rate (3);
     # first[blk] is the first row of block blk (B_VEC0 … B_GYRO), −1 if absent
-    v0 = use_v.shape[0] > 0 and bool(use_v[0])
-    v1 = use_v.shape[0] > 1 and bool(use_v[1])
+    v0, v1 = use_v
     nvec = (1 if v0 else 0) + (1 if v1 else 0)
     row_h = 3 * nvec
     row_g = row_h + (1 if use_h else 0)
@@ -159,41 +272,39 @@ def _mukf_step(
     ns = 2 * nd + 1
     # Scratch. numba has no stack arrays, and every allocation, every view and every array
     # argument of a call costs reference counting (atomic operations) that outweighs a small
-    # matrix's arithmetic; so: four arrays, a few row ranges, and tables indexed by column.
+    # matrix's arithmetic; so: four arrays given by the caller (mukf_scratch), a few row ranges
+    # of them (a column range would not be contiguous, slower to index), tables by column.
     # L: lower Cholesky factor of the propagated part of Pᵃ, blockdiag(P, Q_ωᵃ).
     # T: row j for sigma point j: x_j = (e_j, ω_j⁻, b_j) in columns _X…_X+8 (in place, later
     #    Δx_j: see step 6), q_j⁻ in _Q…_Q+3, y_j in _Y…; row ns: the means x̄⁻, ȳ; row ns + 1:
     #    the update Δx and the innovation y − ȳ.
-    L = np.empty((nd, nd))
-    T = np.empty((ns + 2, _Y + m))
-    S_m = np.empty((2 * nx + 2 * m, m))  # row ranges: P_xy, P_yy, its factor, K P_yy
+    # The blocks of width m have _M_MAX columns, of which the first m are used.
+    L = scratch[0]
+    T = scratch[1]
+    S_m = scratch[2]  # row ranges: P_xy, P_yy, its factor, K P_yy
     Pxy = S_m[:nx]
     Pyy = S_m[nx:nx + m]
     Ly = S_m[nx + m:nx + 2 * m]
-    KPyy = S_m[nx + 2 * m:]
-    S_nx = np.empty((nx + m, nx))  # row ranges: P_xx, Kᵀ
+    KPyy = S_m[nx + 2 * m:2 * nx + 2 * m]
+    S_nx = scratch[3]  # row ranges: P_xx, Kᵀ
     Pxx = S_nx[:nx]
-    Kt = S_nx[nx:]
-    inn = T[ns + 1, _Y:]
+    Kt = S_nx[nx:nx + m]
     if not cholesky_into(P, L, 0, nx):
-        return False
+        return False, qc_t, ebar, w, b, nis
     if dt > 0.0 or published:
         for i in range(3):
             for j in range(3):
-                L[nx + i, nx + j] = Qw[i, j] if published else Qw[i, j] * dt
+                L[nx + i, nx + j] = Qw[i][j] if published else Qw[i][j] * dt
         if not cholesky_into(L, L, nx, 3):
-            return False
+            return False, qc_t, ebar, w, b, nis
     else:  # a zero-length step (e.g. a magnetometer fused at the IMU's time): no rate noise,
         L[nx:, nx:] = 0.0  # those sigma points coincide with the central one
     c = np.sqrt(N / (1.0 - w0))
     wj = (1.0 - w0) / (2.0 * N)
     w_0 = w0 + 2.0 * 3.0 * nvec * wj  # X_0's weight, with the disturbance pairs'
-    qc_t = t4(qc)
-    vrefs = ((vref[0, 0], vref[0, 1], vref[0, 2]) if v0 else (0.0, 0.0, 0.0),
-             (vref[1, 0], vref[1, 1], vref[1, 2]) if v1 else (0.0, 0.0, 0.0))
     # X_0 on the manifold; also every point that moves only ω, b or the rate noise (L is lower
     # triangular, so only the first three directions move e)
-    q_mid = qnormalize_t(qmul_t(qc_t, from_chart_t(chart, saturate_t(chart, t3(ebar)))))
+    q_mid = qnormalize_t(qmul_t(qc_t, from_chart_t(chart, saturate_t(chart, ebar))))
     for s in range(ns):
         for i in range(3):  # x̄ (b̄ also without bias state: the gyro rows use it)
             T[s, _X + i] = ebar[i]
@@ -218,23 +329,24 @@ def _mukf_step(
             wstep = (w_j[0] + 0.5 * n_w[0], w_j[1] + 0.5 * n_w[1], w_j[2] + 0.5 * n_w[2])
         else:
             wstep = (T[s, _X + 3], T[s, _X + 4], T[s, _X + 5])
-        if s > 0 and 6 <= j < nx:  # moves the bias only: attitude and rate are X_0's
-            qj = (T[0, _Q], T[0, _Q + 1], T[0, _Q + 2], T[0, _Q + 3])
-        else:
-            qj = q_mid
-            if s > 0 and j < 3:
-                qj = qnormalize_t(qmul_t(qc_t, from_chart_t(chart, saturate_t(
-                    chart, (T[s, _X], T[s, _X + 1], T[s, _X + 2])))))
-            qj = qnormalize_t(qmul_t(qj, q_omega_t(wstep, dt)))
+        if s > 0 and 6 <= j < nx:  # moves the bias only: attitude, rate and y are X_0's
+            for cc in range(_Q, _Y + m_nl):
+                T[s, cc] = T[0, cc]
+            continue
+        qj = q_mid
+        if s > 0 and j < 3:
+            qj = qnormalize_t(qmul_t(qc_t, from_chart_t(chart, saturate_t(
+                chart, (T[s, _X], T[s, _X + 1], T[s, _X + 2])))))
+        qj = qnormalize_t(qmul_t(qj, q_omega_t(wstep, dt)))
         for i in range(4):
             T[s, _Q + i] = qj[i]
         for k in range(2):
             if first[k] >= 0:  # y = R(q_j⁻)ᵀ v  (w̄_v = 0; its spread is added to P_yy below)
-                y = rotate_inv_t(qj, vrefs[k])
+                y = rotate_inv_t(qj, vref[k])
                 for i in range(3):
                     T[s, _Y + first[k] + i] = y[i]
         if use_h:  # heading residual ψ(q_j⁻), unwrapped around the central point's
-            psi, _ = heading_residual_t(rotmat_t(qj), t3(hm), t3(href))
+            psi, _ = heading_residual_t(rotmat_t(qj), hm, href)
             if s > 0:
                 d_psi = psi - T[0, _Y + row_h]
                 psi = T[0, _Y + row_h] + np.arctan2(np.sin(d_psi), np.cos(d_psi))
@@ -248,12 +360,9 @@ def _mukf_step(
             for i in range(4):
                 T[s, _Q + i] = -T[s, _Q + i]
     # 5. means: normalised weighted quaternion sum, weighted rate, bias and measurement
-    for cc in range(_Y + m_nl):
+    for cc in range(_X + 3):
         T[ns, cc] = 0.0
-    for s in range(ns):
-        ws_ = w_0 if s == 0 else wj
-        for cc in range(_X + 3, _Y + m_nl):  # ω, b, q, the non-linear rows of y
-            T[ns, cc] += ws_ * T[s, cc]
+    _wmeans(T, ns, w_0, wj, _X + 3, _Y + m_nl)  # ω, b, q, the non-linear rows of y
     qs = (T[ns, _Q], T[ns, _Q + 1], T[ns, _Q + 2], T[ns, _Q + 3])
     nq = np.sqrt(qs[0] * qs[0] + qs[1] * qs[1] + qs[2] * qs[2] + qs[3] * qs[3])
     qm = (qs[0] / nq, qs[1] / nq, qs[2] / nq, qs[3] / nq)
@@ -267,29 +376,26 @@ def _mukf_step(
     #    Exact reduction: the gyro and zero-rate rows are linear in the state, y_j = H x_j, so
     #    their sums are P_xy = P_xx Hᵀ and P_yy = H P_xy (the weighted sums are linear); only
     #    the vector and heading rows (the first m_nl) are summed over the points.
+    e0 = (0.0, 0.0, 0.0)
     for s in range(ns):
-        e = to_chart_t(chart, qconj_mul_t(qm, (T[s, _Q], T[s, _Q + 1], T[s, _Q + 2],
-                                               T[s, _Q + 3])))
+        j = s - 1 if s <= nd else s - 1 - nd
+        e = e0  # a bias-only point has X_0's q_j⁻, so its e_j⁻
+        if s == 0 or not 6 <= j < nx:
+            e = to_chart_t(chart, qconj_mul_t(qm, (T[s, _Q], T[s, _Q + 1], T[s, _Q + 2],
+                                                   T[s, _Q + 3])))
+        if s == 0:
+            e0 = e
         T[s, _X], T[s, _X + 1], T[s, _X + 2] = e[0], e[1], e[2]
         for cc in range(_X + 3, _X + nx):
             T[s, cc] -= T[ns, cc]
         for cc in range(_Y, _Y + m_nl):
             T[s, cc] -= T[ns, cc]
-    Pxx[:, :] = 0.0
-    Pxy[:, :] = 0.0
-    Pyy[:, :] = 0.0
-    for s in range(ns):
-        ws_ = w_0 if s == 0 else wj
-        for i in range(nx):
-            wdx = ws_ * T[s, _X + i]
-            for jj in range(i + 1):
-                Pxx[i, jj] += wdx * T[s, _X + jj]
-            for jj in range(m_nl):
-                Pxy[i, jj] += wdx * T[s, _Y + jj]
-        for i in range(m_nl):
-            wdy = ws_ * T[s, _Y + i]
-            for jj in range(i + 1):
-                Pyy[i, jj] += wdy * T[s, _Y + jj]
+    # P_xx = Σ_s W_s Δx_s Δx_sᵀ (lower triangle), P_xy = Σ_s W_s Δx_s Δy_sᵀ, P_yy likewise
+    for i in range(nx):
+        _wsums(T, ns, w_0, wj, _X + i, _X, i + 1, Pxx, i)
+        _wsums(T, ns, w_0, wj, _X + i, _Y, m_nl, Pxy, i)
+    for i in range(m_nl):
+        _wsums(T, ns, w_0, wj, _Y + i, _Y, i + 1, Pyy, i)
     for i in range(nx):  # the loops above filled the lower triangles
         for jj in range(i):
             Pxx[jj, i] = Pxx[i, jj]
@@ -313,25 +419,25 @@ def _mukf_step(
                     qb = 0.0
                     for a in range(3):
                         for bb in range(3):
-                            qb += R0[a][i] * Qv[k, a, bb] * R0[bb][jj]
-                    Pyy[r0 + i, r0 + jj] += Rv[k, i, jj] + qb
-                inn[r0 + i] = vm[k, i] - T[ns, _Y + r0 + i]
+                            qb += R0[a][i] * Qv[k][a][bb] * R0[bb][jj]
+                    Pyy[r0 + i, r0 + jj] += Rv[k][i][jj] + qb
+                T[ns + 1, _Y + r0 + i] = vm[k][i] - T[ns, _Y + r0 + i]
     if use_h:
         Pyy[row_h, row_h] += var_h
-        inn[row_h] = -T[ns, _Y + row_h]
+        T[ns + 1, _Y + row_h] = -T[ns, _Y + row_h]
     if use_w:
         for i in range(3):
             for jj in range(3):
-                Pyy[row_g + i, row_g + jj] += Rw[i, jj]
-            inn[row_g + i] = wm[i] - T[ns, _Y + row_g + i]
+                Pyy[row_g + i, row_g + jj] += Rw[i][jj]
+            T[ns + 1, _Y + row_g + i] = wm[i] - T[ns, _Y + row_g + i]
     if use_z:
         for i in range(3):
             Pyy[row_z + i, row_z + i] += var_z
-            inn[row_z + i] = -T[ns, _Y + row_z + i]
+            T[ns + 1, _Y + row_z + i] = -T[ns, _Y + row_z + i]
     # χ² gate per block: rᵀ P_yy⁻¹ r = ‖L⁻¹ r‖² of its rows alone (P_yy = L Lᵀ; Ly and the
     # first row of KPyy are free here)
     rejected = 0  # bit mask of blocks
-    for blk in range(gates.shape[0]):
+    for blk in range(4 if gated else 0):
         r0 = first[blk]
         if r0 < 0:
             continue
@@ -340,15 +446,16 @@ def _mukf_step(
             for jj in range(nb):
                 Ly[i, jj] = Pyy[r0 + i, r0 + jj]
         if not cholesky_into(Ly, Ly, 0, nb):
-            return False
+            return False, qc_t, ebar, w, b, nis
         v = 0.0
         for i in range(nb):  # z = L⁻¹ r
-            z = inn[r0 + i]
+            z = T[ns + 1, _Y + r0 + i]
             for k in range(i):
                 z -= Ly[i, k] * KPyy[0, k]
             KPyy[0, i] = z / Ly[i, i]
             v += KPyy[0, i] * KPyy[0, i]
-        nis[blk] = v
+        nis = (v if blk == 0 else nis[0], v if blk == 1 else nis[1],
+               v if blk == 2 else nis[2], v if blk == 3 else nis[3])
         if v > gates[blk]:
             rejected |= 1 << blk
     # the rows that pass, moved to the front in order (in place: a row or column only moves up)
@@ -364,7 +471,7 @@ def _mukf_step(
                 row_hk = ma
             if r == row_v0k:
                 row_v0k = ma
-            inn[ma] = inn[r]
+            T[ns + 1, _Y + ma] = T[ns + 1, _Y + r]
             for i in range(nx):
                 Pxy[i, ma] = Pxy[i, r]
             a = 0
@@ -378,7 +485,7 @@ def _mukf_step(
         T[ns + 1, _X + i] = 0.0  # Δx
     if ma > 0:
         if not cholesky_into(Pyy, Ly, 0, ma):
-            return False
+            return False, qc_t, ebar, w, b, nis
         for a in range(ma):
             for i in range(nx):
                 Kt[a, i] = Pxy[i, a]
@@ -402,7 +509,7 @@ def _mukf_step(
                 projected = True
         for a in range(ma):  # Δx = K (y − ȳ)
             for i in range(nx):
-                T[ns + 1, _X + i] += Kt[a, i] * inn[a]
+                T[ns + 1, _X + i] += Kt[a, i] * T[ns + 1, _Y + a]
         if projected:  # Joseph form, valid for any gain: P − K P_xyᵀ − P_xy Kᵀ + K P_yy Kᵀ
             for i in range(nx):
                 for a in range(ma):
@@ -426,19 +533,17 @@ def _mukf_step(
                         s_ += Pxy[i, a] * Kt[a, jj]
                     Pxx[i, jj] -= s_
                     Pxx[jj, i] = Pxx[i, jj]
-    symmetrize(Pxx)
-    for i in range(4):
-        qc[i] = qm[i]
+    # (P_xx is exactly symmetric: every update above wrote one triangle and mirrored it)
     e = saturate_t(chart, (T[ns + 1, _X], T[ns + 1, _X + 1], T[ns + 1, _X + 2]))
-    for i in range(3):
-        ebar[i] = e[i]
-        w[i] = T[ns, _X + 3 + i] + T[ns + 1, _X + 3 + i]
-        if nx == 9:
-            b[i] = T[ns, _X + 6 + i] + T[ns + 1, _X + 6 + i]
+    w = (T[ns, _X + 3] + T[ns + 1, _X + 3], T[ns, _X + 4] + T[ns + 1, _X + 4],
+         T[ns, _X + 5] + T[ns + 1, _X + 5])
+    if nx == 9:
+        b = (T[ns, _X + 6] + T[ns + 1, _X + 6], T[ns, _X + 7] + T[ns + 1, _X + 7],
+             T[ns, _X + 8] + T[ns + 1, _X + 8])
     for i in range(nx):
         for jj in range(nx):
             P[i, jj] = Pxx[i, jj]
-    return True
+    return True, qm, e, w, b, nis
 
 
 @jit
