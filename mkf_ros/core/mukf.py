@@ -334,9 +334,9 @@ def mukf_step_t(
                 T[s, cc] = T[0, cc]
             continue
         qj = q_mid
-        if s > 0 and j < 3:
-            qj = qnormalize_t(qmul_t(qc_t, from_chart_t(chart, saturate_t(
-                chart, (T[s, _X], T[s, _X + 1], T[s, _X + 2])))))
+        if s > 0 and j < 3:  # (normalised once, below: the scale factors out of the product)
+            qj = qmul_t(qc_t, from_chart_t(chart, saturate_t(
+                chart, (T[s, _X], T[s, _X + 1], T[s, _X + 2]))))
         qj = qnormalize_t(qmul_t(qj, q_omega_t(wstep, dt)))
         for i in range(4):
             T[s, _Q + i] = qj[i]
@@ -414,12 +414,19 @@ def mukf_step_t(
     for k in range(2):
         r0 = first[k]
         if r0 >= 0:  # R_v + R(q_0⁻)ᵀ Q_v R(q_0⁻): the disturbance sigma pairs, summed exactly
+            Q = Qv[k]
+            QR = ((Q[0][0] * R0[0][0] + Q[0][1] * R0[1][0] + Q[0][2] * R0[2][0],  # Q_v R(q_0⁻)
+                   Q[0][0] * R0[0][1] + Q[0][1] * R0[1][1] + Q[0][2] * R0[2][1],
+                   Q[0][0] * R0[0][2] + Q[0][1] * R0[1][2] + Q[0][2] * R0[2][2]),
+                  (Q[1][0] * R0[0][0] + Q[1][1] * R0[1][0] + Q[1][2] * R0[2][0],
+                   Q[1][0] * R0[0][1] + Q[1][1] * R0[1][1] + Q[1][2] * R0[2][1],
+                   Q[1][0] * R0[0][2] + Q[1][1] * R0[1][2] + Q[1][2] * R0[2][2]),
+                  (Q[2][0] * R0[0][0] + Q[2][1] * R0[1][0] + Q[2][2] * R0[2][0],
+                   Q[2][0] * R0[0][1] + Q[2][1] * R0[1][1] + Q[2][2] * R0[2][1],
+                   Q[2][0] * R0[0][2] + Q[2][1] * R0[1][2] + Q[2][2] * R0[2][2]))
             for i in range(3):
                 for jj in range(3):
-                    qb = 0.0
-                    for a in range(3):
-                        for bb in range(3):
-                            qb += R0[a][i] * Qv[k][a][bb] * R0[bb][jj]
+                    qb = R0[0][i] * QR[0][jj] + R0[1][i] * QR[1][jj] + R0[2][i] * QR[2][jj]
                     Pyy[r0 + i, r0 + jj] += Rv[k][i][jj] + qb
                 T[ns + 1, _Y + r0 + i] = vm[k][i] - T[ns, _Y + r0 + i]
     if use_h:
