@@ -148,7 +148,7 @@ def estimate(
 
 def warmup() -> None:
     """Compile (or load from numba's on-disk cache) every kernel the filters use, so that the
-    first real sample is not delayed. The first call on a new installation takes about a minute;
+    first real sample is not delayed. The first call on a new installation takes about two minutes;
     later calls load the cache in well under a second."""
     from mkf_ros.core.filter import AttitudeFilter
     from mkf_ros.stream import StreamAdapter

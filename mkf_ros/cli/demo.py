@@ -182,7 +182,7 @@ class _Demo:
 
         t0 = time.monotonic()
         self.say("  loading the compiled filter kernels (the first run after an install "
-                 "compiles them, about a minute)...")
+                 "compiles them, about two minutes)...")
         warmup()
         dt = time.monotonic() - t0
         self.say(f"  kernels ready in {dt:.1f} s{' (compiled and cached)' if dt > 5 else ''}\n")

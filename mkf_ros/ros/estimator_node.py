@@ -109,7 +109,7 @@ class EstimatorNode(Node):
 
         if warm:
             log.info("loading the compiled filter kernels (the first start after an install "
-                     "or update compiles them: about a minute)...")
+                     "or update compiles them: about two minutes)...")
             t0 = time.monotonic()
             from mkf_ros.api import warmup
 
