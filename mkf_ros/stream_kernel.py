@@ -29,10 +29,11 @@ from mkf_ros.core.filter import (
     K_GAPS,
     S_B,
     S_W,
+    classify_reading,
     sensor_step,
     world_output,
 )
-from mkf_ros.core.quaternion import qmul, rotmat
+from mkf_ros.core.quaternion import q_from_rotvec, qmul, rotate_inv, rotmat
 
 #: Out-of-order IMU samples in a row after which the stream is taken to have jumped back.
 MAX_BACKWARDS = 10
@@ -109,18 +110,10 @@ def norm3(v: np.ndarray) -> float:
 
 
 @jit
-def classify(v: np.ndarray, vector: bool) -> int:
-    """0 valid, 1 missing (all NaN), 2 invalid (partly non-finite, or a zero vector)."""
-    if np.isfinite(v[0] + v[1] + v[2]):  # NaN and ±Inf propagate through the sum
-        return 2 if vector and v[0] == 0.0 and v[1] == 0.0 and v[2] == 0.0 else 0
-    return 1 if np.isnan(v[0]) and np.isnan(v[1]) and np.isnan(v[2]) else 2
-
-
-@jit
 def check_input(acnt: np.ndarray, v: np.ndarray, k_missing: int, is_gyro: bool) -> bool:
     """True if ``v`` is a usable reading; otherwise counted (``k_missing``, or the invalid
     counter right after it). A gyro faster than :data:`MAX_RATE` is invalid."""
-    c = classify(v, not is_gyro)
+    c = classify_reading((v[0], v[1], v[2]), not is_gyro)
     if c == 0 and is_gyro and norm3(v) > MAX_RATE:
         c = 2
     if c:
@@ -131,18 +124,11 @@ def check_input(acnt: np.ndarray, v: np.ndarray, k_missing: int, is_gyro: bool) 
 
 @jit
 def rotate_back(v: np.ndarray, rotvec: np.ndarray) -> np.ndarray:
-    """``Exp(−θ) v`` (Rodrigues): a world-fixed vector seen after the body turned by ``θ``."""
+    """``Exp(−θ) v = R(q(θ))ᵀ v``: a world-fixed vector seen after the body turned by ``θ``."""
     th = norm3(rotvec)
     if not 1e-12 < th < 1e3:  # no rotation, or a diverged rate: leave the vector as it is
         return v
-    k0, k1, k2 = -rotvec[0] / th, -rotvec[1] / th, -rotvec[2] / th
-    c, s = np.cos(th), np.sin(th)
-    kv = (k0 * v[0] + k1 * v[1] + k2 * v[2]) * (1.0 - c)
-    out = np.empty(3)
-    out[0] = v[0] * c + (k1 * v[2] - k2 * v[1]) * s + k0 * kv
-    out[1] = v[1] * c + (k2 * v[0] - k0 * v[2]) * s + k1 * kv
-    out[2] = v[2] * c + (k0 * v[1] - k1 * v[0]) * s + k2 * kv
-    return out
+    return rotate_inv(q_from_rotvec(rotvec), v)
 
 
 @jit

@@ -37,7 +37,7 @@ from mkf_ros.core.baselines import (
 )
 from mkf_ros.core.charts import chart_id, from_chart, from_chart_t, t_matrix, t_matrix_t
 from mkf_ros.core.frames import FROM_ENU, align_tilt, heading_correction, keep_yaw
-from mkf_ros.core.linalg import congruence, eye, mm
+from mkf_ros.core.linalg import congruence, congruence33_t, eye, mm
 from mkf_ros.core.mekf import (
     heading_residual,
     mekf_apply_t,
@@ -127,8 +127,9 @@ YAW0_STDDEV = 1e-3  # rad: heading is defined by the start-up heading when no ma
 
 
 @jit_inline
-def _classify(v: tuple, is_vector: bool) -> int:
-    """0 valid, 1 missing (all NaN), 2 invalid (partly non-finite, or a zero vector)."""
+def classify_reading(v: tuple, is_vector: bool) -> int:
+    """One sensor reading, for the batch loop and the stream adapter alike: 0 valid, 1 missing
+    (all NaN), 2 invalid (partly non-finite, or a zero vector)."""
     nan = 0
     bad = False
     for i in range(3):
@@ -555,10 +556,10 @@ def _sensor_step(cfg: np.ndarray, nz: np.ndarray, st: np.ndarray, P: np.ndarray,
     operations that outweigh a small filter's arithmetic); the rare paths build arrays."""
     cnt[K_SAMPLES] += 1
     use_mag = cfg[C_USE_MAG] > 0
-    gs = _classify(gyr, False)
-    as_ = _classify(acc, True)
+    gs = classify_reading(gyr, False)
+    as_ = classify_reading(acc, True)
     m_cal = calibrate_mag(cfg, mag) if use_mag else mag
-    ms = _classify(m_cal, True) if use_mag else 1
+    ms = classify_reading(m_cal, True) if use_mag else 1
     if gs > 0:
         cnt[K_GYR_MISSING if gs == 1 else K_GYR_INVALID] += 1
     if as_ > 0:
@@ -774,36 +775,13 @@ def _world_output_t(cfg: np.ndarray, st: np.ndarray, P: np.ndarray,
             chart = int(cfg[C_CHART])
             d = from_chart_t(chart, e)
             q = qnormalize_t(qmul_t(q, d))
-            Pb = _congruence_t(t_matrix_t(chart, d), Pb)
+            Pb = congruence33_t(t_matrix_t(chart, d), Pb)
     q = qmul_t(t4(q_from_enu), q)
     n = np.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
     if q[0] < 0.0:
         n = -n
     q = (q[0] / n, q[1] / n, q[2] / n, q[3] / n)
-    return q, _congruence_t(rotmat_t(q), Pb)
-
-
-@jit
-def _congruence_t(A: tuple, B: tuple) -> tuple:
-    """``A B Aᵀ`` for 3×3 tuples of rows: ``C[i][j] = Σ_k A[i][k] (Σ_l B[k][l] A[j][l])``."""
-    BAt = ((B[0][0] * A[0][0] + B[0][1] * A[0][1] + B[0][2] * A[0][2],
-            B[0][0] * A[1][0] + B[0][1] * A[1][1] + B[0][2] * A[1][2],
-            B[0][0] * A[2][0] + B[0][1] * A[2][1] + B[0][2] * A[2][2]),
-           (B[1][0] * A[0][0] + B[1][1] * A[0][1] + B[1][2] * A[0][2],
-            B[1][0] * A[1][0] + B[1][1] * A[1][1] + B[1][2] * A[1][2],
-            B[1][0] * A[2][0] + B[1][1] * A[2][1] + B[1][2] * A[2][2]),
-           (B[2][0] * A[0][0] + B[2][1] * A[0][1] + B[2][2] * A[0][2],
-            B[2][0] * A[1][0] + B[2][1] * A[1][1] + B[2][2] * A[1][2],
-            B[2][0] * A[2][0] + B[2][1] * A[2][1] + B[2][2] * A[2][2]))
-    return ((A[0][0] * BAt[0][0] + A[0][1] * BAt[1][0] + A[0][2] * BAt[2][0],
-             A[0][0] * BAt[0][1] + A[0][1] * BAt[1][1] + A[0][2] * BAt[2][1],
-             A[0][0] * BAt[0][2] + A[0][1] * BAt[1][2] + A[0][2] * BAt[2][2]),
-            (A[1][0] * BAt[0][0] + A[1][1] * BAt[1][0] + A[1][2] * BAt[2][0],
-             A[1][0] * BAt[0][1] + A[1][1] * BAt[1][1] + A[1][2] * BAt[2][1],
-             A[1][0] * BAt[0][2] + A[1][1] * BAt[1][2] + A[1][2] * BAt[2][2]),
-            (A[2][0] * BAt[0][0] + A[2][1] * BAt[1][0] + A[2][2] * BAt[2][0],
-             A[2][0] * BAt[0][1] + A[2][1] * BAt[1][1] + A[2][2] * BAt[2][1],
-             A[2][0] * BAt[0][2] + A[2][1] * BAt[1][2] + A[2][2] * BAt[2][2]))
+    return q, congruence33_t(rotmat_t(q), Pb)
 
 
 @jit

@@ -172,3 +172,30 @@ def cross3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """``a × b``."""
     return np.array((a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2],
                      a[0] * b[1] - a[1] * b[0]))
+
+
+@jit_inline
+def mul33_t(A: tuple, B: tuple) -> tuple:
+    """``A B`` for 3×3 tuples of rows."""
+    return (_row_times33_t(A[0], B), _row_times33_t(A[1], B), _row_times33_t(A[2], B))
+
+
+@jit_inline
+def _row_times33_t(a: tuple, B: tuple) -> tuple:
+    """Row vector ``a`` (3) times the 3×3 ``B`` (tuple of rows)."""
+    return (a[0] * B[0][0] + a[1] * B[1][0] + a[2] * B[2][0],
+            a[0] * B[0][1] + a[1] * B[1][1] + a[2] * B[2][1],
+            a[0] * B[0][2] + a[1] * B[1][2] + a[2] * B[2][2])
+
+
+@jit_inline
+def transpose33_t(A: tuple) -> tuple:
+    """``Aᵀ`` for a 3×3 tuple of rows."""
+    return ((A[0][0], A[1][0], A[2][0]), (A[0][1], A[1][1], A[2][1]),
+            (A[0][2], A[1][2], A[2][2]))
+
+
+@jit_inline
+def congruence33_t(A: tuple, B: tuple) -> tuple:
+    """``A B Aᵀ`` for 3×3 tuples of rows."""
+    return mul33_t(A, mul33_t(B, transpose33_t(A)))

@@ -134,6 +134,21 @@ def _gain_row(work: np.ndarray, i: int, Si: tuple) -> tuple:
 
 
 @jit_inline
+def _innovation_test(work: np.ndarray, nx: int, r: tuple,
+                     gate: float) -> tuple[bool, float, tuple]:
+    """The gate shared by the block updates: ``S⁻¹`` of the block's ``S`` (rows ``2nx …`` of
+    ``work``, layout above) and the normalised innovation squared ``rᵀ S⁻¹ r`` (``-1`` if ``S``
+    is not positive definite); ``go`` is False when the update must not happen."""
+    s0 = 2 * nx
+    ok, Si = inv3_spd_t((work[s0, 0], work[s0, 1], work[s0, 2], work[s0 + 1, 1],
+                         work[s0 + 1, 2], work[s0 + 2, 2]))
+    if not ok:
+        return False, -1.0, Si
+    nis = _nis3(r, Si)
+    return not nis > gate, nis, Si
+
+
+@jit_inline
 def _block_update(P: np.ndarray, nx: int, dx: np.ndarray, work: np.ndarray, r: tuple,
                   gate: float) -> float:
     """Kalman update for one 3-row block given ``P Hᵀ`` (nx×3) and ``S`` in ``work`` (layout
@@ -141,13 +156,8 @@ def _block_update(P: np.ndarray, nx: int, dx: np.ndarray, work: np.ndarray, r: t
     ``Δx += K r``, ``P −= K (P Hᵀ)ᵀ`` (symmetric: the upper triangle, mirrored).
     Returns the normalised innovation squared ``rᵀ S⁻¹ r``; ``-1`` if ``S`` is not positive
     definite, and nothing changes when that value exceeds ``gate``."""
-    s0 = 2 * nx
-    ok, Si = inv3_spd_t((work[s0, 0], work[s0, 1], work[s0, 2], work[s0 + 1, 1],
-                         work[s0 + 1, 2], work[s0 + 2, 2]))
-    if not ok:
-        return -1.0
-    nis = _nis3(r, Si)
-    if nis > gate:
+    go, nis, Si = _innovation_test(work, nx, r, gate)
+    if not go:
         return nis
     for i in range(nx):  # row i of K, then of Δx and P (P Hᵀ is a copy: P may change)
         k0, k1, k2 = _gain_row(work, i, Si)
@@ -170,14 +180,10 @@ def _joseph_projected(P: np.ndarray, nx: int, dx: np.ndarray, work: np.ndarray, 
     ``M = K₀ (PHᵀ)ᵀ = PHᵀ S⁻¹ (PHᵀ)ᵀ`` is ``P − ΠM − MΠ + ΠMΠ = P − M + (I − Π) M (I − Π)``;
     its group block ``(g, h)`` is ``P_gh − M_gh + c_gh u uᵀ``, ``c_gh = ℓ_gᵀ S⁻¹ ℓ_h``,
     ``ℓ_g = (PHᵀ)_gᵀ u``."""
-    s0 = 2 * nx
-    ok, Si = inv3_spd_t((work[s0, 0], work[s0, 1], work[s0, 2], work[s0 + 1, 1],
-                         work[s0 + 1, 2], work[s0 + 2, 2]))
-    if not ok:
-        return -1.0
-    nis = _nis3(r, Si)
-    if nis > gate:
+    go, nis, Si = _innovation_test(work, nx, r, gate)
+    if not go:
         return nis
+    s0 = 2 * nx
     ng = nx // 3
     for i in range(nx):  # K₀
         work[nx + i, 0], work[nx + i, 1], work[nx + i, 2] = _gain_row(work, i, Si)

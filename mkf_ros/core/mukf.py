@@ -15,7 +15,7 @@ import numpy as np
 
 from mkf_ros.core._jit import jit, jit_inline
 from mkf_ros.core.charts import from_chart_at, from_chart_at_t, from_chart_t, saturate_t, to_chart_t
-from mkf_ros.core.linalg import cho_solve_into, cholesky_into
+from mkf_ros.core.linalg import cho_solve_into, cholesky_into, congruence33_t, transpose33_t
 from mkf_ros.core.mekf import heading_residual_t
 from mkf_ros.core.quaternion import (
     q_omega_t,
@@ -414,20 +414,10 @@ def mukf_step_t(
     for k in range(2):
         r0 = first[k]
         if r0 >= 0:  # R_v + R(q_0⁻)ᵀ Q_v R(q_0⁻): the disturbance sigma pairs, summed exactly
-            Q = Qv[k]
-            QR = ((Q[0][0] * R0[0][0] + Q[0][1] * R0[1][0] + Q[0][2] * R0[2][0],  # Q_v R(q_0⁻)
-                   Q[0][0] * R0[0][1] + Q[0][1] * R0[1][1] + Q[0][2] * R0[2][1],
-                   Q[0][0] * R0[0][2] + Q[0][1] * R0[1][2] + Q[0][2] * R0[2][2]),
-                  (Q[1][0] * R0[0][0] + Q[1][1] * R0[1][0] + Q[1][2] * R0[2][0],
-                   Q[1][0] * R0[0][1] + Q[1][1] * R0[1][1] + Q[1][2] * R0[2][1],
-                   Q[1][0] * R0[0][2] + Q[1][1] * R0[1][2] + Q[1][2] * R0[2][2]),
-                  (Q[2][0] * R0[0][0] + Q[2][1] * R0[1][0] + Q[2][2] * R0[2][0],
-                   Q[2][0] * R0[0][1] + Q[2][1] * R0[1][1] + Q[2][2] * R0[2][1],
-                   Q[2][0] * R0[0][2] + Q[2][1] * R0[1][2] + Q[2][2] * R0[2][2]))
+            QB = congruence33_t(transpose33_t(R0), Qv[k])  # R(q_0⁻)ᵀ Q_v R(q_0⁻)
             for i in range(3):
                 for jj in range(3):
-                    qb = R0[0][i] * QR[0][jj] + R0[1][i] * QR[1][jj] + R0[2][i] * QR[2][jj]
-                    Pyy[r0 + i, r0 + jj] += Rv[k][i][jj] + qb
+                    Pyy[r0 + i, r0 + jj] += Rv[k][i][jj] + QB[i][jj]
                 T[ns + 1, _Y + r0 + i] = vm[k][i] - T[ns, _Y + r0 + i]
     if use_h:
         Pyy[row_h, row_h] += var_h

@@ -10,6 +10,17 @@ from mkf_ros.core.charts import CHART_NAMES, chart_id
 from mkf_ros.core.mukf import mukf_estimate, mukf_step, mukf_step_ext
 from mkf_ros.core.quaternion import angle_between
 
+DT, QW, QB = 0.02, np.diag([1.0, 2.0, 0.5]), 1e-6 * np.eye(3)
+
+
+def _random_state(rng: np.random.Generator, nx: int) -> tuple:
+    """A random chart centre, covariance (nx × nx), chart point, rate and bias."""
+    q = rng.normal(size=4)
+    q /= np.linalg.norm(q)
+    A = rng.normal(size=(nx, nx)) * 0.1
+    return (q, A @ A.T + 1e-3 * np.eye(nx), rng.normal(size=3) * 0.1, rng.normal(size=3),
+            rng.normal(size=3) * 0.01)
+
 
 @pytest.mark.parametrize("nx", [6, 9])
 @pytest.mark.parametrize("chart", CHART_NAMES)
@@ -23,15 +34,8 @@ def test_kernel_equals_full_augmentation(nx: int, chart: str, cu: bool, publishe
         for use_w in (True, False):
             if nvec == 0 and not use_w:
                 continue
-            q = rng.normal(size=4)
-            q /= np.linalg.norm(q)
-            A = rng.normal(size=(nx, nx)) * 0.1
-            P0 = A @ A.T + 1e-3 * np.eye(nx)
-            ebar = rng.normal(size=3) * 0.1
-            w = rng.normal(size=3)
-            b = rng.normal(size=3) * 0.01
-            dt = 0.02
-            Qw, Qb = np.diag([1.0, 2.0, 0.5]), 1e-6 * np.eye(3)
+            q, P0, ebar, w, b = _random_state(rng, nx)
+            dt, Qw, Qb = DT, QW, QB
             vms = [rng.normal(size=3) for _ in range(nvec)]
             vrefs = [np.array([0, 0, 1.0]), np.array([0, 0.6, -0.8])][:nvec]
             Rvs = [1e-3 * np.eye(3), 4e-4 * np.eye(3)][:nvec]
@@ -99,15 +103,8 @@ def test_ext_equals_full_augmentation(nx: int, chart: str, cu: bool, mode: int) 
     for nvec, use_w, use_z, gated in ((1, True, False, False), (2, True, True, False),
                                       (0, True, True, False), (1, False, True, False),
                                       (2, True, False, True), (1, True, True, True)):
-        q = rng.normal(size=4)
-        q /= np.linalg.norm(q)
-        A = rng.normal(size=(nx, nx)) * 0.1
-        P0 = A @ A.T + 1e-3 * np.eye(nx)
-        ebar = rng.normal(size=3) * 0.1
-        w = rng.normal(size=3)
-        b = rng.normal(size=3) * 0.01
-        dt = 0.02
-        Qw, Qb = np.diag([1.0, 2.0, 0.5]), 1e-6 * np.eye(3)
+        q, P0, ebar, w, b = _random_state(rng, nx)
+        dt, Qw, Qb = DT, QW, QB
         vrefs = [np.array([0, 0, 1.0]), np.array([0, 0.6, -0.8])][:nvec]
         vms = [v + rng.normal(size=3) * 0.3 for v in vrefs]
         Rvs = [1e-3 * np.eye(3), 4e-4 * np.eye(3)][:nvec]
