@@ -114,29 +114,31 @@ def _wmeans(T: np.ndarray, ns: int, w_0: float, wj: float, c0: int, c1: int) -> 
 
 
 @jit_inline
-def _wsums(T: np.ndarray, ns: int, w_0: float, wj: float, a: int, b: int, n: int,
-           out: np.ndarray, r: int) -> None:
-    """``out[r, k] = Σ_s W_s T[s, a] T[s, b + k]`` for ``k < n``, over the sigma points ``s < ns``
-    (``W_0 = w_0``, else ``wj``), each accumulated in point order in a register; four columns at
-    a time (independent sums: the additions overlap instead of waiting for each other)."""
+def _wsums(T: np.ndarray, s0: int, ns: int, w_0: float, wj: float, a: int, b: int, n: int,
+           out: np.ndarray, r: int, oc: int) -> None:
+    """``out[r, oc + k] = Σ_s W_s T[s, a] T[s, b + k]`` for ``k < n``, over the rows
+    ``s0 ≤ s < s0 + ns`` (``W_{s0} = w_0``, else ``wj``), each accumulated in row order in a
+    register; four columns at a time (independent sums: the additions overlap instead of waiting
+    for each other)."""
     k = 0
+    s1 = s0 + ns
     while k + 4 <= n:
-        wa = w_0 * T[0, a]
-        c0, c1 = wa * T[0, b + k], wa * T[0, b + k + 1]
-        c2, c3 = wa * T[0, b + k + 2], wa * T[0, b + k + 3]
-        for s in range(1, ns):
+        wa = w_0 * T[s0, a]
+        c0, c1 = wa * T[s0, b + k], wa * T[s0, b + k + 1]
+        c2, c3 = wa * T[s0, b + k + 2], wa * T[s0, b + k + 3]
+        for s in range(s0 + 1, s1):
             wa = wj * T[s, a]
             c0 += wa * T[s, b + k]
             c1 += wa * T[s, b + k + 1]
             c2 += wa * T[s, b + k + 2]
             c3 += wa * T[s, b + k + 3]
-        out[r, k], out[r, k + 1], out[r, k + 2], out[r, k + 3] = c0, c1, c2, c3
+        out[r, oc + k], out[r, oc + k + 1], out[r, oc + k + 2], out[r, oc + k + 3] = c0, c1, c2, c3
         k += 4
     while k < n:
-        c0 = (w_0 * T[0, a]) * T[0, b + k]
-        for s in range(1, ns):
+        c0 = (w_0 * T[s0, a]) * T[s0, b + k]
+        for s in range(s0 + 1, s1):
             c0 += (wj * T[s, a]) * T[s, b + k]
-        out[r, k] = c0
+        out[r, oc + k] = c0
         k += 1
 
 
@@ -263,21 +265,28 @@ def mukf_step_t(
     # 1. augment: x̄ᵃ = (ē, ω̄[, b̄], w̄_ω = 0, w̄_v = 0 …), Pᵃ = blockdiag(P, Q_ωᵃ, Q_v …), N = dim
     # 2. sigma points X_0 = x̄ᵃ, X_j, X_{N+j} = x̄ᵃ ± c L[:, j], c = √(N/(1 − W_0)),
     #    W_j = (1 − W_0)/(2N), L the lower Cholesky factor of Pᵃ (block diagonal like Pᵃ).
-    #    Exact reduction: a pair along a Q_v column leaves q, ω, b equal to X_0's and moves y_k by
-    #    ±R(q_0⁻)ᵀ c L_v[:, j]; summed over the pairs (2 W_j c² = 1) it adds W_j·2 to X_0's weight
-    #    in every mean and covariance and R(q_0⁻)ᵀ Q_v R(q_0⁻) to the k-th block of P_yy. So only
-    #    the 1 + 2(nx + 3) state and rate-noise points are propagated.
+    #    Exact reductions (the sums of steps 5–6 are linear in the points; 2 W_j c² = 1):
+    #    * a pair along a Q_v column leaves q, ω, b equal to X_0's and moves y_k by
+    #      ±R(q_0⁻)ᵀ c L_v[:, j]: it adds 2 W_j to X_0's weight in every sum and
+    #      R(q_0⁻)ᵀ Q_v R(q_0⁻) to the k-th block of P_yy;
+    #    * a pair along a bias column (L is lower triangular: it moves b only) leaves q⁻ and
+    #      every non-linear y equal to X_0's: it adds 2 W_j to X_0's weight, nothing to the sums
+    #      with e or y (its two b offsets cancel) and its share of L Lᵀ to P_bb (below);
+    #    * z = (ω⁻, b) is linear in the points: z̄⁻ = (ω̄, b̄) and P_zz = P_zz + Q_ωᵃ exactly,
+    #      and a sum Σ_s W_s a_s Δz_s (Δz_0 = 0, Δz_{j−} = −Δz_{j+}) is
+    #      W_j Σ_j (a_{j+} − a_{j−}) Δz_{j+}.
+    #    So 1 + 2·9 points are propagated (directions: attitude, rate, rate noise).
     N = nx + 3 + 3 * nvec
-    nd = nx + 3  # propagated directions: state and rate noise
-    ns = 2 * nd + 1
+    nda = 9  # propagated directions: L's columns 0–5 (attitude, rate) and nx … nx + 2 (noise)
+    ns = 2 * nda + 1
     # Scratch. numba has no stack arrays, and every allocation, every view and every array
     # argument of a call costs reference counting (atomic operations) that outweighs a small
     # matrix's arithmetic; so: four arrays given by the caller (mukf_scratch), a few row ranges
     # of them (a column range would not be contiguous, slower to index), tables by column.
     # L: lower Cholesky factor of the propagated part of Pᵃ, blockdiag(P, Q_ωᵃ).
-    # T: row j for sigma point j: x_j = (e_j, ω_j⁻, b_j) in columns _X…_X+8 (in place, later
-    #    Δx_j: see step 6), q_j⁻ in _Q…_Q+3, y_j in _Y…; row ns: the means x̄⁻, ȳ; row ns + 1:
-    #    the update Δx and the innovation y − ȳ.
+    # T: row s for sigma point s: e_s in columns _X…_X+2 (later e_s⁻, see step 6), the offset
+    #    Δz_s of (ω_s⁻, b_s) in _X+3…_X+nx−1, q_s⁻ in _Q…_Q+3, y_s in _Y…; row ns: the means x̄⁻,
+    #    ȳ; row ns + 1: the update Δx and the innovation y − ȳ.
     # The blocks of width m have _M_MAX columns, of which the first m are used.
     L = scratch[0]
     T = scratch[1]
@@ -291,6 +300,7 @@ def mukf_step_t(
     Kt = S_nx[nx:nx + m]
     if not cholesky_into(P, L, 0, nx):
         return False, qc_t, ebar, w, b, nis
+    qa = dt * dt if published else max(dt, 0.0)  # Q_ωᵃ = Q_ω·qa: the covariance of ω⁻ − ω
     if dt > 0.0 or published:
         for i in range(3):
             for j in range(3):
@@ -301,38 +311,34 @@ def mukf_step_t(
         L[nx:, nx:] = 0.0  # those sigma points coincide with the central one
     c = np.sqrt(N / (1.0 - w0))
     wj = (1.0 - w0) / (2.0 * N)
-    w_0 = w0 + 2.0 * 3.0 * nvec * wj  # X_0's weight, with the disturbance pairs'
-    # X_0 on the manifold; also every point that moves only ω, b or the rate noise (L is lower
-    # triangular, so only the first three directions move e)
+    w_0 = w0 + 2.0 * (3.0 * nvec + (nx - 6)) * wj  # X_0's weight, with the folded pairs'
+    # X_0 on the manifold; also every point that does not move e
     q_mid = qnormalize_t(qmul_t(qc_t, from_chart_t(chart, saturate_t(chart, ebar))))
     for s in range(ns):
-        for i in range(3):  # x̄ (b̄ also without bias state: the gyro rows use it)
+        d = s - 1 if s <= nda else s - 1 - nda
+        j = d if d < 6 else d + nx - 6  # direction: column of L
+        step = c if s <= nda else -c
+        for i in range(3):
             T[s, _X + i] = ebar[i]
-            T[s, _X + 3 + i] = w[i]
-            T[s, _X + 6 + i] = b[i]
-        j = s - 1 if s <= nd else s - 1 - nd  # direction: column of L
+        for i in range(3, nx):
+            T[s, _X + i] = 0.0
         nw0 = nw1 = nw2 = 0.0
         if s > 0:
-            step = c if s <= nd else -c
-            if j < nx:  # a state direction
+            if j < nx:  # a state direction (L is lower triangular: rows j … nx − 1)
                 for i in range(j, nx):
                     T[s, _X + i] += step * L[i, j]
-            else:  # a rate-noise direction (L is lower triangular: its upper part is zero)
+            else:  # a rate-noise direction
                 nw0, nw1, nw2 = step * L[nx, j], step * L[nx + 1, j], step * L[nx + 2, j]
+                if published:
+                    nw0, nw1, nw2 = nw0 * dt, nw1 * dt, nw2 * dt
+                T[s, _X + 3], T[s, _X + 4], T[s, _X + 5] = nw0, nw1, nw2
         # 3. to the manifold, propagate, predict the measurement
         #    q_j = q̄_c * φ⁻¹(sat(e_j)),  ω_j⁻ = ω_j + n_ω (·Δt),  q_j⁻ = q_j * q_ω(ω_j⁻, Δt)
-        n_w = (nw0 * dt, nw1 * dt, nw2 * dt) if published else (nw0, nw1, nw2)
-        w_j = (T[s, _X + 3], T[s, _X + 4], T[s, _X + 5])
-        for i in range(3):
-            T[s, _X + 3 + i] = w_j[i] + n_w[i]  # ω_j⁻, the rate at the end of the step
-        if noise_mode == NOISE_INTEGRATED:  # rotate with the mean rate over the step
-            wstep = (w_j[0] + 0.5 * n_w[0], w_j[1] + 0.5 * n_w[1], w_j[2] + 0.5 * n_w[2])
+        if noise_mode == NOISE_INTEGRATED:  # rotate with the mean rate ω_j + n_ω/2 over the step
+            wstep = (w[0] + (T[s, _X + 3] - 0.5 * nw0), w[1] + (T[s, _X + 4] - 0.5 * nw1),
+                     w[2] + (T[s, _X + 5] - 0.5 * nw2))
         else:
-            wstep = (T[s, _X + 3], T[s, _X + 4], T[s, _X + 5])
-        if s > 0 and 6 <= j < nx:  # moves the bias only: attitude, rate and y are X_0's
-            for cc in range(_Q, _Y + m_nl):
-                T[s, cc] = T[0, cc]
-            continue
+            wstep = (w[0] + T[s, _X + 3], w[1] + T[s, _X + 4], w[2] + T[s, _X + 5])
         qj = q_mid
         if s > 0 and j < 3:  # (normalised once, below: the scale factors out of the product)
             qj = qmul_t(qc_t, from_chart_t(chart, saturate_t(
@@ -347,9 +353,12 @@ def mukf_step_t(
                     T[s, _Y + first[k] + i] = y[i]
         if use_h:  # heading residual ψ(q_j⁻), unwrapped around the central point's
             psi, _ = heading_residual_t(rotmat_t(qj), hm, href)
-            if s > 0:
+            if s > 0:  # both in [−π, π]: one turn at most brings the difference into it
                 d_psi = psi - T[0, _Y + row_h]
-                psi = T[0, _Y + row_h] + np.arctan2(np.sin(d_psi), np.cos(d_psi))
+                if d_psi > np.pi:
+                    psi -= 2.0 * np.pi
+                elif d_psi < -np.pi:
+                    psi += 2.0 * np.pi
             T[s, _Y + row_h] = psi
         # (the gyro, ω_j⁻ + b_j, and the zero rate, ω_j⁻, are linear: see step 6)
     # 4. hemisphere alignment with the propagated sigma point 0
@@ -359,44 +368,54 @@ def mukf_step_t(
         if dot < 0.0:
             for i in range(4):
                 T[s, _Q + i] = -T[s, _Q + i]
-    # 5. means: normalised weighted quaternion sum, weighted rate, bias and measurement
-    for cc in range(_X + 3):
-        T[ns, cc] = 0.0
-    _wmeans(T, ns, w_0, wj, _X + 3, _Y + m_nl)  # ω, b, q, the non-linear rows of y
+    # 5. means: normalised weighted quaternion sum and measurement; the rate and bias exactly
+    _wmeans(T, ns, w_0, wj, _Q, _Y + m_nl)  # q, the non-linear rows of y
     qs = (T[ns, _Q], T[ns, _Q + 1], T[ns, _Q + 2], T[ns, _Q + 3])
     nq = np.sqrt(qs[0] * qs[0] + qs[1] * qs[1] + qs[2] * qs[2] + qs[3] * qs[3])
     qm = (qs[0] / nq, qs[1] / nq, qs[2] / nq, qs[3] / nq)
+    for i in range(3):
+        T[ns, _X + i] = 0.0
+        T[ns, _X + 3 + i] = w[i]
+        T[ns, _X + 6 + i] = b[i]  # (b̄ also without bias state: the gyro rows use it)
     for i in range(3):  # the linear rows: H x̄
         if use_w:
-            T[ns, _Y + row_g + i] = T[ns, _X + 3 + i] + T[ns, _X + 6 + i]
+            T[ns, _Y + row_g + i] = w[i] + b[i]
         if use_z:
-            T[ns, _Y + row_z + i] = T[ns, _X + 3 + i]
+            T[ns, _Y + row_z + i] = w[i]
     # 6. re-express in the chart of the new mean; covariances (no subtraction of Σ W e_j, §8.7)
-    #    Δx_j = (e_j⁻, ω_j⁻ − ω̄⁻, b_j − b̄), Δy_j = y_j − ȳ, written over x_j and y_j.
+    #    Δx_j = (e_j⁻, Δz_j), Δy_j = y_j − ȳ, e_j⁻ written over e_j, Δy_j over y_j.
     #    Exact reduction: the gyro and zero-rate rows are linear in the state, y_j = H x_j, so
     #    their sums are P_xy = P_xx Hᵀ and P_yy = H P_xy (the weighted sums are linear); only
     #    the vector and heading rows (the first m_nl) are summed over the points.
-    e0 = (0.0, 0.0, 0.0)
     for s in range(ns):
-        j = s - 1 if s <= nd else s - 1 - nd
-        e = e0  # a bias-only point has X_0's q_j⁻, so its e_j⁻
-        if s == 0 or not 6 <= j < nx:
-            e = to_chart_t(chart, qconj_mul_t(qm, (T[s, _Q], T[s, _Q + 1], T[s, _Q + 2],
-                                                   T[s, _Q + 3])))
-        if s == 0:
-            e0 = e
+        e = to_chart_t(chart, qconj_mul_t(qm, (T[s, _Q], T[s, _Q + 1], T[s, _Q + 2],
+                                               T[s, _Q + 3])))
         T[s, _X], T[s, _X + 1], T[s, _X + 2] = e[0], e[1], e[2]
-        for cc in range(_X + 3, _X + nx):
-            T[s, cc] -= T[ns, cc]
         for cc in range(_Y, _Y + m_nl):
             T[s, cc] -= T[ns, cc]
-    # P_xx = Σ_s W_s Δx_s Δx_sᵀ (lower triangle), P_xy = Σ_s W_s Δx_s Δy_sᵀ, P_yy likewise
-    for i in range(nx):
-        _wsums(T, ns, w_0, wj, _X + i, _X, i + 1, Pxx, i)
-        _wsums(T, ns, w_0, wj, _X + i, _Y, m_nl, Pxy, i)
+    # P_ee = Σ_s W_s e_s e_sᵀ (lower triangle), P_ey = Σ_s W_s e_s Δy_sᵀ, P_yy likewise
+    for i in range(3):
+        _wsums(T, 0, ns, w_0, wj, _X + i, _X, i + 1, Pxx, i, 0)
+        _wsums(T, 0, ns, w_0, wj, _X + i, _Y, m_nl, Pxy, i, 0)
     for i in range(m_nl):
-        _wsums(T, ns, w_0, wj, _Y + i, _Y, i + 1, Pyy, i)
-    for i in range(nx):  # the loops above filled the lower triangles
+        _wsums(T, 0, ns, w_0, wj, _Y + i, _Y, i + 1, Pyy, i, 0)
+    # the sums with Δz by pairs: rows 1 … nda ← a_{j+} − a_{j−} for a = e, y
+    for s in range(1, nda + 1):
+        for cc in range(_X, _X + 3):
+            T[s, cc] -= T[s + nda, cc]
+        for cc in range(_Y, _Y + m_nl):
+            T[s, cc] -= T[s + nda, cc]
+    for i in range(3):  # P_ez (upper block)
+        _wsums(T, 1, nda, wj, wj, _X + i, _X + 3, nx - 3, Pxx, i, 3)
+    for k in range(nx - 3):  # P_zy
+        _wsums(T, 1, nda, wj, wj, _X + 3 + k, _Y, m_nl, Pxy, 3 + k, 0)
+    for i in range(3, nx):  # P_zz = P_zz + Q_ωᵃ (lower triangle)
+        for jj in range(3, i + 1):
+            Pxx[i, jj] = P[i, jj] + (Qw[i - 3][jj - 3] * qa if i < 6 else 0.0)
+    for i in range(3):
+        for k in range(3, nx):
+            Pxx[k, i] = Pxx[i, k]
+    for i in range(nx):  # the loops above filled the lower triangle
         for jj in range(i):
             Pxx[jj, i] = Pxx[i, jj]
     for r in range(m_nl, m):  # linear rows: column r of P_xy is P_xx Hᵀ, row r of P_yy H P_xy
