@@ -117,9 +117,9 @@ def _wmeans(T: np.ndarray, ns: int, w_0: float, wj: float, c0: int, c1: int) -> 
 def _wsums(T: np.ndarray, s0: int, ns: int, w_0: float, wj: float, a: int, b: int, n: int,
            out: np.ndarray, r: int, oc: int) -> None:
     """``out[r, oc + k] = Σ_s W_s T[s, a] T[s, b + k]`` for ``k < n``, over the rows
-    ``s0 ≤ s < s0 + ns`` (``W_{s0} = w_0``, else ``wj``), each accumulated in row order in a
-    register; four columns at a time (independent sums: the additions overlap instead of waiting
-    for each other)."""
+    ``s0 ≤ s < s0 + ns`` (``W_{s0} = w_0``, else ``wj``), accumulated in registers four columns
+    at a time, a last column in four partial sums (independent sums: the additions overlap
+    instead of waiting for each other)."""
     k = 0
     s1 = s0 + ns
     while k + 4 <= n:
@@ -134,11 +134,20 @@ def _wsums(T: np.ndarray, s0: int, ns: int, w_0: float, wj: float, a: int, b: in
             c3 += wa * T[s, b + k + 3]
         out[r, oc + k], out[r, oc + k + 1], out[r, oc + k + 2], out[r, oc + k + 3] = c0, c1, c2, c3
         k += 4
-    while k < n:
+    while k < n:  # one column: four sums over every fourth row, independent likewise
         c0 = (w_0 * T[s0, a]) * T[s0, b + k]
-        for s in range(s0 + 1, s1):
+        c1 = c2 = c3 = 0.0
+        s = s0 + 1
+        while s + 4 <= s1:
             c0 += (wj * T[s, a]) * T[s, b + k]
-        out[r, oc + k] = c0
+            c1 += (wj * T[s + 1, a]) * T[s + 1, b + k]
+            c2 += (wj * T[s + 2, a]) * T[s + 2, b + k]
+            c3 += (wj * T[s + 3, a]) * T[s + 3, b + k]
+            s += 4
+        while s < s1:
+            c0 += (wj * T[s, a]) * T[s, b + k]
+            s += 1
+        out[r, oc + k] = (c0 + c1) + (c2 + c3)
         k += 1
 
 
@@ -508,47 +517,57 @@ def mukf_step_t(
         cho_solve_into(Ly, ma, Kt)  # Kᵀ = P_yy⁻¹ P_xyᵀ
         Rm = rotmat_t(qm)
         u0, u1, u2 = Rm[2][0], Rm[2][1], Rm[2][2]  # world vertical in the new chart's axes
-        projected = False
+        # gain projections: K = K₀ + ΔK with K₀ = P_xy P_yy⁻¹ the optimal gain; ΔK in dK
+        # (KPyy's rows, free here), its columns flagged in `proj` (bit mask)
+        dK = KPyy
+        proj = 0
         for a in range(ma):
+            for i in range(nx):
+                dK[i, a] = 0.0
             if a == row_hk:
-                # heading turns about the vertical only: project its attitude gain onto u
+                # heading turns about the vertical only: the attitude gain projected onto u
                 ku = u0 * Kt[a, 0] + u1 * Kt[a, 1] + u2 * Kt[a, 2]
-                Kt[a, 0], Kt[a, 1], Kt[a, 2] = u0 * ku, u1 * ku, u2 * ku
-                projected = True
+                dK[0, a], dK[1, a], dK[2, a] = (u0 * ku - Kt[a, 0], u1 * ku - Kt[a, 1],
+                                                u2 * ku - Kt[a, 2])
+                proj |= 1 << a
             elif tilt_v0 and row_v0k >= 0 and row_v0k <= a < row_v0k + 3:
                 # gravity: keep every group's gain (attitude, rate, bias) off the vertical
                 for g in range(nx // 3):
                     ku = u0 * Kt[a, 3 * g] + u1 * Kt[a, 3 * g + 1] + u2 * Kt[a, 3 * g + 2]
-                    Kt[a, 3 * g] -= u0 * ku
-                    Kt[a, 3 * g + 1] -= u1 * ku
-                    Kt[a, 3 * g + 2] -= u2 * ku
-                projected = True
-        for a in range(ma):  # Δx = K (y − ȳ)
-            for i in range(nx):
-                T[ns + 1, _X + i] += Kt[a, i] * T[ns + 1, _Y + a]
-        if projected:  # Joseph form, valid for any gain: P − K P_xyᵀ − P_xy Kᵀ + K P_yy Kᵀ
-            for i in range(nx):
+                    dK[3 * g, a], dK[3 * g + 1, a], dK[3 * g + 2, a] = -u0 * ku, -u1 * ku, -u2 * ku
+                proj |= 1 << a
+        for i in range(nx):  # Δx = K (y − ȳ)
+            s_ = 0.0
+            for a in range(ma):
+                s_ += (Kt[a, i] + dK[i, a]) * T[ns + 1, _Y + a]
+            T[ns + 1, _X + i] = s_
+        # P ← P_xx − K₀ P_yy K₀ᵀ = P_xx − P_xy K₀ᵀ (symmetric: the upper triangle, mirrored)
+        for i in range(nx):
+            for jj in range(i, nx):
+                s_ = 0.0
                 for a in range(ma):
-                    s_ = 0.0
-                    for bb in range(ma):
-                        s_ += Kt[bb, i] * Pyy[bb, a]
-                    KPyy[i, a] = s_
-            for i in range(nx):  # symmetric: the upper triangle, mirrored
+                    s_ += Pxy[i, a] * Kt[a, jj]
+                Pxx[i, jj] -= s_
+        if proj:  # Joseph form for the gain K₀ + ΔK, valid for any gain:
+            # P − K P_xyᵀ − P_xy Kᵀ + K P_yy Kᵀ = P − K₀ P_yy K₀ᵀ + ΔK P_yy ΔKᵀ  (K₀ P_yy = P_xy)
+            for a in range(ma):  # Ly ← P_yy ΔKᵀ, rows of projected columns only (Ly is free)
+                if (proj >> a) & 1:
+                    for i in range(nx):
+                        s_ = 0.0
+                        for bb in range(ma):
+                            if (proj >> bb) & 1:
+                                s_ += Pyy[a, bb] * dK[i, bb]
+                        Ly[a, i] = s_
+            for i in range(nx):
                 for jj in range(i, nx):
                     s_ = 0.0
                     for a in range(ma):
-                        s_ += (-Kt[a, i] * Pxy[jj, a] - Pxy[i, a] * Kt[a, jj]
-                               + KPyy[i, a] * Kt[a, jj])
+                        if (proj >> a) & 1:
+                            s_ += dK[i, a] * Ly[a, jj]
                     Pxx[i, jj] += s_
-                    Pxx[jj, i] = Pxx[i, jj]
-        else:  # P ← P_xx − K P_yy Kᵀ = P_xx − P_xy Kᵀ
-            for i in range(nx):  # P_xy P_yy⁻¹ P_xyᵀ is symmetric: upper triangle, mirrored
-                for jj in range(i, nx):
-                    s_ = 0.0
-                    for a in range(ma):
-                        s_ += Pxy[i, a] * Kt[a, jj]
-                    Pxx[i, jj] -= s_
-                    Pxx[jj, i] = Pxx[i, jj]
+        for i in range(nx):
+            for jj in range(i + 1, nx):
+                Pxx[jj, i] = Pxx[i, jj]
     # (P_xx is exactly symmetric: every update above wrote one triangle and mirrored it)
     e = saturate_t(chart, (T[ns + 1, _X], T[ns + 1, _X + 1], T[ns + 1, _X + 2]))
     w = (T[ns, _X + 3] + T[ns + 1, _X + 3], T[ns, _X + 4] + T[ns + 1, _X + 4],
