@@ -8,7 +8,7 @@ from spec_reference import mukf_step_ref
 
 from mkf_ros.core.charts import CHART_NAMES, chart_id
 from mkf_ros.core.mukf import mukf_estimate, mukf_step, mukf_step_ext
-from mkf_ros.core.quaternion import angle_between
+from mkf_ros.core.quaternion import angle_between, rotmat_np
 
 DT, QW, QB = 0.02, np.diag([1.0, 2.0, 0.5]), 1e-6 * np.eye(3)
 
@@ -27,8 +27,9 @@ def _random_state(rng: np.random.Generator, nx: int) -> tuple:
 @pytest.mark.parametrize("cu", [True, False])
 @pytest.mark.parametrize("published", [True, False])
 def test_kernel_equals_full_augmentation(nx: int, chart: str, cu: bool, published: bool) -> None:
-    """The kernel propagates only the state and rate-noise sigma points and sums the
-    disturbance points in closed form; the result equals §6 with all 2N+1 points."""
+    """The kernel propagates only the attitude, rate and rate-noise sigma points, sums the
+    disturbance and bias points and the linear (ω, b) part in closed form; the result equals
+    §6 with all 2N+1 points."""
     rng = np.random.default_rng(nx + 10 * chart_id(chart) + 100 * cu + 1000 * published)
     for nvec in (0, 1, 2):
         for use_w in (True, False):
@@ -166,3 +167,36 @@ def test_step_equals_ext_without_gates() -> None:
             assert mukf_step(*common)
         out.append(np.concatenate([qc, e, wk, bk, P.ravel()]))
     np.testing.assert_array_equal(out[0], out[1])
+
+
+@pytest.mark.parametrize("chart", CHART_NAMES)
+def test_projected_gain_costs_exactly_its_joseph_term(chart: str) -> None:
+    """A gain projected by the real-sensor extensions (gravity tilt-only) is sub-optimal: the
+    covariance after it is the optimal update's plus ΔK P_yy ΔKᵀ, so never smaller (a sign
+    error in that term would make it smaller), and the attitude correction has no component
+    along the world vertical."""
+    rng = np.random.default_rng(11 + chart_id(chart))
+    for _ in range(5):
+        q, P0, ebar, w, b = _random_state(rng, 9)
+        vr = np.array([[0, 0, 1.0], [0, 0, 0]])
+        vm = np.array([rng.normal(size=3) * 0.2 + vr[0], np.zeros(3)])
+        Rv, Qv = np.array([1e-3 * np.eye(3)] * 2), np.array([1e-2 * np.eye(3)] * 2)
+        out = []
+        for tilt in (False, True):
+            qc, e, wk, bk, P = q.copy(), ebar.copy(), w.copy(), b.copy(), P0.copy()
+            assert mukf_step_ext(chart_id(chart), True, 0, 1 / 25, qc, e, wk, bk, P, 9, DT, QW,
+                                 QB, vm, vr, Rv, Qv, np.array([True, False]), w, False,
+                                 1e-4 * np.eye(3), np.zeros(3), np.zeros(3), False, 0.0, False,
+                                 0.0, np.full(4, np.inf), np.zeros(4), tilt)
+            out.append((qc, e, P))
+        (q0, e0, P_opt), (q1, e1, P_tilt) = out
+        np.testing.assert_allclose(q0, q1, atol=1e-15)  # same sigma points, same mean
+        dP = P_tilt - P_opt
+        assert np.linalg.eigvalsh(dP).min() > -1e-12 * np.abs(P_opt).max()
+        assert np.abs(dP).max() > 1e-9  # the projection did something
+        # the correction ē (in the chart at the new mean q̄⁻, gravity the only measurement):
+        # none of it about the world vertical u = R(q̄⁻)ᵀ ẑ (saturation keeps the direction)
+        u = rotmat_np(q1)[2]
+        assert abs(u @ e1) < 1e-12 * max(1.0, np.linalg.norm(e1))
+        assert np.linalg.norm(e1) > 1e-6
+        assert abs(u @ e0) > 1e-9  # the optimal gain does turn about it
