@@ -71,10 +71,12 @@ _M_MAX = 3 + 3 + 1 + 3 + 3
 @jit
 def mukf_scratch(nx: int) -> tuple:
     """Scratch of :func:`mukf_step_t` for ``nx`` states (see its step 2): ``L``, the sigma-point
-    table ``T``, and the blocks of width ``m`` (at most) and of width ``nx``."""
+    table ``T``, ``P_xy``, ``P_yy``, its factor, ``K P_yy``, ``P_xx`` and ``Kᵀ``, each at its
+    largest size (``m`` rows or columns at most ``_M_MAX``)."""
     nd = nx + 3
     return (np.empty((nd, nd)), np.empty((2 * nd + 3, _Y + _M_MAX)),
-            np.empty((2 * nx + 2 * _M_MAX, _M_MAX)), np.empty((nx + _M_MAX, nx)))
+            np.empty((nx, _M_MAX)), np.empty((_M_MAX, _M_MAX)), np.empty((_M_MAX, _M_MAX)),
+            np.empty((nx, _M_MAX)), np.empty((nx, nx)), np.empty((_M_MAX, nx)))
 
 
 # measurement blocks of mukf_step_ext, in row order; index into its `gates` / `nis` arrays
@@ -290,23 +292,14 @@ def mukf_step_t(
     ns = 2 * nda + 1
     # Scratch. numba has no stack arrays, and every allocation, every view and every array
     # argument of a call costs reference counting (atomic operations) that outweighs a small
-    # matrix's arithmetic; so: four arrays given by the caller (mukf_scratch), a few row ranges
-    # of them (a column range would not be contiguous, slower to index), tables by column.
+    # matrix's arithmetic; so: eight arrays given by the caller (mukf_scratch), used in their
+    # leading blocks, no views; tables by column.
     # L: lower Cholesky factor of the propagated part of Pᵃ, blockdiag(P, Q_ωᵃ).
     # T: row s for sigma point s: e_s in columns _X…_X+2 (later e_s⁻, see step 6), the offset
     #    Δz_s of (ω_s⁻, b_s) in _X+3…_X+nx−1, q_s⁻ in _Q…_Q+3, y_s in _Y…; row ns: the means x̄⁻,
     #    ȳ; row ns + 1: the update Δx and the innovation y − ȳ.
-    # The blocks of width m have _M_MAX columns, of which the first m are used.
-    L = scratch[0]
-    T = scratch[1]
-    S_m = scratch[2]  # row ranges: P_xy, P_yy, its factor, K P_yy
-    Pxy = S_m[:nx]
-    Pyy = S_m[nx:nx + m]
-    Ly = S_m[nx + m:nx + 2 * m]
-    KPyy = S_m[nx + 2 * m:2 * nx + 2 * m]
-    S_nx = scratch[3]  # row ranges: P_xx, Kᵀ
-    Pxx = S_nx[:nx]
-    Kt = S_nx[nx:nx + m]
+    # P_xy, P_yy, its factor Ly, K P_yy, Kᵀ: m ≤ _M_MAX rows or columns, the first m used.
+    L, T, Pxy, Pyy, Ly, KPyy, Pxx, Kt = scratch
     if not cholesky_into(P, L, 0, nx):
         return False, qc_t, ebar, w, b, nis
     qa = dt * dt if published else max(dt, 0.0)  # Q_ωᵃ = Q_ω·qa: the covariance of ω⁻ − ω
