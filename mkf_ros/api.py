@@ -146,10 +146,15 @@ def estimate(
     )
 
 
+#: How long the first :func:`warmup` on a new installation takes (measured 2 min 22 s cold on
+#: the 2-core reference machine); the messages of the demo and the node quote it.
+FIRST_COMPILE_TIME = "about two minutes"
+
+
 def warmup() -> None:
     """Compile (or load from numba's on-disk cache) every kernel the filters use, so that the
-    first real sample is not delayed. The first call on a new installation takes about two minutes;
-    later calls load the cache in well under a second."""
+    first real sample is not delayed. The first call on a new installation takes
+    :data:`FIRST_COMPILE_TIME`; later calls load the cache in well under a second."""
     from mkf_ros.core.filter import AttitudeFilter
     from mkf_ros.stream import StreamAdapter
 

@@ -178,11 +178,11 @@ class _Demo:
         return self._run_nodes(est_cmd, ply_cmd, env)
 
     def _warm(self) -> None:
-        from mkf_ros.api import warmup
+        from mkf_ros.api import FIRST_COMPILE_TIME, warmup
 
         t0 = time.monotonic()
         self.say("  loading the compiled filter kernels (the first run after an install "
-                 "compiles them, about two minutes)...")
+                 f"compiles them, {FIRST_COMPILE_TIME})...")
         warmup()
         dt = time.monotonic() - t0
         self.say(f"  kernels ready in {dt:.1f} s{' (compiled and cached)' if dt > 5 else ''}\n")

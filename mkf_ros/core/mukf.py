@@ -66,6 +66,8 @@ def mukf_step(
 
 # measurement rows at most: two vectors, heading, gyro, zero rate
 _M_MAX = 3 + 3 + 1 + 3 + 3
+# sigma-point directions propagated by mukf_step_t: attitude (3), rate (3), rate noise (3)
+_NDA = 9
 
 
 @jit
@@ -74,7 +76,7 @@ def mukf_scratch(nx: int) -> tuple:
     table ``T``, ``P_xy``, ``P_yy``, its factor, ``K P_yy``, ``P_xx`` and ``Kᵀ``, each at its
     largest size (``m`` rows or columns at most ``_M_MAX``)."""
     nd = nx + 3
-    return (np.empty((nd, nd)), np.empty((2 * nd + 3, _Y + _M_MAX)),
+    return (np.empty((nd, nd)), np.empty((2 * _NDA + 3, _Y + _M_MAX)),
             np.empty((nx, _M_MAX)), np.empty((_M_MAX, _M_MAX)), np.empty((_M_MAX, _M_MAX)),
             np.empty((nx, _M_MAX)), np.empty((nx, nx)), np.empty((_M_MAX, nx)))
 
@@ -244,7 +246,7 @@ def mukf_step_t(
     :func:`mukf_scratch` for ``nx`` states. ``P`` is updated in place. Returns
     ``(ok, q̄_c, ē, ω̄, b̄, nis)``; if a factorisation fails, ``ok`` is False and the rest as far
     as computed (step 0's re-centring, the bias noise added to ``P``). Speed: no allocation,
-    only a few views; every small input a tuple (no reference counting)."""
+    no views; every small input a tuple (no reference counting)."""
     qc_t, ebar, w, b = x
     nis = (0.0, 0.0, 0.0, 0.0)
     # 0. reset variant: re-centre at the estimate, keep P
@@ -288,7 +290,7 @@ def mukf_step_t(
     #      W_j Σ_j (a_{j+} − a_{j−}) Δz_{j+}.
     #    So 1 + 2·9 points are propagated (directions: attitude, rate, rate noise).
     N = nx + 3 + 3 * nvec
-    nda = 9  # propagated directions: L's columns 0–5 (attitude, rate) and nx … nx + 2 (noise)
+    nda = _NDA  # propagated directions: L's columns 0–5 (attitude, rate), nx … nx + 2 (noise)
     ns = 2 * nda + 1
     # Scratch. numba has no stack arrays, and every allocation, every view and every array
     # argument of a call costs reference counting (atomic operations) that outweighs a small
@@ -296,17 +298,19 @@ def mukf_step_t(
     # leading blocks, no views; tables by column.
     # L: lower Cholesky factor of the propagated part of Pᵃ, blockdiag(P, Q_ωᵃ).
     # T: row s for sigma point s: e_s in columns _X…_X+2 (later e_s⁻, see step 6), the offset
-    #    Δz_s of (ω_s⁻, b_s) in _X+3…_X+nx−1, q_s⁻ in _Q…_Q+3, y_s in _Y…; row ns: the means x̄⁻,
-    #    ȳ; row ns + 1: the update Δx and the innovation y − ȳ.
+    #    Δz_s of (ω_s⁻, b_s) in _X+3…_X+nx−1, q_s⁻ in _Q…_Q+3, y_s in _Y…; row ns: the means of
+    #    q⁻ and y; row ns + 1: the update Δx and the innovation y − ȳ.
     # P_xy, P_yy, its factor Ly, K P_yy, Kᵀ: m ≤ _M_MAX rows or columns, the first m used.
     L, T, Pxy, Pyy, Ly, KPyy, Pxx, Kt = scratch
     if not cholesky_into(P, L, 0, nx):
         return False, qc_t, ebar, w, b, nis
-    qa = dt * dt if published else max(dt, 0.0)  # Q_ωᵃ = Q_ω·qa: the covariance of ω⁻ − ω
-    if dt > 0.0 or published:
+    # Q_ωᵃ = Q_ω·qa, the covariance of the rate increment n_ω = ω⁻ − ω: Q_ω Δt (consistent,
+    # integrated) or Q_ω Δt² (published: the authors' Q_ω with n Δt, the same spread)
+    qa = dt * dt if published else max(dt, 0.0)
+    if qa > 0.0:
         for i in range(3):
             for j in range(3):
-                L[nx + i, nx + j] = Qw[i][j] if published else Qw[i][j] * dt
+                L[nx + i, nx + j] = Qw[i][j] * qa
         if not cholesky_into(L, L, nx, 3):
             return False, qc_t, ebar, w, b, nis
     else:  # a zero-length step (e.g. a magnetometer fused at the IMU's time): no rate noise,
@@ -331,11 +335,9 @@ def mukf_step_t(
                     T[s, _X + i] += step * L[i, j]
             else:  # a rate-noise direction
                 nw0, nw1, nw2 = step * L[nx, j], step * L[nx + 1, j], step * L[nx + 2, j]
-                if published:
-                    nw0, nw1, nw2 = nw0 * dt, nw1 * dt, nw2 * dt
                 T[s, _X + 3], T[s, _X + 4], T[s, _X + 5] = nw0, nw1, nw2
         # 3. to the manifold, propagate, predict the measurement
-        #    q_j = q̄_c * φ⁻¹(sat(e_j)),  ω_j⁻ = ω_j + n_ω (·Δt),  q_j⁻ = q_j * q_ω(ω_j⁻, Δt)
+        #    q_j = q̄_c * φ⁻¹(sat(e_j)),  ω_j⁻ = ω_j + n_ω,  q_j⁻ = q_j * q_ω(ω_j⁻, Δt)
         if noise_mode == NOISE_INTEGRATED:  # rotate with the mean rate ω_j + n_ω/2 over the step
             wstep = (w[0] + (T[s, _X + 3] - 0.5 * nw0), w[1] + (T[s, _X + 4] - 0.5 * nw1),
                      w[2] + (T[s, _X + 5] - 0.5 * nw2))
@@ -375,11 +377,7 @@ def mukf_step_t(
     qs = (T[ns, _Q], T[ns, _Q + 1], T[ns, _Q + 2], T[ns, _Q + 3])
     nq = np.sqrt(qs[0] * qs[0] + qs[1] * qs[1] + qs[2] * qs[2] + qs[3] * qs[3])
     qm = (qs[0] / nq, qs[1] / nq, qs[2] / nq, qs[3] / nq)
-    for i in range(3):
-        T[ns, _X + i] = 0.0
-        T[ns, _X + 3 + i] = w[i]
-        T[ns, _X + 6 + i] = b[i]  # (b̄ also without bias state: the gyro rows use it)
-    for i in range(3):  # the linear rows: H x̄
+    for i in range(3):  # the linear rows: H x̄ (x̄⁻ = (0, ω̄, b̄); b̄ also without bias state)
         if use_w:
             T[ns, _Y + row_g + i] = w[i] + b[i]
         if use_z:
@@ -510,29 +508,32 @@ def mukf_step_t(
         cho_solve_into(Ly, ma, Kt)  # Kᵀ = P_yy⁻¹ P_xyᵀ
         Rm = rotmat_t(qm)
         u0, u1, u2 = Rm[2][0], Rm[2][1], Rm[2][2]  # world vertical in the new chart's axes
-        # gain projections: K = K₀ + ΔK with K₀ = P_xy P_yy⁻¹ the optimal gain; ΔK in dK
-        # (KPyy's rows, free here), its columns flagged in `proj` (bit mask)
         dK = KPyy
-        proj = 0
-        for a in range(ma):
-            for i in range(nx):
-                dK[i, a] = 0.0
-            if a == row_hk:
-                # heading turns about the vertical only: the attitude gain projected onto u
-                ku = u0 * Kt[a, 0] + u1 * Kt[a, 1] + u2 * Kt[a, 2]
-                dK[0, a], dK[1, a], dK[2, a] = (u0 * ku - Kt[a, 0], u1 * ku - Kt[a, 1],
-                                                u2 * ku - Kt[a, 2])
-                proj |= 1 << a
-            elif tilt_v0 and row_v0k >= 0 and row_v0k <= a < row_v0k + 3:
-                # gravity: keep every group's gain (attitude, rate, bias) off the vertical
+        # gain projections: K = K₀ + ΔK with K₀ = P_xy P_yy⁻¹ the optimal gain. ΔK has np_
+        # non-zero columns, kept dense in dK (KPyy's rows, free here); column t belongs to row
+        # pc[t] of the stacked measurement: the gravity rows (tilt only), then the heading row
+        g0 = row_v0k if tilt_v0 else -1
+        ng = 3 if g0 >= 0 else 0
+        np_ = ng + (1 if row_hk >= 0 else 0)
+        pc = (g0, g0 + 1, g0 + 2, row_hk) if ng else (row_hk, row_hk, row_hk, row_hk)
+        for t in range(np_):
+            a = pc[t]
+            if t < ng:  # gravity: keep every group's gain (attitude, rate, bias) off the vertical
                 for g in range(nx // 3):
                     ku = u0 * Kt[a, 3 * g] + u1 * Kt[a, 3 * g + 1] + u2 * Kt[a, 3 * g + 2]
-                    dK[3 * g, a], dK[3 * g + 1, a], dK[3 * g + 2, a] = -u0 * ku, -u1 * ku, -u2 * ku
-                proj |= 1 << a
-        for i in range(nx):  # Δx = K (y − ȳ)
+                    dK[3 * g, t], dK[3 * g + 1, t], dK[3 * g + 2, t] = -u0 * ku, -u1 * ku, -u2 * ku
+            else:  # heading turns about the vertical only: the attitude gain projected onto u
+                ku = u0 * Kt[a, 0] + u1 * Kt[a, 1] + u2 * Kt[a, 2]
+                dK[0, t], dK[1, t], dK[2, t] = (u0 * ku - Kt[a, 0], u1 * ku - Kt[a, 1],
+                                                u2 * ku - Kt[a, 2])
+                for i in range(3, nx):
+                    dK[i, t] = 0.0
+        for i in range(nx):  # Δx = K (y − ȳ) = K₀ (y − ȳ) + ΔK (y − ȳ)
             s_ = 0.0
             for a in range(ma):
-                s_ += (Kt[a, i] + dK[i, a]) * T[ns + 1, _Y + a]
+                s_ += Kt[a, i] * T[ns + 1, _Y + a]
+            for t in range(np_):
+                s_ += dK[i, t] * T[ns + 1, _Y + pc[t]]
             T[ns + 1, _X + i] = s_
         # P ← P_xx − K₀ P_yy K₀ᵀ = P_xx − P_xy K₀ᵀ (symmetric: the upper triangle, mirrored)
         for i in range(nx):
@@ -541,33 +542,28 @@ def mukf_step_t(
                 for a in range(ma):
                     s_ += Pxy[i, a] * Kt[a, jj]
                 Pxx[i, jj] -= s_
-        if proj:  # Joseph form for the gain K₀ + ΔK, valid for any gain:
+        if np_ > 0:  # Joseph form for the gain K₀ + ΔK, valid for any gain:
             # P − K P_xyᵀ − P_xy Kᵀ + K P_yy Kᵀ = P − K₀ P_yy K₀ᵀ + ΔK P_yy ΔKᵀ  (K₀ P_yy = P_xy)
-            for a in range(ma):  # Ly ← P_yy ΔKᵀ, rows of projected columns only (Ly is free)
-                if (proj >> a) & 1:
-                    for i in range(nx):
-                        s_ = 0.0
-                        for bb in range(ma):
-                            if (proj >> bb) & 1:
-                                s_ += Pyy[a, bb] * dK[i, bb]
-                        Ly[a, i] = s_
+            for t in range(np_):  # Ly ← P_yy ΔKᵀ over the non-zero columns (Ly is free here)
+                for i in range(nx):
+                    s_ = 0.0
+                    for t2 in range(np_):
+                        s_ += Pyy[pc[t], pc[t2]] * dK[i, t2]
+                    Ly[t, i] = s_
             for i in range(nx):
                 for jj in range(i, nx):
                     s_ = 0.0
-                    for a in range(ma):
-                        if (proj >> a) & 1:
-                            s_ += dK[i, a] * Ly[a, jj]
+                    for t in range(np_):
+                        s_ += dK[i, t] * Ly[t, jj]
                     Pxx[i, jj] += s_
         for i in range(nx):
             for jj in range(i + 1, nx):
                 Pxx[jj, i] = Pxx[i, jj]
     # (P_xx is exactly symmetric: every update above wrote one triangle and mirrored it)
     e = saturate_t(chart, (T[ns + 1, _X], T[ns + 1, _X + 1], T[ns + 1, _X + 2]))
-    w = (T[ns, _X + 3] + T[ns + 1, _X + 3], T[ns, _X + 4] + T[ns + 1, _X + 4],
-         T[ns, _X + 5] + T[ns + 1, _X + 5])
+    w = (w[0] + T[ns + 1, _X + 3], w[1] + T[ns + 1, _X + 4], w[2] + T[ns + 1, _X + 5])
     if nx == 9:
-        b = (T[ns, _X + 6] + T[ns + 1, _X + 6], T[ns, _X + 7] + T[ns + 1, _X + 7],
-             T[ns, _X + 8] + T[ns + 1, _X + 8])
+        b = (b[0] + T[ns + 1, _X + 6], b[1] + T[ns + 1, _X + 7], b[2] + T[ns + 1, _X + 8])
     for i in range(nx):
         for jj in range(nx):
             P[i, jj] = Pxx[i, jj]

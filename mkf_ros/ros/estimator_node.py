@@ -108,10 +108,11 @@ class EstimatorNode(Node):
         self.add_post_set_parameters_callback(self._post_set)
 
         if warm:
+            from mkf_ros.api import FIRST_COMPILE_TIME, warmup
+
             log.info("loading the compiled filter kernels (the first start after an install "
-                     "or update compiles them: about two minutes)...")
+                     f"or update compiles them: {FIRST_COMPILE_TIME})...")
             t0 = time.monotonic()
-            from mkf_ros.api import warmup
 
             warmup()
             log.info(f"filter kernels ready in {time.monotonic() - t0:.1f} s")
