@@ -16,9 +16,13 @@ Formats:
   ``excluded`` (its reference is unusable: 40–110° errors for every algorithm).
 - ``ese650``: UPenn ESE 650 (2011) ``imu/imuRawK.mat`` raw 10-bit ADC counts and
   ``vicon/viconRotK.mat`` rotation matrices on the same clock; 6D, inclination only.
+- ``broad``: BROAD (Laidig et al., Data 2021, CC BY 4.0) ``NN_*.mat`` trials (rad/s, m/s², µT,
+  optical quaternion in ENU, 286 Hz) and ``trials.json`` (each trial's groups); 9D, scored only
+  on the ``movement`` samples, no alignment.
 
-The data themselves are not part of this package (no licence stated); the readers only take a
-folder given by the user. ``.mat`` files need SciPy, imported lazily (``requirements/bench.txt``).
+The data themselves are not part of this package (RepoIMU and ESE650 state no licence); the
+readers only take a folder given by the user. ``.mat`` files need SciPy, imported lazily (a test
+and benchmark dependency: ``requirements/dev.txt``, not a runtime one).
 """
 
 from __future__ import annotations
@@ -244,9 +248,9 @@ def ese650_convert(vals: np.ndarray, bias_samples: int = ESE650_BIAS_SAMPLES
 def _loadmat(path: Path) -> dict:
     try:
         from scipy.io import loadmat
-    except ImportError as e:  # pragma: no cover - bench-only dependency
+    except ImportError as e:  # pragma: no cover - test and bench dependency, not runtime
         raise ImportError("reading .mat files needs scipy (pip install -r "
-                          "requirements/bench.txt, or ./run bench ...)") from e
+                          "requirements/dev.txt, or ./run setup)") from e
     return loadmat(str(path))
 
 
@@ -296,10 +300,69 @@ def read_ese650(folder: str | Path) -> list[Recording]:
             for k in sorted(sets)]
 
 
+# ----------------------------------------------------------------------------------- BROAD
+#: BROAD's trial files: two digits, an underscore, the trial's name (``01_undisturbed_...``).
+BROAD_GLOB = "[0-9][0-9]_*.mat"
+
+
+def read_broad_trial(path: str | Path, groups: tuple[str, ...] = (),
+                     group_categories: dict[str, str] | None = None,
+                     description: str = "") -> Recording:
+    """One BROAD trial (``.mat``): gyro rad/s, acc m/s², magnetometer µT, optical quaternion
+    [w x y z] IMU → global (ENU, z up: no alignment). Only the ``movement`` samples are scored
+    (the benchmark's rule): the reference is NaN elsewhere, and where the markers were lost.
+
+    ``meta`` holds ``groups`` (the trial's groups from ``trials.json``), ``group_categories``
+    (every group of the benchmark → its category: ``motion``, ``speed``, ``breaks``,
+    ``disturbance``, or ``""`` for the levels 0–1 groups ``all_trials``, ``undisturbed``,
+    ``disturbed``; in the file's order), the sampling rate and the number of movement samples."""
+    path = Path(path)
+    d = _loadmat(path)
+    gyr = np.array(d["imu_gyr"], dtype=float)
+    n = gyr.shape[0]
+    rate = float(np.asarray(d["sampling_rate"], dtype=float).ravel()[0])
+    q = np.array(d["opt_quat"], dtype=float)
+    move = np.asarray(d["movement"]).ravel().astype(bool)
+    if q.shape != (n, 4) or move.shape != (n,):
+        raise ValueError(f"{path}: opt_quat {q.shape} / movement {move.shape} do not match "
+                         f"imu_gyr ({n}, 3)")
+    q[~move] = np.nan
+    q[q[:, 0] < 0] *= -1.0
+    return Recording(
+        name=path.stem, dataset="broad", t=np.arange(n) / rate, gyr=gyr,
+        acc=np.array(d["imu_acc"], dtype=float), mag=np.array(d["imu_mag"], dtype=float),
+        q_ref=q, alignment="none", errors=ALL_ERRORS, note="",
+        meta={"path": str(path), "rate": rate, "groups": list(groups),
+              "group_categories": dict(group_categories or {}), "description": description,
+              "movement_samples": int(move.sum())},
+    )
+
+
+def read_broad(folder: str | Path) -> list[Recording]:
+    """BROAD (Laidig et al., Data 2021): every ``NN_*.mat`` trial in ``folder``, sorted by name,
+    with its groups (motion, speed, breaks, disturbance) from ``trials.json`` when present
+    (``{"groups": [{"name", "level", "category"}, ...], "trials": {stem: {"description",
+    "groups"}}}``)."""
+    import json
+
+    folder = Path(folder)
+    files = sorted(folder.glob(BROAD_GLOB))
+    if not files:
+        raise FileNotFoundError(f"no NN_*.mat trials in {folder} (BROAD folder expected)")
+    meta_path = folder / "trials.json"
+    meta = json.loads(meta_path.read_text()) if meta_path.is_file() else {}
+    trials = meta.get("trials", {})
+    cats = {g["name"]: g.get("category", "") for g in meta.get("groups", [])}
+    return [read_broad_trial(f, tuple(trials.get(f.stem, {}).get("groups", ())), cats,
+                             trials.get(f.stem, {}).get("description", ""))
+            for f in files]
+
+
 # ----------------------------------------------------------------------------------- registry
 READERS: dict[str, Callable[[Path], list[Recording]]] = {
     "repoimu": read_repoimu,
     "ese650": read_ese650,
+    "broad": read_broad,
 }
 
 
@@ -312,8 +375,11 @@ def detect_format(folder: str | Path) -> str:
         return "ese650"
     if _repoimu_files(folder):
         return "repoimu"
-    raise ValueError(f"cannot tell the format of {folder}: expected TStick_*.csv (RepoIMU) or "
-                     f"imu/imuRawK.mat + vicon/viconRotK.mat (ESE650); known: {', '.join(READERS)}")
+    if any(folder.glob(BROAD_GLOB)):
+        return "broad"
+    raise ValueError(f"cannot tell the format of {folder}: expected TStick_*.csv (RepoIMU), "
+                     "imu/imuRawK.mat + vicon/viconRotK.mat (ESE650) or NN_*.mat (BROAD); "
+                     f"known: {', '.join(READERS)}")
 
 
 def read_dataset(folder: str | Path, fmt: str | None = None) -> tuple[str, list[Recording]]:

@@ -24,3 +24,20 @@ def orientation_errors(q_est: np.ndarray, q_ref: np.ndarray) -> dict[str, np.nda
 def rmse_deg(err_rad: np.ndarray) -> float:
     """Root-mean-square of an error series, in degrees."""
     return float(np.degrees(np.sqrt(np.mean(np.square(err_rad)))))
+
+
+def step_angles(q: np.ndarray) -> np.ndarray:
+    """Rotation angle (rad) between consecutive orientations of ``q`` (N, 4): (N−1,), sign of
+    each quaternion ignored."""
+    q = np.asarray(q, dtype=float)
+    return orientation_errors(q[1:], q[:-1])["total"]
+
+
+def unexplained_steps(q: np.ndarray, t: np.ndarray, gyr: np.ndarray) -> np.ndarray:
+    """The part of each step between consecutive orientations that the gyro does not explain:
+    ``angle(q[k−1], q[k]) − |gyr[k]| · (t[k] − t[k−1])`` (rad), (N−1,), for ``q`` (N, 4), stamps
+    ``t`` (N,) in s and body rates ``gyr`` (N, 3) in rad/s, the reading of the later sample
+    (a constant rate ω turns by exactly |ω|·Δt). Negative: the gyro explains the whole step. A
+    gyro row with NaN explains nothing (rate 0)."""
+    rate = np.linalg.norm(np.nan_to_num(np.asarray(gyr, dtype=float)[1:]), axis=-1)
+    return step_angles(q) - rate * np.diff(np.asarray(t, dtype=float))

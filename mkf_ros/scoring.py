@@ -11,6 +11,10 @@ is relative to the start pose), the estimate is first aligned with one constant 
 scored samples, and ``G ⊗ q_est`` is compared with ``q_ref``. The same procedure is applied to
 every algorithm. Each recording says which alignment and which error kinds apply
 (:class:`mkf_ros.datasets.Recording`).
+
+:func:`tilt_coverage` checks a published covariance against the same errors: the fraction of
+the scored samples whose inclination error lies within k σ of the tilt block of the covariance
+(Mahalanobis distance of the horizontal swing rotation vector of ``e``).
 """
 
 from __future__ import annotations
@@ -19,7 +23,7 @@ from collections.abc import Iterable, Mapping, Sequence
 
 import numpy as np
 
-from mkf_ros.core.quaternion import qconj_np, qmul_np
+from mkf_ros.core.quaternion import qconj_np, qmul_np, rotmat_np
 from mkf_ros.datasets import ALL_ERRORS, Recording
 from mkf_ros.metrics import orientation_errors
 
@@ -114,3 +118,100 @@ def dataset_mean(scores: Iterable[Mapping[str, float]],
     """Plain mean of per-recording RMSEs per error kind (NaN if there are none)."""
     rows = list(scores)
     return {k: float(np.mean([r[k] for r in rows])) if rows else float("nan") for k in kinds}
+
+
+# ----------------------------------------------------------------------------------- covariance
+def swing_rotvec(e: np.ndarray) -> np.ndarray:
+    """Horizontal rotation vector (..., 2) [rad] of the swing of error quaternions ``e``
+    (..., 4) [w, x, y, z] in the swing–twist decomposition about the world z axis,
+    ``e = swing ⊗ twist_z``.
+
+    With ``n = √(e_w² + e_z²)`` the twist is ``[e_w, 0, 0, e_z] / n`` and the swing
+    ``e ⊗ twist⁻¹ = [n, (e_w e_x − e_y e_z)/n, (e_w e_y + e_x e_z)/n, 0]``: a rotation about a
+    horizontal axis by ``2·atan2(√(e_x² + e_y²), n) = 2·acos n``, BROAD's inclination error.
+    The result does not depend on the sign of ``e``. At ``n = 0`` (a half turn about a
+    horizontal axis, where the decomposition is not unique) the axis ``(e_x, e_y)`` is used."""
+    e = np.asarray(e, dtype=float)
+    w, x, y, z = e[..., 0], e[..., 1], e[..., 2], e[..., 3]
+    n = np.hypot(w, z)
+    r = np.hypot(x, y)
+    ang = 2.0 * np.arctan2(r, n)
+    sx = w * x - y * z  # n · (swing vector part)
+    sy = w * y + x * z
+    rn = r * n
+    with np.errstate(divide="ignore", invalid="ignore"):
+        # |(sx, sy)| = r·n; as r → 0 the scale ang/(r·n) tends to 2/n²
+        scale = np.where(rn > 0, ang / np.where(rn > 0, rn, 1.0),
+                         2.0 / np.where(n > 0, n * n, 1.0))
+        half_turn = np.pi / np.where(r > 0, r, 1.0)
+    out = np.stack([sx * scale, sy * scale], axis=-1)
+    deg = n == 0
+    if np.any(deg):
+        alt = np.stack([x * half_turn, y * half_turn], axis=-1)
+        out = np.where(deg[..., None], alt, out)
+    return out
+
+
+def tilt_mahalanobis(rec: Recording, q_est: np.ndarray, cov_world: np.ndarray,
+                     skip_start: float = 0.0) -> np.ndarray:
+    """(N,) Mahalanobis distance of each sample's inclination error under the published tilt
+    covariance; NaN where the sample is not scored (:func:`scored_mask`), +inf where the 2×2
+    tilt block is not finite or not positive definite. See :func:`tilt_coverage`."""
+    q_est = np.asarray(q_est, dtype=float)
+    cov = np.asarray(cov_world, dtype=float)
+    if cov.shape != (q_est.shape[0], 3, 3):
+        raise ValueError(f"cov_world has shape {cov.shape}, expected ({q_est.shape[0]}, 3, 3)")
+    m = scored_mask(rec, q_est, skip_start)
+    q_al, g = aligned_estimate(rec, q_est, m)
+    if rec.alignment != "none":  # the covariance is about our world's axes: rotate it with G
+        rg = rotmat_np(g)
+        cov = rg @ cov @ rg.T
+    e = qmul_np(np.where(m[:, None], q_al, 1.0), qconj_np(np.where(m[:, None], rec.q_ref, 1.0)))
+    eps = swing_rotvec(e)
+    a = cov[:, 0, 0]
+    c = cov[:, 1, 1]
+    b = 0.5 * (cov[:, 0, 1] + cov[:, 1, 0])
+    det = a * c - b * b
+    pd = np.isfinite(a) & np.isfinite(b) & np.isfinite(c) & (a > 0) & (c > 0) & (det > 0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ex, ey = eps[:, 0], eps[:, 1]
+        d2 = (c * ex * ex - 2.0 * b * ex * ey + a * ey * ey) / np.where(pd, det, 1.0)
+    d = np.where(pd, np.sqrt(np.maximum(d2, 0.0)), np.inf)
+    return np.where(m, d, np.nan)
+
+
+def tilt_coverage_counts(rec: Recording, q_est: np.ndarray, cov_world: np.ndarray,
+                         k: float = 3.0, skip_start: float = 0.0) -> tuple[int, int]:
+    """(covered, scored) sample counts of :func:`tilt_coverage` (for pooling over
+    recordings)."""
+    if "inclination" not in rec.errors:
+        return 0, 0
+    d = tilt_mahalanobis(rec, q_est, cov_world, skip_start)
+    scored = ~np.isnan(d)
+    return int((d[scored] <= k).sum()), int(scored.sum())
+
+
+def tilt_coverage(rec: Recording, q_est: np.ndarray, cov_world: np.ndarray, k: float = 3.0,
+                  skip_start: float = 0.0) -> float:
+    """Covariance honesty: the fraction of the scored samples whose inclination error lies
+    within ``k`` standard deviations of the published tilt covariance (NaN if none is scored
+    or inclination is not meaningful for ``rec``).
+
+    ``cov_world`` is (N, 3, 3), the orientation covariance about the world axes in rad² (what
+    ``mkf_ros.estimate(...).cov`` returns). Per scored sample (:func:`scored_mask`), after the
+    recording's alignment exactly as in :func:`score_recording`:
+
+    1. error quaternion ``e = q_est ⊗ q_ref⁻¹`` (with ``q_est`` replaced by ``G ⊗ q_est`` for the
+       ``constant_global`` alignment);
+    2. swing–twist decomposition about the world z axis, ``e = swing ⊗ twist_z``; the swing's
+       rotation vector ε is horizontal, ε = (ε_x, ε_y, 0), and ``|ε|`` equals BROAD's inclination
+       error ``2·acos√(e_w² + e_z²)`` (:func:`swing_rotvec`);
+    3. Σ_xy is the upper-left 2×2 block of the covariance (for ``constant_global`` of
+       ``R(G) Σ R(G)ᵀ``, the covariance about the reference world's axes);
+    4. the sample is covered if ``√(ε_xyᵀ Σ_xy⁻¹ ε_xy) ≤ k``. A non-finite or not positive
+       definite Σ_xy counts as not covered.
+
+    For a Gaussian error with exactly the published covariance the expected coverage is the χ²
+    (2 degrees of freedom) probability ``1 − exp(−k²/2)``: 98.9 % at k = 3, 39.3 % at k = 1."""
+    covered, n = tilt_coverage_counts(rec, q_est, cov_world, k, skip_start)
+    return covered / n if n else float("nan")

@@ -1,9 +1,12 @@
-"""Real-data readers and scoring (mkf_ros.datasets, mkf_ros.scoring, bench/real_data.py) on tiny
-synthetic files written in each format from simulated truth. No real data are needed."""
+"""Real-data readers (mkf_ros.datasets) and the benchmark (bench/real_data.py) on tiny synthetic
+files written in each format from simulated truth. No real data are needed. SciPy (for the
+``.mat`` formats) is a test dependency (requirements/dev.txt): a missing SciPy fails here.
+Scoring itself is tested in test_scoring.py."""
 
 from __future__ import annotations
 
 import importlib.util
+import json
 import math
 import sys
 from pathlib import Path
@@ -11,6 +14,7 @@ from types import ModuleType
 
 import numpy as np
 import pytest
+from scipy.io import savemat
 
 import mkf_ros
 from mkf_ros.core.quaternion import qconj_np, qmul_np, rotmat_np
@@ -24,14 +28,12 @@ from mkf_ros.datasets import (
     ese650_convert,
     match_nearest,
     quat_from_rotmat,
+    read_broad,
     read_dataset,
     read_repoimu,
 )
 from mkf_ros.scoring import (
-    dataset_mean,
-    error_series,
     global_alignment,
-    quat_average,
     score_recording,
 )
 from mkf_ros.sim import simulate
@@ -100,8 +102,6 @@ def ese650_sim(folder: Path, k: int = 1, dtype: type = np.float64) -> dict:
     """Write imu/imuRawK.mat and vicon/viconRotK.mat from the simulator: 2.5 s at rest (the
     gyro bias is taken from the first 200 samples), then sweeps. Vicon frames are stamped
     2 ms after the IMU samples; frames 300-309 are NaN and frame 400 is not a rotation."""
-    from scipy.io import savemat
-
     sim = simulate("sweep", duration=8.0, rate=100.0, seed=5, hold=2.5, gyro_noise=0.0,
                    acc_noise=0.0)
     n = len(sim)
@@ -178,7 +178,6 @@ def test_ese650_conversion_constants() -> None:
 
 
 def test_ese650_roundtrip(tmp_path: Path) -> None:
-    pytest.importorskip("scipy")
     d = ese650_sim(tmp_path, k=3)
     sim = d["sim"]
     assert detect_format(tmp_path) == "ese650"
@@ -204,11 +203,105 @@ def test_ese650_roundtrip(tmp_path: Path) -> None:
 
 
 def test_ese650_uint16_counts(tmp_path: Path) -> None:
-    pytest.importorskip("scipy")
     d = ese650_sim(tmp_path, dtype=np.uint16)
     r = read_dataset(tmp_path, "ese650")[1][0]
     np.testing.assert_allclose(r.acc, d["sim"].acc, atol=0.6 * ACC_SCALE * G0)
     np.testing.assert_allclose(r.gyr, d["sim"].gyr, atol=1.2 * GYR_SCALE)
+
+
+# ----------------------------------------------------------------------------------- BROAD
+BROAD_RATE = 2000.0 / 7.0  # 285.714... Hz, as in the dataset
+BROAD_GROUPS = [  # the benchmark's group list (trials.json), abridged
+    {"name": "all_trials", "level": 0, "category": ""},
+    {"name": "undisturbed", "level": 1, "category": ""},
+    {"name": "rotation", "level": 2, "category": "motion"},
+    {"name": "translation", "level": 2, "category": "motion"},
+    {"name": "slow", "level": 2, "category": "speed"},
+    {"name": "fast", "level": 2, "category": "speed"},
+    {"name": "no_breaks", "level": 2, "category": "breaks"},
+    {"name": "with_breaks", "level": 2, "category": "breaks"},
+    {"name": "disturbed", "level": 1, "category": ""},
+    {"name": "tapping", "level": 2, "category": "disturbance"},
+]
+BROAD_TRIALS = {
+    "01_undisturbed_slow_rotation_A": ["all_trials", "undisturbed", "rotation", "slow",
+                                       "no_breaks"],
+    "24_disturbed_tapping_A": ["all_trials", "disturbed", "tapping"],
+}
+
+
+def broad_sim(folder: Path) -> dict:
+    """Write two BROAD trials (``NN_*.mat`` with the README's keys and shapes) from the
+    simulator, magnetometer in µT, and a trials.json. The movement phase is samples 100-899
+    of 1000; markers are lost at 500-509; the reference's sign is flipped on every 3rd row."""
+    sim = simulate("slow_rotation", duration=999 / BROAD_RATE, rate=BROAD_RATE, seed=8)
+    n = len(sim)
+    move = np.zeros((n, 1), dtype=np.uint8)
+    move[100:900] = 1
+    q = canon(sim.quat)
+    q[::3] *= -1.0
+    q[500:510] = np.nan
+    mag_ut = sim.mag * 1e6
+    for stem in BROAD_TRIALS:
+        savemat(folder / f"{stem}.mat", {
+            "imu_gyr": sim.gyr, "imu_acc": sim.acc, "imu_mag": mag_ut, "opt_quat": q,
+            "opt_pos": np.zeros((n, 3)), "sampling_rate": np.array([[BROAD_RATE]]),
+            "movement": move, "info": np.array(["synthetic"])})
+    savemat(folder / "99_not_in_trials_json.mat", {
+        "imu_gyr": sim.gyr[:50], "imu_acc": sim.acc[:50], "imu_mag": mag_ut[:50],
+        "opt_quat": q[:50], "opt_pos": np.zeros((50, 3)),
+        "sampling_rate": np.array([[BROAD_RATE]]), "movement": move[:50] + 1})
+    (folder / "trials.json").write_text(json.dumps({
+        "groups": BROAD_GROUPS,
+        "trials": {k: {"description": k.replace("_", " "), "groups": g}
+                   for k, g in BROAD_TRIALS.items()}}))
+    return {"sim": sim, "n": n, "mag_ut": mag_ut}
+
+
+def test_broad_roundtrip(tmp_path: Path) -> None:
+    d = broad_sim(tmp_path)
+    sim, n = d["sim"], d["n"]
+    assert detect_format(tmp_path) == "broad"
+    fmt, recs = read_dataset(tmp_path)
+    assert fmt == "broad"
+    assert [r.name for r in recs] == [*BROAD_TRIALS, "99_not_in_trials_json"]
+    r = recs[0]
+    assert r.dataset == "broad" and r.alignment == "none" and r.errors == ALL_ERRORS
+    assert r.has_mag and not r.excluded and len(r) == n
+    for k in ("gyr", "acc", "mag"):
+        assert getattr(r, k).shape == (n, 3) and getattr(r, k).dtype == np.float64
+    np.testing.assert_allclose(r.t, np.arange(n) / BROAD_RATE, rtol=1e-12)
+    assert r.rate == pytest.approx(BROAD_RATE) and r.meta["rate"] == pytest.approx(BROAD_RATE)
+    np.testing.assert_allclose(r.gyr, sim.gyr)  # rad/s as stored
+    np.testing.assert_allclose(r.acc, sim.acc)  # m/s², +g up at rest
+    assert np.linalg.norm(r.acc, axis=1).mean() == pytest.approx(G0, rel=0.05)
+    np.testing.assert_allclose(r.mag, d["mag_ut"])  # µT as stored
+    # the reference: NaN outside the movement phase and where the markers were lost,
+    # w ≥ 0 and equal to the truth elsewhere
+    valid = np.zeros(n, dtype=bool)
+    valid[100:900] = True
+    valid[500:510] = False
+    assert (r.valid == valid).all()
+    assert r.meta["movement_samples"] == 800
+    np.testing.assert_allclose(r.q_ref[valid], canon(sim.quat[valid]), atol=1e-12)
+    # groups and their categories from trials.json
+    assert r.meta["groups"] == BROAD_TRIALS["01_undisturbed_slow_rotation_A"]
+    assert recs[1].meta["groups"] == ["all_trials", "disturbed", "tapping"]
+    assert r.meta["group_categories"]["rotation"] == "motion"
+    assert r.meta["group_categories"]["tapping"] == "disturbance"
+    assert list(r.meta["group_categories"]) == [g["name"] for g in BROAD_GROUPS]
+    assert "slow rotation" in r.meta["description"]
+    assert recs[2].meta["groups"] == [] and recs[2].valid.all()  # not in trials.json
+    # only movement samples are scored: an estimate that is wrong outside them scores 0
+    q_est = canon(sim.quat)
+    q_est[:100] = [0.0, 1.0, 0.0, 0.0]
+    s = score_recording(r, q_est)
+    assert max(s.values()) < 1e-6
+    # without trials.json: no groups, same data
+    (tmp_path / "trials.json").unlink()
+    r2 = read_broad(tmp_path)[0]
+    assert r2.meta["groups"] == [] and r2.meta["group_categories"] == {}
+    np.testing.assert_array_equal(r2.valid, r.valid)
 
 
 def test_match_nearest() -> None:
@@ -233,74 +326,13 @@ def test_quat_from_rotmat_every_branch() -> None:
 
 
 def test_detect_format_errors(tmp_path: Path) -> None:
-    assert set(READERS) == {"repoimu", "ese650"}
+    assert set(READERS) == {"repoimu", "ese650", "broad"}
     with pytest.raises(ValueError, match="cannot tell"):
         detect_format(tmp_path)
     with pytest.raises(FileNotFoundError):
         detect_format(tmp_path / "missing")
     with pytest.raises(ValueError, match="unknown dataset format"):
         read_dataset(tmp_path, "nope")
-
-
-# ----------------------------------------------------------------------------------- scoring
-def _rec(q_ref: np.ndarray, alignment: str) -> Recording:
-    n = q_ref.shape[0]
-    z = np.zeros((n, 3))
-    return Recording("r", "test", np.arange(n) * 0.01, z, z, None, q_ref, alignment=alignment)
-
-
-def test_alignment_recovers_constant_rotation() -> None:
-    q_est = random_quats(300, 3)
-    g_true = canon(np.array([0.3, -0.5, 0.7, 0.2]))
-    q_ref = qmul_np(g_true, q_est)
-    q_ref[::7] *= -1.0  # sign flips must not matter
-    q_ref[5] = np.nan  # invalid rows are ignored
-    g = global_alignment(q_est, q_ref)
-    np.testing.assert_allclose(canon(g), g_true, atol=1e-12)
-    s = score_recording(_rec(q_ref, "constant_global"), q_est)
-    assert max(s.values()) < 1e-5
-    # without the alignment the same estimate is far off
-    assert score_recording(_rec(q_ref, "none"), q_est)["total"] > 10.0
-
-
-def test_alignment_is_an_average_under_noise() -> None:
-    rng = np.random.default_rng(7)
-    q_est = random_quats(2000, 4)
-    noise = canon(np.column_stack([np.ones(2000), rng.normal(0, 0.01, (2000, 3))]))
-    g_true = canon(np.array([1.0, 0.2, 0.1, -0.3]))
-    q_ref = qmul_np(qmul_np(g_true, noise), q_est)
-    g = global_alignment(q_est, q_ref)
-    assert 2 * np.degrees(np.arccos(min(1.0, abs(float(g @ g_true))))) < 0.1
-
-
-def test_inclination_ignores_heading_offset() -> None:
-    q_ref = random_quats(200, 5)
-    q_est = qmul_np(quat_z(0.4), q_ref)  # world-frame heading offset of 0.4 rad
-    s = score_recording(_rec(q_ref, "none"), q_est)
-    assert s["inclination"] < 1e-5
-    assert s["heading"] == pytest.approx(np.degrees(0.4), abs=1e-9)
-    assert s["total"] == pytest.approx(np.degrees(0.4), abs=1e-9)
-    tilt = np.array([math.cos(0.05), math.sin(0.05), 0.0, 0.0])  # 0.1 rad about world x
-    s2 = score_recording(_rec(q_ref, "none"), qmul_np(tilt, q_est))
-    assert s2["inclination"] == pytest.approx(np.degrees(0.1), rel=1e-6)
-
-
-def test_scoring_meaningful_kinds_skip_start_and_mean() -> None:
-    q_ref = random_quats(100, 6)
-    r = _rec(q_ref, "none")
-    r.errors = ("inclination",)
-    q_est = q_ref.copy()
-    q_est[:10] = qmul_np(np.array([math.cos(0.1), math.sin(0.1), 0, 0]), q_ref[:10])
-    s = score_recording(r, q_est)
-    assert np.isnan(s["total"]) and np.isnan(s["heading"]) and s["inclination"] > 1.0
-    assert score_recording(r, q_est, skip_start=0.1)["inclination"] < 1e-5
-    e = error_series(r, q_est, skip_start=0.05)
-    assert np.isnan(e["inclination"][:5]).all() and np.isfinite(e["inclination"][5:]).all()
-    m = dataset_mean([{"total": 1.0, "heading": 2.0, "inclination": 3.0},
-                      {"total": 3.0, "heading": 4.0, "inclination": 5.0}])
-    assert m == {"total": 2.0, "heading": 3.0, "inclination": 4.0}
-    assert canon(quat_average(np.vstack([q_ref[0], -q_ref[0]]))) == pytest.approx(
-        canon(q_ref[0]))
 
 
 # ----------------------------------------------------------------------------------- bench
@@ -323,9 +355,21 @@ def test_bench_overrides_and_columns() -> None:
             rd.parse_overrides(bad)
     cols = [f"{a.name} {d}" for a, d in rd.columns(True, None)]
     assert "mekf 9D" in cols and "vqf 9D" in cols and "mahony 6D" not in cols
+    assert {"madgwick 6D", "madgwick 9D", "euler_kf 6D"} <= set(cols)
+    no_base = [f"{a.name} {d}" for a, d in rd.columns(True, None, baselines=False)]
+    assert not any(c.split()[0] in ("euler_kf", "euler_ukf", "madgwick-ours") for c in no_base)
+    assert "mekf 9D" in no_base and "madgwick 6D" in no_base
     cols6 = [f"{a.name} {d}" for a, d in rd.columns(False, ["m*"])]
     assert cols6[:2] == ["mekf 6D", "mukf 6D"]
     assert {"madgwick 6D", "mahony 6D"} <= set(cols6) and all(c.startswith("m") for c in cols6)
+
+
+def test_bench_help(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as e:
+        _bench().main(["--help"])
+    assert e.value.code == 0
+    out = capsys.readouterr().out
+    assert "--no-baselines" in out and "tilt coverage" in out
 
 
 def test_bench_end_to_end_on_synthetic_files(tmp_path: Path,
@@ -336,5 +380,81 @@ def test_bench_end_to_end_on_synthetic_files(tmp_path: Path,
                     "--json", str(tmp_path / "out.json")]) == 0
     out = capsys.readouterr().out
     assert "TStick_Test02_Trial1" in out and "excluded: TStick_Test05_Trial2" in out
-    assert "| repoimu | 1 | mekf 9D |" in out and "repoimu 9D mean total: mekf" in out
-    assert (tmp_path / "out.json").is_file()
+    row = next(ln for ln in out.splitlines() if ln.startswith("| repoimu ") and "mekf 9D" in ln)
+    assert [c.strip() for c in row.split("|")[1:4]] == ["repoimu", "1", "mekf 9D"]
+    assert "repoimu 9D mean total: mekf" in out
+    # tilt coverage: ours publish a covariance, the peers do not
+    assert "3σ tilt coverage" in out and "**pooled**" in out
+    assert "repoimu 3σ tilt coverage (pooled): mekf 9D" in out
+    payload = json.loads((tmp_path / "out.json").read_text())
+    s = payload["datasets"][0]["recordings"][0]["scores"]
+    assert 0.0 <= s["mekf 9D"]["cov"] <= 1.0 and s["mekf 9D"]["cov_n"] > 0
+    assert "cov" not in s["gyro-only 6D"]
+    assert any(t["status"] == "n/a" for t in payload["targets"])  # no vqf column here
+
+
+def test_bench_broad_classes_and_targets(tmp_path: Path,
+                                         capsys: pytest.CaptureFixture[str]) -> None:
+    broad_sim(tmp_path)
+    rd = _bench()
+    assert rd.main([str(tmp_path), "--algorithms", "mekf*", "gyro-only*", "--jobs", "1"]) == 0
+    out = capsys.readouterr().out
+    assert "## broad:" in out and "3 recordings in the mean" in out
+    assert "### broad per class" in out
+    for line in ("| rotation (1)   | 9D total", "| tapping (1)    | 6D inclination",
+                 "no trial here: translation", "| all_trials (2)  | 9D heading"):
+        assert line in out, line
+    assert "broad every trial 9D total ≤ 1.5 × vqf + 0.3: mekf" in out
+    assert any(ln.startswith("targets: ") and "FAIL" in ln for ln in out.splitlines())
+
+
+def _fake_broad(rd: ModuleType, vals: dict[str, dict[str, tuple[float, float]]],
+                cov: float = 0.95) -> object:
+    """A BROAD DatasetResult whose columns' (9D total, 6D inclination) per trial are ``vals``."""
+    names = list(next(iter(vals.values())))
+    recs = [Recording(n, "broad", np.arange(3.0), np.zeros((3, 3)), np.zeros((3, 3)),
+                      np.zeros((3, 3)), np.ones((3, 4))) for n in names]
+    results: dict = {n: {} for n in names}
+    for col, per in vals.items():
+        for n, (tot, inc) in per.items():
+            results[n][f"{col} 9D"] = {"total": tot, "heading": tot, "inclination": inc}
+            results[n][f"{col} 6D"] = {"total": 9.0, "heading": 9.0, "inclination": inc}
+            if col in ("mekf", "mukf"):
+                for d in ("9D", "6D"):
+                    results[n][f"{col} {d}"].update(cov_in=cov * 100, cov_n=100.0, cov=cov)
+    cols = [f"{c} {d}" for c in vals for d in ("6D", "9D")]
+    ds = rd.DatasetResult("broad", "x", recs, results, cols)
+    ds.means = {c: {**rd.dataset_mean([results[n][c] for n in names]),
+                    **rd.coverage_means([results[n][c] for n in names])} for c in cols}
+    return ds
+
+
+def test_bench_target_logic() -> None:
+    rd = _bench()
+    vals = {"vqf": {"a": (2.0, 0.6), "b": (1.0, 0.5)},
+            "vqf-offline": {"a": (1.0, 0.3), "b": (1.0, 0.3)},
+            "mekf": {"a": (1.8, 0.5), "b": (1.9, 0.6)},  # b: 1.9 > 1.5·1.0 + 0.3 = 1.8
+            "mukf": {"a": (1.9, 0.5), "b": (1.8, 0.6)}}
+    checks = rd.target_checks({"broad": _fake_broad(rd, vals)})
+    by = {c.text: c.status for c in checks}
+    assert by["broad 9D mean total: mekf 1.850 ≤ vqf 9D 1.500 (README 2.79)"] == "FAIL"
+    assert by["broad 6D mean inclination: mekf 0.550 ≤ vqf 6D 0.550 (README 0.78)"] == "PASS"
+    assert by["(moonshot) broad 6D mean inclination: mekf 0.550 ≤ vqf-offline 6D 0.300 "
+              "(README 0.57)"] == "not met"
+    trial = next(c for c in checks if c.text.startswith("broad every trial 9D total")
+                 and ": mekf" in c.text)
+    assert trial.status == "FAIL" and trial.text.endswith("1/2 trials; over: b 1.90 > 1.80")
+    trial_u = next(c for c in checks if c.text.startswith("broad every trial 9D total")
+                   and ": mukf" in c.text)
+    assert trial_u.status == "PASS"  # 1.8 ≤ 1.8
+    within = [c for c in checks if c.text.startswith("mukf within")]
+    assert within and all(c.status == "PASS" for c in within)  # ≤ 5.6 % apart
+    cover = [c for c in checks if "tilt coverage" in c.text]
+    assert len(cover) == 4 and all(c.status == "PASS" for c in cover)
+    # MUKF 20 % off on one trial, coverage 80 %: FAIL lines; moonshots never count as FAIL
+    vals["mukf"]["a"] = (2.2, 0.5)
+    checks = rd.target_checks({"broad": _fake_broad(rd, vals, cov=0.8)})
+    bad = {c.text.split(":")[0] for c in checks if c.status == "FAIL"}
+    assert "mukf within 10% of mekf, broad every trial 9D total" in bad
+    assert "broad 3σ tilt coverage (pooled)" in bad
+    assert not any(c.moonshot and c.status == "FAIL" for c in checks)

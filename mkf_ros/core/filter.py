@@ -40,18 +40,21 @@ from mkf_ros.core.frames import FROM_ENU, align_tilt, heading_correction, keep_y
 from mkf_ros.core.linalg import congruence, congruence33_t, eye, mm
 from mkf_ros.core.mekf import (
     heading_residual,
+    heading_residual_t,
+    inv3_spd_t,
     mekf_apply_t,
-    mekf_heading_update,
+    mekf_heading_update_t,
     mekf_predict_t,
     mekf_rate_update_t,
     mekf_scratch,
     mekf_vector_update_t,
+    symmetrize_leading,
     transport_covariance,
 )
 from mkf_ros.core.mukf import B_HEADING, B_VEC0, B_VEC1, NOISE_MODES, mukf_scratch, mukf_step_t
 from mkf_ros.core.params import ALGORITHMS, FilterParams
 from mkf_ros.core.quaternion import (
-    a33,
+    q_omega_t,
     qmul,
     qmul_t,
     qnormalize,
@@ -78,7 +81,9 @@ C_MAG_HI = 35  # 3 values: hard-iron offset, sensor units
 C_MAG_SI = 38  # 9 values: soft-iron matrix, row-major
 C_BETA, C_MADG_VAR, C_GIMBAL_COS = 47, 48, 49  # baselines (issue 7)
 C_ACC_MODE = 50
-C_SIZE = 51
+C_ACC_TAU, C_ACC_DTIME, C_GYR_SCALE, C_GYR_GATE = 51, 52, 53, 54
+C_MAG_TAU, C_MAG_CTOL, C_MAG_UNDIST, C_MAG_DTIME = 55, 56, 57, 58
+C_SIZE = 59
 MAG_HEADING, MAG_VECTOR = 0, 1
 ACC_TILT, ACC_VECTOR = 0, 1
 
@@ -90,7 +95,16 @@ S_T_ACC, S_T_MAG, S_T_REST = 20, 21, 22
 # baselines (issue 7): Euler angles (φ, θ, ψ) of the Euler KF/UKF (the UKF's body rates are
 # S_W); Madgwick's heading variance grown since alignment (6D), a held magnetometer sample
 S_EUL, S_BL_YAWVAR, S_BL_MAG, S_BL_MHELD = 23, 26, 27, 30
-S_SIZE = 31
+# the accelerometer low-passed in an almost inertial frame: two first-order stages (body axes)
+S_ALP = 31  # 6 values
+S_T_MAGOK = 37  # s the field has been plausible and consistent without a break
+S_MLP = 38  # 3: the calibrated field over its learned magnitude, inertial low-pass (body axes)
+S_WLP = 41  # |ω| low-passed like the field
+S_GLP, S_ALR = 42, 45  # 3 + 3: gyro and accelerometer low-passed for rest detection
+S_GREJ = 48  # 1 after a gyro sample rejected by its gate
+S_ALT, S_MLT = 49, 50  # s since the accelerometer / field low-pass started
+S_AEX, S_AWLP = 51, 52  # low-passed (|a| − g)² and |ω|, over acc_time_constant
+S_SIZE = 53
 NX_MAX = 9
 
 # --- noise matrices derived from the configuration (built once per parameter set) -------------
@@ -107,12 +121,13 @@ COUNTER_NAMES = (
     "mag_missing", "mag_invalid",
     "gaps", "update_failed", "before_init",
     "acc_rejected_norm", "acc_rejected_chi2", "mag_rejected_norm", "mag_rejected_dip",
-    "mag_rejected_chi2", "rest_updates", "gimbal_lock",
+    "mag_rejected_chi2", "rest_updates", "gimbal_lock", "mag_rejected_inconsistent",
+    "gyr_rejected_chi2",
 )
 K_SAMPLES, K_GYR_MISSING, K_GYR_INVALID, K_ACC_MISSING, K_ACC_INVALID = 0, 1, 2, 3, 4
 K_MAG_MISSING, K_MAG_INVALID, K_GAPS, K_UPDATE_FAILED, K_BEFORE_INIT = 5, 6, 7, 8, 9
 K_ACC_REJ_NORM, K_ACC_REJ_CHI2, K_MAG_REJ_NORM, K_MAG_REJ_DIP, K_MAG_REJ_CHI2 = 10, 11, 12, 13, 14
-K_REST, K_GIMBAL = 15, 16
+K_REST, K_GIMBAL, K_MAG_REJ_INCONS, K_GYR_REJ_CHI2 = 15, 16, 17, 18
 K_SIZE = len(COUNTER_NAMES)
 
 # algorithm ids (index in ALGORITHMS): the paper's filters, then the baselines (issue 7)
@@ -124,6 +139,9 @@ UP = np.array((0.0, 0.0, 1.0))  # world up in ENU: what a resting accelerometer 
 MAG_REF_SAMPLES = 100  # magnetometer samples averaged into a learned reference
 P0_PAPER = 100.0  # §8 item 9
 YAW0_STDDEV = 1e-3  # rad: heading is defined by the start-up heading when no magnetometer
+YAW_VAR_UNKNOWN = np.pi ** 2 / 3.0  # rad²: variance of an angle uniform over ±180°
+REST_LP_TAU = 0.5  # s: rest detection compares the gyro and accelerometer with their low-pass
+REST_CHI2 = 16.27  # 3 degrees of freedom, 0.1 %: the low-passed rate agrees with the bias
 
 
 @jit_inline
@@ -276,6 +294,10 @@ def _heading_init(cfg: np.ndarray, st: np.ndarray, P: np.ndarray, fl: np.ndarray
     _set_world_attitude_cov(st, P, nx, 0.0, _mag_yaw_var(cfg, ref), True)
     fl[F_HEADING] = 1
     st[S_T_MAG] = 0.0
+    st[S_T_MAGOK] = 0.0
+    st[S_MLT] = 0.0
+    for i in range(3):  # the field's low-pass starts at this sample (unit magnitude)
+        st[S_MLP + i] = m_body[i]
     _learn_mag_ref(cfg, st, fl, m_body, m_norm)
 
 
@@ -297,15 +319,28 @@ def _align(cfg: np.ndarray, st: np.ndarray, P: np.ndarray, fl: np.ndarray,
         P[3 + i, 3 + i] = cfg[C_RW] if has_g else 1.0
     if nx == 9:
         P[6:9, 6:9] = Pb if fl[F_EVER] > 0 else eye(3, cfg[C_B0])
+        if has_g:  # ω̄ = g − b̄: the rate inherits the bias uncertainty, anti-correlated
+            P[3:6, 3:6] += P[6:9, 6:9]
+            P[3:6, 6:9] = -P[6:9, 6:9]
+            P[6:9, 3:6] = -P[6:9, 6:9]
     # heading: defined by the start-up heading at the first alignment; after a gap it is kept
     # but unknown (uniform over ±180°) until a magnetometer fixes it
-    var_yaw = np.pi ** 2 / 3.0 if fl[F_EVER] > 0 else YAW0_STDDEV ** 2
+    # (with use_mag: unknown until the first magnetometer sample fixes it)
+    var_yaw = (YAW_VAR_UNKNOWN if fl[F_EVER] > 0 or cfg[C_USE_MAG] > 0
+               else YAW0_STDDEV ** 2)
     _set_world_attitude_cov(st, P, nx, cfg[C_RA] + cfg[C_QA], var_yaw, False)
     fl[F_INIT] = 1
     fl[F_EVER] = 1
     fl[F_HEADING] = 0
     st[S_T_ACC] = 0.0
     st[S_T_REST] = 0.0
+    for i in range(3):  # the low-passes start at this sample
+        st[S_ALP + i] = acc[i]
+        st[S_ALP + 3 + i] = acc[i]
+        st[S_ALR + i] = acc[i]
+        st[S_GLP + i] = gyr[i] if has_g else 0.0
+    st[S_GREJ] = 0.0
+    st[S_ALT] = 0.0
     if has_m:
         _heading_init(cfg, st, P, fl, m_body, m_norm)
 
@@ -350,6 +385,214 @@ def calibrate_mag(cfg: np.ndarray, mag: tuple) -> tuple:
     return (cfg[C_MAG_SI] * v0 + cfg[C_MAG_SI + 1] * v1 + cfg[C_MAG_SI + 2] * v2,
             cfg[C_MAG_SI + 3] * v0 + cfg[C_MAG_SI + 4] * v1 + cfg[C_MAG_SI + 5] * v2,
             cfg[C_MAG_SI + 6] * v0 + cfg[C_MAG_SI + 7] * v1 + cfg[C_MAG_SI + 8] * v2)
+
+
+@jit_inline
+def _rotate_state(st: np.ndarray, o: int, R: tuple) -> None:
+    """A 3-vector of ``st`` kept in body axes follows the body over one step: ``v ← R(Δq)ᵀ v``."""
+    x = (st[o], st[o + 1], st[o + 2])
+    for i in range(3):
+        st[o + i] = R[0][i] * x[0] + R[1][i] * x[1] + R[2][i] * x[2]
+
+
+@jit_inline
+def _acc_measurement(cfg: np.ndarray, nz: np.ndarray, st: np.ndarray, dt: float, wl: tuple,
+                     Rw: tuple, a: tuple, has_a: bool) -> tuple[tuple, float]:
+    """The accelerometer as the filters fuse it (extension, issue 13): the unit direction and
+    the disturbance variance per sample ``Q_a`` (normalised units; negative when the magnitude
+    test refuses the sample).
+
+    Two views of gravity, each with its own error model, blended by inverse variance:
+
+    * the raw sample: wrong by the non-gravitational acceleration now. Its variance is
+      ``acc_disturbance²`` plus the sample's own magnitude excess and twice the recent excess
+      power (``E[(|a| − g)²]`` over ``acc_time_constant``: the two components across gravity
+      that a norm cannot see);
+    * the low-pass (two first-order stages, ``acc_time_constant``) in an almost inertial frame:
+      its memory turns with the body by the gyro, so gravity passes however the body turns and
+      a non-gravitational acceleration, the derivative of a bounded velocity, averages out. It
+      is wrong by what is left of it (``acc_disturbance²`` and its own magnitude excess) and by
+      the gyro's error over the rotation in its memory, ``(gyro_scale_error · 2τ |ω|)²``.
+
+    Shaking and vibration make the raw view noisy and leave the low-pass right; a fast turn,
+    a saturated or miscalibrated gyro spoil the low-pass's memory while the raw view holds.
+    Both errors are correlated in time: the variance per sample is ``max(1, T/Δt)`` times the
+    above, ``T = acc_disturbance_time`` (the information per second does not grow with the
+    sample rate). Without the low-pass (``acc_time_constant = 0``) the raw sample alone."""
+    g0 = cfg[C_GRAVITY]
+    kq = max(1.0, cfg[C_ACC_DTIME] / dt)
+    tau = cfg[C_ACC_TAU]
+    if tau > 0.0:
+        _rotate_state(st, S_ALP, Rw)
+        _rotate_state(st, S_ALP + 3, Rw)
+    if not has_a:
+        return (0.0, 0.0, 0.0), 0.0
+    n_raw = np.sqrt(a[0] * a[0] + a[1] * a[1] + a[2] * a[2])
+    ex = n_raw / g0 - 1.0
+    q_raw = nz[N_QA, 0, 0] + ex * ex
+    u_raw = (a[0] / n_raw, a[1] / n_raw, a[2] / n_raw)
+    tol = cfg[C_ACC_TOL]
+    if tau <= 0.0:
+        return u_raw, kq * q_raw if abs(ex) <= tol else -kq * q_raw
+    al = _lowpass_gain(st, S_ALT, dt, tau)
+    start = al > 1.0 - np.exp(-dt / tau)  # still averaging since the start: no lag yet
+    _lowpass_state(st, S_ALP, a, al)
+    _lowpass_state(st, S_ALP + 3, (st[S_ALP], st[S_ALP + 1], st[S_ALP + 2]), 1.0 if start else al)
+    st[S_AEX] += al * (ex * ex - st[S_AEX])
+    st[S_AWLP] += al * (np.sqrt(wl[0] ** 2 + wl[1] ** 2 + wl[2] ** 2) - st[S_AWLP])
+    lp = (st[S_ALP + 3], st[S_ALP + 4], st[S_ALP + 5])
+    n_lp = np.sqrt(lp[0] * lp[0] + lp[1] * lp[1] + lp[2] * lp[2])
+    ex_lp = n_lp / g0 - 1.0
+    u_lp = (lp[0] / n_lp, lp[1] / n_lp, lp[2] / n_lp)
+    rot = cfg[C_GYR_SCALE] * 2.0 * tau * st[S_AWLP]
+    q_lp = nz[N_QA, 0, 0] + ex_lp * ex_lp + rot * rot
+    q_raw += 2.0 * st[S_AEX]
+    if start:  # the low-pass is still forming its first average: the raw sample alone
+        return u_raw, kq * q_raw if abs(ex) <= tol else -kq * q_raw
+    w_lp = 1.0 if abs(ex) > tol else q_raw / (q_raw + q_lp)  # an implausible raw sample: none
+    u = (w_lp * u_lp[0] + (1.0 - w_lp) * u_raw[0], w_lp * u_lp[1] + (1.0 - w_lp) * u_raw[1],
+         w_lp * u_lp[2] + (1.0 - w_lp) * u_raw[2])
+    q = q_lp * q_raw / (q_lp + q_raw) if abs(ex) <= tol else q_lp
+    return _unit_t(u), kq * q if abs(ex_lp) <= tol else -kq * q
+
+
+@jit_inline
+def _lowpass_gain(st: np.ndarray, o: int, dt: float, tau: float) -> float:
+    """Gain of a first-order low-pass with time constant ``tau`` that starts as the running
+    mean: for the first ``tau`` seconds since its start (``st[o]``, s) it averages every
+    sample equally, so that no single first sample dominates its memory (as VQF does)."""
+    t = st[o]
+    st[o] = t + dt
+    return max(1.0 - np.exp(-dt / tau), dt / (t + dt))
+
+
+@jit_inline
+def _lowpass_state(st: np.ndarray, o: int, v: tuple, al: float) -> None:
+    """First-order low-pass step of a 3-vector of ``st``: ``x ← x + α (v − x)``."""
+    for i in range(3):
+        st[o + i] += al * (v[i] - st[o + i])
+
+
+@jit_inline
+def _rest_test(cfg: np.ndarray, st: np.ndarray, P: np.ndarray, nx: int, dt: float, g: tuple,
+               has_g: bool, a: tuple, has_a: bool) -> bool:
+    """Rest detection (extension): for ``rest_time`` without a break, the gyro and the
+    accelerometer stay within ``rest_gyro_threshold`` / ``rest_acc_threshold`` of their own
+    low-pass (REST_LP_TAU: the body is steady; a vibrating or rolling body is not) and the
+    low-passed rate agrees with the gyro bias estimate, χ² against ``P_bb`` plus the rest
+    noise (a turn the bias cannot explain is not rest). A steady slow turn within the bias
+    uncertainty cannot be told from a bias by an IMU alone; the zero-rate update therefore
+    never moves the attitude (the rate updates in :func:`_sensor_step`)."""
+    if cfg[C_REST] <= 0 or not (has_g and has_a):
+        st[S_T_REST] = 0.0
+        return False
+    al = 1.0 - np.exp(-dt / REST_LP_TAU)
+    _lowpass_state(st, S_GLP, g, al)
+    _lowpass_state(st, S_ALR, a, al)
+    dg = (g[0] - st[S_GLP]) ** 2 + (g[1] - st[S_GLP + 1]) ** 2 + (g[2] - st[S_GLP + 2]) ** 2
+    da = (a[0] - st[S_ALR]) ** 2 + (a[1] - st[S_ALR + 1]) ** 2 + (a[2] - st[S_ALR + 2]) ** 2
+    steady = dg < cfg[C_REST_GYR] ** 2 and da < cfg[C_REST_ACC] ** 2
+    if steady:
+        v = cfg[C_REST_VAR] + cfg[C_RW] * dt / (2.0 * REST_LP_TAU)
+        if nx == 9:
+            pb = (P[6, 6] + v, P[6, 7], P[6, 8], P[7, 7] + v, P[7, 8], P[8, 8] + v)
+            b = (st[S_B], st[S_B + 1], st[S_B + 2])
+        else:
+            pb = (v, 0.0, 0.0, v, 0.0, v)
+            b = (0.0, 0.0, 0.0)
+        okinv, Si = inv3_spd_t(pb)
+        r = (st[S_GLP] - b[0], st[S_GLP + 1] - b[1], st[S_GLP + 2] - b[2])
+        chi2 = 0.0
+        for i in range(3):
+            for j in range(3):
+                chi2 += r[i] * Si[i][j] * r[j]
+        steady = okinv and chi2 < REST_CHI2
+    if steady:
+        st[S_T_REST] += dt
+    else:
+        st[S_T_REST] = 0.0
+    return st[S_T_REST] >= cfg[C_REST_TIME]
+
+
+@jit_inline
+def _mag_checks(cfg: np.ndarray, st: np.ndarray, P: np.ndarray, fl: np.ndarray,
+                cnt: np.ndarray, dt: float, wl: tuple, Rw: tuple, m_body: tuple, m_norm: float,
+                has_m: bool) -> bool:
+    """Whether this magnetometer sample may be fused (extension, issue 13), in this order:
+
+    * consistency: the field over its learned magnitude, low-passed in the same almost
+      inertial frame as the accelerometer (``mag_time_constant``), must stay within
+      ``mag_consistency_tolerance`` of each new sample (plus the gyro's own scale error over
+      the rotation in that memory). A field fixed in the world passes however the body turns;
+      a magnet on the body turns with it, and a field that changes along the path changes;
+    * plausibility: magnitude and dip against the learned reference (:func:`_mag_plausible`);
+    * both held for ``mag_undisturbed_time`` without a break;
+    * recovery: a plausible, consistent field that the χ² gate has refused for
+      ``mag_recovery_time`` says that the heading is what is wrong: its variance grows by the
+      disagreement (no snap: the next updates pull it in).
+
+    Counted when refused."""
+    _rotate_state(st, S_MLP, Rw)
+    alm = 1.0 - np.exp(-dt / cfg[C_MAG_TAU])
+    st[S_WLP] += alm * (np.sqrt(wl[0] ** 2 + wl[1] ** 2 + wl[2] ** 2) - st[S_WLP])
+    if not has_m:
+        return False
+    alm = _lowpass_gain(st, S_MLT, dt, cfg[C_MAG_TAU])
+    ok = True
+    if fl[F_MCOUNT] > 0:
+        k = m_norm / st[S_MNORM]
+        mv = (m_body[0] * k, m_body[1] * k, m_body[2] * k)
+        dev2 = ((mv[0] - st[S_MLP]) ** 2 + (mv[1] - st[S_MLP + 1]) ** 2
+                + (mv[2] - st[S_MLP + 2]) ** 2)
+        _lowpass_state(st, S_MLP, mv, alm)
+        tol2 = cfg[C_MAG_CTOL] ** 2 + (cfg[C_GYR_SCALE] * cfg[C_MAG_TAU] * st[S_WLP]) ** 2
+        if dev2 > tol2:
+            cnt[K_MAG_REJ_INCONS] += 1
+            ok = False
+    Rq = rotmat_t((st[S_QC], st[S_QC + 1], st[S_QC + 2], st[S_QC + 3]))
+    if ok and not _mag_plausible(cfg, st, fl, cnt, Rq, m_body, m_norm):
+        ok = False
+    if not ok:
+        st[S_T_MAGOK] = 0.0
+        st[S_T_MAG] = 0.0  # disturbance, not evidence of a wrong heading
+        return False
+    st[S_T_MAGOK] += dt
+    if st[S_T_MAGOK] < cfg[C_MAG_UNDIST]:
+        return False
+    if st[S_T_MAG] > cfg[C_MAG_RECOVER]:
+        h = np.sqrt(st[S_MREF] ** 2 + st[S_MREF + 1] ** 2)
+        psi, _ = heading_residual_t(Rq, m_body, (st[S_MREF] / h, st[S_MREF + 1] / h, 0.0))
+        _bl_export(cfg, st, P)
+        _inflate_world(st, P, 0.0, psi * psi)
+        from_canonical(cfg, st, P)
+        st[S_T_MAG] = 0.0
+    return True
+
+
+@jit_inline
+def _cap_yaw_variance(st: np.ndarray, P: np.ndarray, nx: int) -> None:
+    """An angle uniform over ±180° has variance π²/3 (YAW_VAR_UNKNOWN); a Gaussian heading
+    variance beyond that (6D: the unobservable vertical bias integrated for long) means
+    nothing and spreads the MUKF's sigma points past the charts' domains. Scale the attitude
+    error along the world vertical ``u`` so that its variance is the cap: ``P ← D P Dᵀ`` with
+    ``D = I + (s − 1) u uᵀ`` on the attitude rows (a congruence: P stays PSD)."""
+    R = rotmat_t((st[S_QC], st[S_QC + 1], st[S_QC + 2], st[S_QC + 3]))
+    u = R[2]
+    v = 0.0
+    for i in range(3):
+        for j in range(3):
+            v += u[i] * P[i, j] * u[j]
+    if not v > YAW_VAR_UNKNOWN:
+        return
+    c = np.sqrt(YAW_VAR_UNKNOWN / v) - 1.0
+    for j in range(nx):  # rows: P[0:3, j] += c u (uᵀ P[0:3, j])
+        t = c * (u[0] * P[0, j] + u[1] * P[1, j] + u[2] * P[2, j])
+        for i in range(3):
+            P[i, j] += u[i] * t
+    for i in range(nx):  # columns
+        t = c * (u[0] * P[i, 0] + u[1] * P[i, 1] + u[2] * P[i, 2])
+        for j in range(3):
+            P[i, j] += t * u[j]
 
 
 @jit_inline
@@ -599,69 +842,107 @@ def _sensor_step(cfg: np.ndarray, nz: np.ndarray, st: np.ndarray, P: np.ndarray,
     if st[S_T_MAG] > 0.0:  # inside a period of disagreement with a plausible field
         st[S_T_MAG] += dt
 
-    # accelerometer: magnitude test; the excess over gravity also widens the disturbance
-    a_body = _unit_t(acc) if has_a else zero3
+    # the gyro's rate (bias removed) over this step, for the inertial low-passes below
+    wl = ((g[0] - st[S_B], g[1] - st[S_B + 1], g[2] - st[S_B + 2]) if has_g
+          else (st[S_W], st[S_W + 1], st[S_W + 2]))
+    Rw = rotmat_t(q_omega_t(wl, dt))  # R(Δq): body axes of the previous sample → this one
+    a_raw = acc
+    # accelerometer: the raw sample and its low-pass in an almost inertial frame
+    # (acc_time_constant > 0), blended by their variances; then the magnitude test
+    a_body, qa = _acc_measurement(cfg, nz, st, dt, wl, Rw, acc, has_a)
     acc_gate = cfg[C_ACC_GATE] if cfg[C_ACC_GATE] > 0 else np.inf
-    a_excess = 0.0
     if has_a:
-        a_excess = np.sqrt(acc[0] ** 2 + acc[1] ** 2 + acc[2] ** 2) / cfg[C_GRAVITY] - 1.0
         if st[S_T_ACC] > cfg[C_ACC_RECOVER]:
-            # rejected for too long: the estimate is suspect. Widen the tilt by the measured
-            # discrepancy and take this sample whatever the gates say.
+            # rejected for this long: the estimate may be what is wrong. Its tilt variance
+            # grows by the measured disagreement (no forced update: the gates then judge
+            # against the wider prior, and a sample still refused grows it again later)
             up = rotate_inv(st[S_QC:S_QC + 4], UP)
             ang = np.arccos(max(-1.0, min(1.0, up[0] * a_body[0] + up[1] * a_body[1]
                                           + up[2] * a_body[2])))
             _bl_export(cfg, st, P)
             _inflate_world(st, P, ang * ang, 0.0)
             from_canonical(cfg, st, P)
-            acc_gate = np.inf
-        elif abs(a_excess) > cfg[C_ACC_TOL]:
+            st[S_T_ACC] = 0.0
+        if qa < 0.0:
             cnt[K_ACC_REJ_NORM] += 1
             has_a = False
-    # Q_acc widened by the excess: nz[N_QA] + a_excess² I
-    Qa = _n33(nz, N_QA)
-    ex2 = a_excess * a_excess
-    Qa = ((Qa[0][0] + ex2, Qa[0][1], Qa[0][2]), (Qa[1][0], Qa[1][1] + ex2, Qa[1][2]),
-          (Qa[2][0], Qa[2][1], Qa[2][2] + ex2))
-    # rest detection: the body is still → zero-rate pseudo-measurement sharpens the bias
-    rest = False
-    if cfg[C_REST] > 0 and has_g and has_a:
-        wr = (g[0] - st[S_B]) ** 2 + (g[1] - st[S_B + 1]) ** 2 + (g[2] - st[S_B + 2]) ** 2
-        if wr < cfg[C_REST_GYR] ** 2 and abs(a_excess) * cfg[C_GRAVITY] < cfg[C_REST_ACC]:
-            st[S_T_REST] += dt
-            rest = st[S_T_REST] >= cfg[C_REST_TIME]
-        else:
-            st[S_T_REST] = 0.0
+    qa = abs(qa)
+    Qa = ((qa, 0.0, 0.0), (0.0, qa, 0.0), (0.0, 0.0, qa))
+    rest = _rest_test(cfg, st, P, nx, dt, g, has_g, a_raw, has_a)
     heading = int(cfg[C_MAG_MODE]) == MAG_HEADING
     mag_gate = cfg[C_MAG_GATE] if cfg[C_MAG_GATE] > 0 else np.inf
     if cfg[C_PAPER] > 0:  # the paper's start has no prior to gate against
         acc_gate = mag_gate = np.inf
-    # magnetometer: a field whose magnitude or dip is off is disturbed — skip it, and it also
-    # ends any period of disagreement (that is evidence of disturbance, not of a wrong heading)
-    if has_m and not _mag_plausible(cfg, st, fl, cnt, rotmat_t(
-            (st[S_QC], st[S_QC + 1], st[S_QC + 2], st[S_QC + 3])), m_body, m_norm):
-        has_m = False
-        st[S_T_MAG] = 0.0
-    elif has_m and cfg[C_PAPER] <= 0 and st[S_T_MAG] > cfg[C_MAG_RECOVER]:
-        # a plausible field has disagreed with the estimate for this long, without a break:
-        # the heading is suspect; take it from the field in closed form, as at start-up
-        _bl_export(cfg, st, P)
-        _heading_init(cfg, st, P, fl, np.array(m_body), m_norm)
-        from_canonical(cfg, st, P)
-        has_m = False
+    if use_mag and fl[F_HEADING] > 0 and cfg[C_PAPER] <= 0:
+        has_m = _mag_checks(cfg, st, P, fl, cnt, dt, wl, Rw, m_body, m_norm, has_m)
     ok = True
     acc_nis = 0.0
     mag_nis = 0.0
     mref = (st[S_MREF], st[S_MREF + 1], st[S_MREF + 2])
     h = np.sqrt(st[S_MREF] ** 2 + st[S_MREF + 1] ** 2)
     href = (st[S_MREF] / h, st[S_MREF + 1] / h, 0.0) if has_m and heading else zero3
+    var_h = (_mag_yaw_var(cfg, np.array(mref)) * max(1.0, cfg[C_MAG_DTIME] / dt) if has_m
+             else 0.0)
     algo = int(cfg[C_ALGO])
+    if algo <= ALGO_MUKF and cfg[C_GYR_SCALE] > 0:
+        # the gyro's scale and axis errors: attitude noise growing with the rate turned
+        qs = cfg[C_GYR_SCALE] ** 2 * (wl[0] ** 2 + wl[1] ** 2 + wl[2] ** 2) * dt
+        for i in range(3):
+            P[i, i] += qs
     if algo >= ALGO_EULER_KF:  # baselines: no rate/bias state to sharpen at rest
         rest = False
         ok, acc_nis, mag_nis = _baseline_update(cfg, nz, st, P, cnt, dt, np.array(g), has_g,
                                                 np.array(a_body), has_a, Qa[0][0],
                                                 np.array(m_body), has_m, acc_gate, mag_gate)
-    elif algo == ALGO_MEKF:  # predict, one block per sensor, one move to the manifold
+    else:
+        # The rate measurements first: a gyro sample is the rate over the interval that ends
+        # at its stamp (what a MEMS gyro reports), so it observes ω̄ at the start of the step
+        # and drives the prediction over it. Both are linear in the state, so this Kalman
+        # update is exact for the MUKF too; the zero-rate update never moves the attitude.
+        w = (st[S_W], st[S_W + 1], st[S_W + 2])
+        b = (st[S_B], st[S_B + 1], st[S_B + 2])
+        for i in range(nx):
+            dx[i] = 0.0
+        if has_g:
+            gate = cfg[C_GYR_GATE] if cfg[C_GYR_GATE] > 0 and cfg[C_PAPER] <= 0 else np.inf
+            nis = mekf_rate_update_t(P, nx, dx, w, b, g, _n33(nz, N_RW), True, gate, work)
+            if nis > gate:
+                cnt[K_GYR_REJ_CHI2] += 1
+                if st[S_GREJ] > 0:
+                    # the second in a row: the rate did change that much. The rate prior was
+                    # too narrow by the innovation: widen it by that, and take the sample
+                    for i in range(3):
+                        r = g[i] - w[i] - (b[i] if nx == 9 else 0.0)
+                        P[3 + i, 3 + i] += r * r
+                    nis = mekf_rate_update_t(P, nx, dx, w, b, g, _n33(nz, N_RW), True, np.inf,
+                                             work)
+                    st[S_GREJ] = 0.0
+                else:
+                    st[S_GREJ] = 1.0  # one sample alone: an outlier; the rate carries on
+            else:
+                st[S_GREJ] = 0.0
+            ok &= nis >= 0
+        if rest:
+            vz = cfg[C_REST_VAR]
+            ok &= mekf_rate_update_t(P, nx, dx, w, b, zero3, ((vz, 0.0, 0.0), (0.0, vz, 0.0),
+                                                             (0.0, 0.0, vz)), False, np.inf,
+                                     work, 3) >= 0
+        if algo == ALGO_MEKF:
+            q, w, b = mekf_apply_t(chart, cfg[C_CU] > 0, (st[S_QC], st[S_QC + 1], st[S_QC + 2],
+                                                          st[S_QC + 3]), w, b, P, nx, dx)
+            for i in range(4):
+                st[S_QC + i] = q[i]
+        else:
+            for i in range(3):
+                st[S_E + i] += dx[i]
+            symmetrize_leading(P, nx)
+            w = (w[0] + dx[3], w[1] + dx[4], w[2] + dx[5])
+            if nx == 9:
+                b = (b[0] + dx[6], b[1] + dx[7], b[2] + dx[8])
+        for i in range(3):
+            st[S_W + i] = w[i]
+            st[S_B + i] = b[i]
+    if algo == ALGO_MEKF:  # predict, one block per sensor, one move to the manifold
         q = (st[S_QC], st[S_QC + 1], st[S_QC + 2], st[S_QC + 3])
         w = (st[S_W], st[S_W + 1], st[S_W + 2])
         b = (st[S_B], st[S_B + 1], st[S_B + 2])
@@ -675,31 +956,24 @@ def _sensor_step(cfg: np.ndarray, nz: np.ndarray, st: np.ndarray, P: np.ndarray,
                                            cfg[C_ACC_MODE] == ACC_TILT, work)
         if has_m:
             if heading:
-                mag_nis = mekf_heading_update(P, nx, dx, a33(R), np.array(m_body),
-                                              np.array(href), _mag_yaw_var(cfg, np.array(mref)),
-                                              mag_gate)
+                mag_nis = mekf_heading_update_t(P, nx, dx, R, m_body, href, var_h, mag_gate)
             else:
                 mag_nis = mekf_vector_update_t(P, nx, dx, R, m_body, mref, _n33(nz, N_RM),
                                                _n33(nz, N_QM), mag_gate, False, work)
-        if has_g:
-            ok &= mekf_rate_update_t(P, nx, dx, w, b, g, _n33(nz, N_RW), True, np.inf,
-                                     work) >= 0
-        if rest:
-            vz = cfg[C_REST_VAR]
-            ok &= mekf_rate_update_t(P, nx, dx, w, b, zero3, ((vz, 0.0, 0.0), (0.0, vz, 0.0),
-                                                             (0.0, 0.0, vz)), False, np.inf,
-                                     work) >= 0
         q, w, b = mekf_apply_t(chart, cfg[C_CU] > 0, q, w, b, P, nx, dx)
         for i in range(4):
             st[S_QC + i] = q[i]
         for i in range(3):
             st[S_W + i] = w[i]
             st[S_B + i] = b[i]
-    else:  # MUKF: stacked measurement through the sigma points
-        ok, acc_nis, mag_nis = _mukf_sensor_update(cfg, nz, st, P, nx, chart, dt, g, has_g,
-                                                   a_body, has_a, Qa, m_body, has_m, heading,
-                                                   mref, href, rest, acc_gate, mag_gate,
-                                                   mwork)
+    elif algo == ALGO_MUKF:  # MUKF: stacked measurement through the sigma points
+        ok_u, acc_nis, mag_nis = _mukf_sensor_update(cfg, nz, st, P, nx, chart, dt, g, False,
+                                                     a_body, has_a, Qa, m_body, has_m, heading,
+                                                     mref, href, var_h, acc_gate, mag_gate,
+                                                     mwork)
+        ok &= ok_u
+    if algo <= ALGO_MUKF:
+        _cap_yaw_variance(st, P, nx)
     if not ok or acc_nis < 0 or mag_nis < 0:
         cnt[K_UPDATE_FAILED] += 1
         for i in range(nx):  # regularise so that the next step can factorise again
@@ -726,7 +1000,7 @@ def _sensor_step(cfg: np.ndarray, nz: np.ndarray, st: np.ndarray, P: np.ndarray,
 def _mukf_sensor_update(cfg: np.ndarray, nz: np.ndarray, st: np.ndarray, P: np.ndarray,
                         nx: int, chart: int, dt: float, g: tuple, has_g: bool, a_body: tuple,
                         has_a: bool, Qa: tuple, m_body: tuple, has_m: bool, heading: bool,
-                        mref: tuple, href: tuple, rest: bool, acc_gate: float,
+                        mref: tuple, href: tuple, var_h: float, acc_gate: float,
                         mag_gate: float, mwork: tuple) -> tuple[bool, float, float]:
     """The MUKF step of :func:`sensor_step`: the stacked measurement through the sigma points
     (:func:`~mkf_ros.core.mukf.mukf_step_t`, scratch ``mwork``). Returns ``(ok, acc NIS,
@@ -737,13 +1011,12 @@ def _mukf_sensor_update(cfg: np.ndarray, nz: np.ndarray, st: np.ndarray, P: np.n
          (st[S_E], st[S_E + 1], st[S_E + 2]), (st[S_W], st[S_W + 1], st[S_W + 2]),
          (st[S_B], st[S_B + 1], st[S_B + 2]))
     zero3 = (0.0, 0.0, 0.0)
-    var_h = _mag_yaw_var(cfg, np.array(mref)) if heading_m else 0.0
     ok, q, e, w, b, nis = mukf_step_t(
         chart, cfg[C_CU] > 0, int(cfg[C_MUKF_NOISE]), cfg[C_W0], x, P, nx, dt,
         _n33(nz, N_QW), _n33(nz, N_QB), (a_body, m_body if has_m else zero3),
         ((0.0, 0.0, 1.0), mref if has_m else zero3), (_n33(nz, N_RA), _n33(nz, N_RM)),
         (Qa, _n33(nz, N_QM)), (has_a, use_vm), g, has_g, _n33(nz, N_RW),
-        m_body if has_m else zero3, href if has_m else zero3, heading_m, var_h, rest,
+        m_body if has_m else zero3, href if has_m else zero3, heading_m, var_h, False,
         cfg[C_REST_VAR], (acc_gate, mag_gate, mag_gate, np.inf), True,
         cfg[C_ACC_MODE] == ACC_TILT, mwork)
     for i in range(4):  # (on failure as far as changed: the reset variant's re-centring)
@@ -752,6 +1025,14 @@ def _mukf_sensor_update(cfg: np.ndarray, nz: np.ndarray, st: np.ndarray, P: np.n
         st[S_E + i] = e[i]
         st[S_W + i] = w[i]
         st[S_B + i] = b[i]
+    if not ok:
+        # a factorisation failed before the prediction: still carry the estimate over Δt
+        # (the MEKF's linear prediction from the re-centred mean), so that no time is lost
+        recentre(cfg, st, P)
+        q = mekf_predict_t((st[S_QC], st[S_QC + 1], st[S_QC + 2], st[S_QC + 3]), w, P, nx, dt,
+                           _n33(nz, N_QW), (zero3, zero3, zero3))
+        for i in range(4):
+            st[S_QC + i] = q[i]
     acc_nis = nis[B_VEC0] if has_a else 0.0
     mag_nis = nis[B_HEADING] if heading else nis[B_VEC1]
     return ok, acc_nis, mag_nis
@@ -852,6 +1133,14 @@ def build_cfg(p: FilterParams) -> np.ndarray:
     cfg[C_MAXDT] = p.max_dt
     cfg[C_MAG_MODE] = MAG_HEADING if p.mag_mode == "heading" else MAG_VECTOR
     cfg[C_ACC_MODE] = ACC_TILT if p.acc_mode == "tilt" else ACC_VECTOR
+    cfg[C_ACC_TAU] = p.acc_time_constant
+    cfg[C_ACC_DTIME] = p.acc_disturbance_time
+    cfg[C_GYR_SCALE] = p.gyro_scale_error
+    cfg[C_GYR_GATE] = p.gyro_gate
+    cfg[C_MAG_TAU] = p.mag_time_constant
+    cfg[C_MAG_CTOL] = p.mag_consistency_tolerance
+    cfg[C_MAG_UNDIST] = p.mag_undisturbed_time
+    cfg[C_MAG_DTIME] = p.mag_disturbance_time
     cfg[C_GRAVITY] = g
     cfg[C_ACC_TOL] = p.acc_norm_tolerance
     cfg[C_ACC_GATE] = p.acc_gate

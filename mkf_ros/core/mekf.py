@@ -150,19 +150,25 @@ def _innovation_test(work: np.ndarray, nx: int, r: tuple,
 
 @jit_inline
 def _block_update(P: np.ndarray, nx: int, dx: np.ndarray, work: np.ndarray, r: tuple,
-                  gate: float) -> float:
+                  gate: float, frozen: int = 0) -> float:
     """Kalman update for one 3-row block given ``P Hᵀ`` (nx×3) and ``S`` in ``work`` (layout
     above) and the innovation ``r`` (already corrected for earlier blocks): ``K = P Hᵀ S⁻¹``,
     ``Δx += K r``, ``P −= K (P Hᵀ)ᵀ`` (symmetric: the upper triangle, mirrored).
     Returns the normalised innovation squared ``rᵀ S⁻¹ r``; ``-1`` if ``S`` is not positive
-    definite, and nothing changes when that value exceeds ``gate``."""
+    definite, and nothing changes when that value exceeds ``gate``.
+
+    ``frozen`` (0 or 3): the gain of the first ``frozen`` states is set to zero, ``K = Π K₀``
+    with ``Π = blockdiag(0, I)``: their estimate and their own covariance block stay, the
+    rest follows the Joseph form ``(I − KH) P (I − KH)ᵀ + K R Kᵀ``, which for this ``Π`` is
+    ``P − K₀ (PHᵀ)ᵀ`` everywhere but that block (valid for any gain: PSD by construction)."""
     go, nis, Si = _innovation_test(work, nx, r, gate)
     if not go:
         return nis
     for i in range(nx):  # row i of K, then of Δx and P (P Hᵀ is a copy: P may change)
         k0, k1, k2 = _gain_row(work, i, Si)
-        dx[i] += k0 * r[0] + k1 * r[1] + k2 * r[2]
-        for j in range(i, nx):
+        if i >= frozen:
+            dx[i] += k0 * r[0] + k1 * r[1] + k2 * r[2]
+        for j in range(max(i, frozen), nx):
             p = P[i, j] - (k0 * work[j, 0] + k1 * work[j, 1] + k2 * work[j, 2])
             P[i, j] = p
             P[j, i] = p
@@ -279,7 +285,7 @@ def mekf_vector_update(
 @jit_inline
 def mekf_rate_update_t(
     P: np.ndarray, nx: int, dx: np.ndarray, w: tuple, b: tuple, wm: tuple, Rw: tuple,
-    with_bias: bool, gate: float, work: np.ndarray,
+    with_bias: bool, gate: float, work: np.ndarray, frozen: int = 0,
 ) -> float:
     """:func:`mekf_rate_update` on tuples (``Rw`` a tuple of rows) with scratch ``work``."""
     bias = with_bias and nx == 9
@@ -293,7 +299,7 @@ def mekf_rate_update_t(
     for i in range(3):  # S = H P Hᵀ + R_ω
         for j in range(3):
             work[s0 + i, j] = work[3 + i, j] + (work[6 + i, j] if bias else 0.0) + Rw[i][j]
-    return _block_update(P, nx, dx, work, (r0, r1, r2), gate)
+    return _block_update(P, nx, dx, work, (r0, r1, r2), gate, frozen)
 
 
 @jit
@@ -335,56 +341,72 @@ def heading_residual(R: np.ndarray, m_body: np.ndarray, ref: np.ndarray) -> tupl
     return heading_residual_t(t33(R), t3(m_body), t3(ref))
 
 
-@jit
-def mekf_heading_update(
-    P: np.ndarray, nx: int, dx: np.ndarray, R: np.ndarray, m_body: np.ndarray, ref: np.ndarray,
-    var: float, gate: float,
+@jit_inline
+def mekf_heading_update_t(
+    P: np.ndarray, nx: int, dx: np.ndarray, R: tuple, m_body: tuple, ref: tuple, var: float,
+    gate: float,
 ) -> float:
-    """Magnetometer for heading only (extension). Measurement ``0 = ψ(q) + n`` with
-    ``ψ(q̄ * δ(e)) ≈ ψ(q̄) − uᵀe``, ``u = R(q̄)ᵀ ẑ`` (the world vertical in body axes), so
-    ``H = −uᵀ``, ``S = uᵀ P_ee u + var``. The attitude part of the gain is projected onto ``u``:
-    the magnetometer turns the estimate about the vertical only and can never tilt it (a wrong
-    dip, a disturbed field); the covariance uses the Joseph form, valid for any gain:
-    ``P ← (I − K H) P (I − K H)ᵀ + K var Kᵀ``. Returns the NIS (−1 if ``S ≤ 0``)."""
-    psi, _ = heading_residual(R, m_body, ref)
-    u0, u1, u2 = R[2, 0], R[2, 1], R[2, 2]  # R(q̄)ᵀ ẑ
-    r = -psi + (u0 * dx[0] + u1 * dx[1] + u2 * dx[2])  # 0 − h(x̄ + Δx), h = ψ̄ − uᵀ Δe
-    Pu = np.empty(nx)
+    """:func:`mekf_heading_update` on tuples (``R`` a tuple of rows)."""
+    psi, _ = heading_residual_t(R, m_body, ref)
+    # horizontal part of the field in world axes, and d = R(q̄)ᵀ (m_y, −m_x, 0)/|m_h|²
+    mx = R[0][0] * m_body[0] + R[0][1] * m_body[1] + R[0][2] * m_body[2]
+    my = R[1][0] * m_body[0] + R[1][1] * m_body[1] + R[1][2] * m_body[2]
+    h2 = mx * mx + my * my
+    if not h2 > 0.0:
+        return -1.0
+    c0, c1 = my / h2, -mx / h2
+    d = (R[0][0] * c0 + R[1][0] * c1, R[0][1] * c0 + R[1][1] * c1, R[0][2] * c0 + R[1][2] * c1)
+    # H_e = −(d × m): ∂ψ/∂e of ψ(q̄ * δ(e)), R(q̄ δ) m ≈ R(q̄)(m + e × m)
+    He = (-(d[1] * m_body[2] - d[2] * m_body[1]), -(d[2] * m_body[0] - d[0] * m_body[2]),
+          -(d[0] * m_body[1] - d[1] * m_body[0]))
+    r = -psi - (He[0] * dx[0] + He[1] * dx[1] + He[2] * dx[2])  # 0 − h(x̄ + Δx)
+    # v = P Hᵀ (attitude columns only); S = H P Hᵀ + var
+    v = np.empty(NX_MAX_HEADING)
     for i in range(nx):
-        Pu[i] = P[i, 0] * u0 + P[i, 1] * u1 + P[i, 2] * u2  # P Hᵀ = −P u
-    S = u0 * Pu[0] + u1 * Pu[1] + u2 * Pu[2] + var
+        v[i] = P[i, 0] * He[0] + P[i, 1] * He[1] + P[i, 2] * He[2]
+    S = He[0] * v[0] + He[1] * v[1] + He[2] * v[2] + var
     if not S > 0.0:
         return -1.0
     nis = r * r / S
     if nis > gate:
         return nis
-    K = np.empty(nx)
+    u = (R[2][0], R[2][1], R[2][2])  # R(q̄)ᵀ ẑ: the world vertical in body axes
+    k = np.empty(NX_MAX_HEADING)
     for i in range(nx):
-        K[i] = -Pu[i] / S
-    ku = u0 * K[0] + u1 * K[1] + u2 * K[2]
-    K[0], K[1], K[2] = u0 * ku, u1 * ku, u2 * ku  # projection onto the vertical
+        k[i] = v[i] / S
+    ku = u[0] * k[0] + u[1] * k[1] + u[2] * k[2]
+    k[0], k[1], k[2] = u[0] * ku, u[1] * ku, u[2] * ku  # attitude gain onto the vertical
     for i in range(nx):
-        dx[i] += K[i] * r
-    # Joseph form with A = I − K H = I + K uᵀ (on the attitude columns)
-    A = np.eye(nx)
+        dx[i] += k[i] * r
+    # Joseph form for any gain: P − K vᵀ − v Kᵀ + S K Kᵀ
     for i in range(nx):
-        A[i, 0] += K[i] * u0
-        A[i, 1] += K[i] * u1
-        A[i, 2] += K[i] * u2
-    AP = np.zeros((nx, nx))
-    for i in range(nx):
-        for k in range(nx):
-            a = A[i, k]
-            if a != 0.0:
-                for j in range(nx):
-                    AP[i, j] += a * P[k, j]
-    for i in range(nx):
-        for j in range(nx):
-            s_ = K[i] * var * K[j]
-            for k in range(nx):
-                s_ += AP[i, k] * A[j, k]
-            P[i, j] = s_
+        for j in range(i, nx):
+            p = P[i, j] - k[i] * v[j] - v[i] * k[j] + S * k[i] * k[j]
+            P[i, j] = p
+            P[j, i] = p
     return nis
+
+
+NX_MAX_HEADING = 9
+
+
+@jit
+def mekf_heading_update(
+    P: np.ndarray, nx: int, dx: np.ndarray, R: np.ndarray, m_body: np.ndarray, ref: np.ndarray,
+    var: float, gate: float,
+) -> float:
+    """Magnetometer for heading only (extension). Measurement ``0 = ψ(q) + n``: ``ψ`` is the
+    rotation about the world vertical that brings the horizontal part of ``R(q) m`` onto the
+    horizontal reference (:func:`heading_residual_t`). Linearised at ``q = q̄ * δ(e)`` with
+    ``R(q̄ δ) m ≈ R(q̄)(m + e × m)``: ``H_e = −(d × m)``, ``d = R(q̄)ᵀ (m_y, −m_x, 0)/|m_h|²``
+    (``m_x, m_y`` the world-horizontal components of ``R(q̄) m``). Along the vertical
+    ``u = R(q̄)ᵀ ẑ`` this is ``H u = −1``; the tilt components, of size ≈ tan(dip), say how a
+    tilt error moves the apparent heading, so that ``S = H P Hᵀ + var`` counts it. The attitude
+    part of the gain is projected onto ``u``: the magnetometer turns the estimate about the
+    vertical only and can never tilt it (a wrong dip, a disturbed field); the covariance uses
+    the Joseph form, valid for any gain: ``P ← (I − K H) P (I − K H)ᵀ + K var Kᵀ``. Returns
+    the NIS (−1 if ``S ≤ 0``)."""
+    return mekf_heading_update_t(P, nx, dx, t33(R), t3(m_body), t3(ref), var, gate)
 
 
 @jit_inline

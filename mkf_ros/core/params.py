@@ -146,22 +146,58 @@ PARAMS: tuple[Param, ...] = (
     _P("gyro_bias_stddev", float, 0.02, "Initial uncertainty of the gyro bias", unit="rad/s",
        range=(1e-9, 1.0), group="noise"),
     # --- disturbances and calibration (extensions for real sensors) --------------------------
-    _P("acc_norm_tolerance", float, 0.5, "Accelerometer samples whose magnitude differs from "
-       "gravity by more than this fraction are not fused (the excess also widens the "
-       "disturbance of every sample)", unit="1", range=(0.0, 1000.0), group="robustness"),
+    _P("acc_norm_tolerance", float, 0.5, "Accelerometer samples (after the low-pass) whose "
+       "magnitude differs from gravity by more than this fraction are not fused (the excess "
+       "also widens the disturbance of every sample)", unit="1", range=(0.0, 1000.0),
+       group="robustness"),
     _P("acc_gate", float, 16.3, "Chi-square gate on the accelerometer innovation (3 degrees of "
        "freedom; 16.3 = 0.1% false rejection); 0 = off", unit="1", range=(0.0, 1e6),
        group="robustness"),
     _P("acc_recovery_time", float, 1.0, "After this long without an accepted accelerometer "
-       "sample, the next one is fused regardless of the gates", unit="s", range=(0.0, 3600.0),
+       "sample, the tilt variance grows by the measured disagreement (no forced update: the "
+       "gates then judge against the wider prior)", unit="s", range=(0.0, 3600.0),
        group="robustness"),
+    _P("acc_time_constant", float, 1.0, "The accelerometer is low-passed in an almost "
+       "inertial frame before it corrects the tilt (extension): two first-order stages with "
+       "this time constant whose memory turns with the body by the gyro. Gravity passes "
+       "however the body turns; shaking, vibration and other non-gravitational acceleration "
+       "(the derivative of a bounded velocity) average out. 0 = every raw sample (the paper)",
+       unit="s", range=(0.0, 100.0), group="robustness"),
+    _P("acc_disturbance_time", float, 0.2, "Correlation time of the non-gravitational "
+       "acceleration left in the fused accelerometer: its per-sample variance is "
+       "acc_disturbance^2 * max(1, time/dt), so that its information per second does not grow "
+       "with the sample rate; 0 = independent per sample (the paper)", unit="s",
+       range=(0.0, 100.0), group="noise"),
+    _P("gyro_scale_error", float, 0.01, "Relative scale and axis-alignment error of the "
+       "gyroscope: attitude noise (error * |w|)^2 * dt per step, so that the covariance grows "
+       "while the body turns; it also widens the magnetometer consistency test; 0 = off "
+       "(the paper)", unit="1", range=(0.0, 1.0), group="noise"),
+    _P("gyro_gate", float, 1e4, "Chi-square gate on the gyro innovation (3 degrees of "
+       "freedom) against the rate model: a single sample beyond it is an outlier and is "
+       "skipped; a second one in a row is taken with the rate prior widened (the motion did "
+       "change); 0 = off", unit="1", range=(0.0, 1e12), group="robustness"),
     _P("acc_mode", str, "tilt", "'tilt': the accelerometer corrects roll and pitch only and can "
        "never move heading or the vertical rate and bias (extension: gravity carries no heading "
        "information); 'vector': the paper's full vector measurement",
        choices=("tilt", "vector"), group="robustness"),
-    _P("mag_mode", str, "vector", "'heading': the magnetometer corrects heading only and can "
+    _P("mag_mode", str, "heading", "'heading': the magnetometer corrects heading only and can "
        "never tilt the estimate (extension); 'vector': the paper's full vector measurement",
        choices=("heading", "vector"), group="robustness"),
+    _P("mag_time_constant", float, 1.0, "Memory of the magnetometer consistency test: the "
+       "field is low-passed in the same almost inertial frame as the accelerometer; a magnet on "
+       "the body or a field that changes along the path disagrees with it", unit="s",
+       range=(1e-3, 100.0), group="robustness"),
+    _P("mag_consistency_tolerance", float, 0.1, "Magnetometer samples that differ from that "
+       "low-passed field by more than this fraction of the field (plus the gyro scale error "
+       "over the rotation in its memory) are not fused", unit="1", range=(0.0, 1000.0),
+       group="robustness"),
+    _P("mag_undisturbed_time", float, 0.5, "The field must have passed the magnitude, dip and "
+       "consistency tests for this long without a break before it is fused again", unit="s",
+       range=(0.0, 3600.0), group="robustness"),
+    _P("mag_disturbance_time", float, 1.0, "Correlation time of the magnetometer's heading "
+       "error (calibration, local field): the heading variance per sample is the noise's "
+       "times max(1, time/dt); 0 = independent per sample", unit="s", range=(0.0, 100.0),
+       group="noise"),
     _P("mag_norm_tolerance", float, 0.1, "Magnetometer samples whose magnitude differs from the "
        "learned field by more than this fraction are not fused", unit="1", range=(0.0, 1000.0),
        group="robustness"),
@@ -171,17 +207,18 @@ PARAMS: tuple[Param, ...] = (
     _P("mag_gate", float, 10.8, "Chi-square gate on the magnetometer innovation (vector mode, "
        "3 degrees of freedom: 10.8 = 1.3% false rejection; heading mode, 1: 3.3 sigma); 0 = off",
        unit="1", range=(0.0, 1e6), group="robustness"),
-    _P("mag_recovery_time", float, 10.0, "After this long without an accepted magnetometer "
-       "sample, the chi-square gate is suspended (magnitude and dip checks stay)", unit="s",
-       range=(0.0, 3600.0), group="robustness"),
-    _P("rest_detection", bool, True, "Detect rest (gyro minus bias and accelerometer excess "
-       "below thresholds for rest_time) and fuse a zero angular velocity, which sharpens the "
-       "gyro bias", group="robustness"),
-    _P("rest_gyro_threshold", float, 0.05, "Rest: bias-corrected gyro magnitude below this",
+    _P("mag_recovery_time", float, 10.0, "After this long with a plausible, consistent field "
+       "that the chi-square gate refuses, the heading variance grows by the disagreement (no "
+       "snap: the next updates pull it in)", unit="s", range=(0.0, 3600.0), group="robustness"),
+    _P("rest_detection", bool, True, "Detect rest and fuse a zero angular velocity, which "
+       "sharpens the gyro bias (never the attitude): the gyro and the accelerometer steady "
+       "within the thresholds of their 0.5 s low-pass, and the low-passed rate explained by "
+       "the bias estimate (chi-square), for rest_time", group="robustness"),
+    _P("rest_gyro_threshold", float, 0.035, "Rest: the gyro within this of its low-pass",
        unit="rad/s", range=(0.0, 10.0), group="robustness"),
-    _P("rest_acc_threshold", float, 0.3, "Rest: accelerometer magnitude within this of gravity",
+    _P("rest_acc_threshold", float, 0.2, "Rest: the accelerometer within this of its low-pass",
        unit="m/s^2", range=(0.0, 100.0), group="robustness"),
-    _P("rest_time", float, 1.0, "Rest: both conditions held for this long", unit="s",
+    _P("rest_time", float, 1.0, "Rest: the conditions held for this long", unit="s",
        range=(0.0, 3600.0), group="robustness"),
     _P("rest_rate_stddev", float, 0.005, "Standard deviation of the zero-rate measurement at "
        "rest", unit="rad/s", range=(1e-6, 1.0), group="robustness"),
