@@ -47,7 +47,8 @@ def run_async(rec, delay: float, stamped_on_arrival: bool = False,
               **params) -> tuple[np.ndarray, np.ndarray, StreamAdapter]:
     """Deliver IMU and magnetometer in arrival order, the magnetometer ``delay`` s late (and
     with ``stamped_on_arrival``, stamped when it arrives instead of when it was measured)."""
-    s = StreamAdapter(use_mag=True, **params)
+    # white simulated noise: no correlation time for the magnetometer's heading error
+    s = StreamAdapter(use_mag=True, **{"mag_disturbance_time": 0.0, **params})
     n = len(rec.t)
     events = [(rec.t[k], 0, k) for k in range(0, n, 2)]
     events += [(rec.t[k] + delay, 1, k) for k in range(1, n, 4)]
@@ -245,10 +246,11 @@ def test_gap_makes_the_published_yaw_uncertain(use_mag: bool) -> None:
         out = s.on_imu(T0 + 0.01 * k, Z, G)
         if use_mag and k % 2 == 0:
             s.on_mag(T0 + 0.01 * k, mag)
-    assert math.degrees(math.sqrt(out.orientation_cov[2, 2])) < 5.0
+    assert math.degrees(math.sqrt(out.orientation_cov[2, 2])) < 10.0
     out = s.on_imu(T0 + 5.0, Z, G)  # 4 s without data
     assert out.orientation_cov[2, 2] == pytest.approx(math.pi ** 2 / 3, rel=1e-3)
-    assert math.degrees(math.sqrt(out.orientation_cov[0, 0])) < 10.0
+    # one sample's tilt, trusted to three times the expected acceleration (acc_disturbance)
+    assert math.degrees(math.sqrt(out.orientation_cov[0, 0])) < 12.0
     out = feed(s, 10, t0=T0 + 5.01)[-1]
     assert out.orientation_cov[2, 2] == pytest.approx(math.pi ** 2 / 3, rel=1e-3)
     if use_mag:
@@ -257,7 +259,10 @@ def test_gap_makes_the_published_yaw_uncertain(use_mag: bool) -> None:
         assert math.degrees(math.sqrt(out.orientation_cov[2, 2])) < 10.0  # one sample's worth
     s.reset()
     out = feed(s, 2, t0=T0 + 10.0)[-1]
-    assert out.orientation_cov[2, 2] < 0.01
+    if use_mag:  # a fresh start: the heading is unknown until the magnetometer fixes it
+        assert out.orientation_cov[2, 2] == pytest.approx(math.pi ** 2 / 3, rel=1e-3)
+    else:  # the start-up heading defines yaw
+        assert out.orientation_cov[2, 2] < 0.01
 
 
 def test_bad_stamps_dropped_constant_dt_ignores_them() -> None:
@@ -368,7 +373,7 @@ def test_world_frames_differ_exactly_by_the_frame_change(rec) -> None:
             want = qmul_np(qf, a.quat_wxyz)
             np.testing.assert_allclose(b.quat_wxyz, want * np.sign(want[0]), atol=1e-12)
             np.testing.assert_allclose(b.orientation_cov, r @ a.orientation_cov @ r.T,
-                                       atol=1e-15)
+                                       rtol=1e-12, atol=1e-13)
 
 
 def test_orientation_stddev_override_and_gravity_removal() -> None:

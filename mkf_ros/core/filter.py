@@ -83,7 +83,8 @@ C_BETA, C_MADG_VAR, C_GIMBAL_COS = 47, 48, 49  # baselines (issue 7)
 C_ACC_MODE = 50
 C_ACC_TAU, C_ACC_DTIME, C_GYR_SCALE, C_GYR_GATE = 51, 52, 53, 54
 C_MAG_TAU, C_MAG_CTOL, C_MAG_UNDIST, C_MAG_DTIME = 55, 56, 57, 58
-C_SIZE = 59
+C_ACC_ALIGN = 59
+C_SIZE = 60
 MAG_HEADING, MAG_VECTOR = 0, 1
 ACC_TILT, ACC_VECTOR = 0, 1
 
@@ -104,7 +105,9 @@ S_GLP, S_ALR = 42, 45  # 3 + 3: gyro and accelerometer low-passed for rest detec
 S_GREJ = 48  # 1 after a gyro sample rejected by its gate
 S_ALT, S_MLT = 49, 50  # s since the accelerometer / field low-pass started
 S_AEX, S_AWLP = 51, 52  # low-passed (|a| − g)² and |ω|, over acc_time_constant
-S_SIZE = 53
+S_DTA, S_DTM = 53, 54  # s since the previous accelerometer / magnetometer sample
+S_RDEV = 55  # 2: rest detection, low-passed squared deviations of the gyro and accelerometer
+S_SIZE = 57
 NX_MAX = 9
 
 # --- noise matrices derived from the configuration (built once per parameter set) -------------
@@ -308,7 +311,8 @@ def _align(cfg: np.ndarray, st: np.ndarray, P: np.ndarray, fl: np.ndarray,
     """Closed-form initialisation (or re-alignment after a gap) from one sample."""
     nx = int(cfg[C_NX])
     q = align_tilt(acc)
-    if fl[F_EVER] > 0:  # re-alignment: keep the heading we had
+    if fl[F_EVER] > 0:  # re-alignment: keep the heading we had (of the estimate q̂)
+        recentre(cfg, st, P)
         q = keep_yaw(q, st[S_QC:S_QC + 4])
     st[S_QC:S_QC + 4] = q
     st[S_E:S_E + 3] = 0.0
@@ -328,7 +332,10 @@ def _align(cfg: np.ndarray, st: np.ndarray, P: np.ndarray, fl: np.ndarray,
     # (with use_mag: unknown until the first magnetometer sample fixes it)
     var_yaw = (YAW_VAR_UNKNOWN if fl[F_EVER] > 0 or cfg[C_USE_MAG] > 0
                else YAW0_STDDEV ** 2)
-    _set_world_attitude_cov(st, P, nx, cfg[C_RA] + cfg[C_QA], var_yaw, False)
+    # one sample's tilt: wrong by whatever the body's acceleration is at that instant, up to
+    # three times acc_disturbance (so that the first corrections go to the attitude, not to
+    # the gyro bias)
+    _set_world_attitude_cov(st, P, nx, cfg[C_RA] + 9.0 * cfg[C_QA], var_yaw, False)
     fl[F_INIT] = 1
     fl[F_EVER] = 1
     fl[F_HEADING] = 0
@@ -339,8 +346,11 @@ def _align(cfg: np.ndarray, st: np.ndarray, P: np.ndarray, fl: np.ndarray,
         st[S_ALP + 3 + i] = acc[i]
         st[S_ALR + i] = acc[i]
         st[S_GLP + i] = gyr[i] if has_g else 0.0
+    st[S_RDEV] = st[S_RDEV + 1] = 0.0
     st[S_GREJ] = 0.0
     st[S_ALT] = 0.0
+    st[S_DTA] = 0.0
+    st[S_AEX] = 0.0
     if has_m:
         _heading_init(cfg, st, P, fl, m_body, m_norm)
 
@@ -397,63 +407,79 @@ def _rotate_state(st: np.ndarray, o: int, R: tuple) -> None:
 
 @jit_inline
 def _acc_measurement(cfg: np.ndarray, nz: np.ndarray, st: np.ndarray, dt: float, wl: tuple,
-                     Rw: tuple, a: tuple, has_a: bool) -> tuple[tuple, float]:
+                     Rw: tuple, a: tuple, has_a: bool) -> tuple[tuple, float, tuple, float, int]:
     """The accelerometer as the filters fuse it (extension, issue 13): the unit direction and
-    the disturbance variance per sample ``Q_a`` (normalised units; negative when the magnitude
-    test refuses the sample).
+    the disturbance variance per sample ``Q_a`` (normalised units), the raw sample's direction
+    and variance (the baselines fuse those, as in the report), and a status: 0 fused, 1 the raw
+    sample failed the magnitude test (``acc_norm_tolerance``) and only the low-pass is fused,
+    2 nothing is fused (no sample, or the low-pass itself fails the test).
 
     Two views of gravity, each with its own error model, blended by inverse variance:
 
     * the raw sample: wrong by the non-gravitational acceleration now. Its variance is
       ``acc_disturbance²`` plus the sample's own magnitude excess and twice the recent excess
-      power (``E[(|a| − g)²]`` over ``acc_time_constant``: the two components across gravity
-      that a norm cannot see);
+      power (``E[(|a| − g)²]`` over ``acc_time_constant``, less the white noise's share: the
+      two components across gravity that a norm cannot see);
     * the low-pass (two first-order stages, ``acc_time_constant``) in an almost inertial frame:
       its memory turns with the body by the gyro, so gravity passes however the body turns and
       a non-gravitational acceleration, the derivative of a bounded velocity, averages out. It
-      is wrong by what is left of it (``acc_disturbance²`` and its own magnitude excess) and by
-      the gyro's error over the rotation in its memory, ``(gyro_scale_error · 2τ |ω|)²``.
+      is wrong by what is left of that: ``acc_disturbance²``, its own magnitude excess and the
+      difference between its two stages (a slow push still passing through), and by the gyro's
+      error over the rotation in its memory, ``(gyro_scale_error · 2τ |ω|)²``.
 
     Shaking and vibration make the raw view noisy and leave the low-pass right; a fast turn,
     a saturated or miscalibrated gyro spoil the low-pass's memory while the raw view holds.
-    Both errors are correlated in time: the variance per sample is ``max(1, T/Δt)`` times the
-    above, ``T = acc_disturbance_time`` (the information per second does not grow with the
-    sample rate). Without the low-pass (``acc_time_constant = 0``) the raw sample alone."""
-    g0 = cfg[C_GRAVITY]
-    kq = max(1.0, cfg[C_ACC_DTIME] / dt)
+    Both errors are correlated in time: the variance per sample is ``max(1, T/Δt_a)`` times
+    the above, ``T = acc_disturbance_time``, ``Δt_a`` the time since the previous
+    accelerometer sample (the information per second does not grow with the sample rate).
+    The low-pass starts as a running mean and is used once that first average is complete.
+    Without it (``acc_time_constant = 0``) the raw sample alone."""
     tau = cfg[C_ACC_TAU]
     if tau > 0.0:
         _rotate_state(st, S_ALP, Rw)
         _rotate_state(st, S_ALP + 3, Rw)
+    st[S_DTA] += dt
+    zero3 = (0.0, 0.0, 0.0)
     if not has_a:
-        return (0.0, 0.0, 0.0), 0.0
+        return zero3, 0.0, zero3, 0.0, 2
+    dta = st[S_DTA]
+    st[S_DTA] = 0.0
+    g0 = cfg[C_GRAVITY]
     n_raw = np.sqrt(a[0] * a[0] + a[1] * a[1] + a[2] * a[2])
     ex = n_raw / g0 - 1.0
+    ex2 = max(0.0, ex * ex - cfg[C_RA])  # the excess beyond what white noise explains
     q_raw = nz[N_QA, 0, 0] + ex * ex
     u_raw = (a[0] / n_raw, a[1] / n_raw, a[2] / n_raw)
+    kq = max(1.0, cfg[C_ACC_DTIME] / dta)
     tol = cfg[C_ACC_TOL]
     if tau <= 0.0:
-        return u_raw, kq * q_raw if abs(ex) <= tol else -kq * q_raw
-    al = _lowpass_gain(st, S_ALT, dt, tau)
-    start = al > 1.0 - np.exp(-dt / tau)  # still averaging since the start: no lag yet
+        return u_raw, kq * q_raw, u_raw, q_raw, 0 if abs(ex) <= tol else 2
+    al = _lowpass_gain(st, S_ALT, dta, tau)
+    start = al > 1.0 - np.exp(-dta / tau)  # still averaging since the start: no lag yet
     _lowpass_state(st, S_ALP, a, al)
     _lowpass_state(st, S_ALP + 3, (st[S_ALP], st[S_ALP + 1], st[S_ALP + 2]), 1.0 if start else al)
-    st[S_AEX] += al * (ex * ex - st[S_AEX])
+    st[S_AEX] += al * (ex2 - st[S_AEX])
     st[S_AWLP] += al * (np.sqrt(wl[0] ** 2 + wl[1] ** 2 + wl[2] ** 2) - st[S_AWLP])
+    if start:  # the low-pass is still forming its first average: the raw sample alone
+        return u_raw, kq * q_raw, u_raw, q_raw, 0 if abs(ex) <= tol else 2
     lp = (st[S_ALP + 3], st[S_ALP + 4], st[S_ALP + 5])
     n_lp = np.sqrt(lp[0] * lp[0] + lp[1] * lp[1] + lp[2] * lp[2])
     ex_lp = n_lp / g0 - 1.0
     u_lp = (lp[0] / n_lp, lp[1] / n_lp, lp[2] / n_lp)
     rot = cfg[C_GYR_SCALE] * 2.0 * tau * st[S_AWLP]
-    q_lp = nz[N_QA, 0, 0] + ex_lp * ex_lp + rot * rot
-    q_raw += 2.0 * st[S_AEX]
-    if start:  # the low-pass is still forming its first average: the raw sample alone
-        return u_raw, kq * q_raw if abs(ex) <= tol else -kq * q_raw
-    w_lp = 1.0 if abs(ex) > tol else q_raw / (q_raw + q_lp)  # an implausible raw sample: none
-    u = (w_lp * u_lp[0] + (1.0 - w_lp) * u_raw[0], w_lp * u_lp[1] + (1.0 - w_lp) * u_raw[1],
-         w_lp * u_lp[2] + (1.0 - w_lp) * u_raw[2])
-    q = q_lp * q_raw / (q_lp + q_raw) if abs(ex) <= tol else q_lp
-    return _unit_t(u), kq * q if abs(ex_lp) <= tol else -kq * q
+    # a slow acceleration (a push, a brake) is still passing while the stages disagree
+    d2 = ((st[S_ALP] - lp[0]) ** 2 + (st[S_ALP + 1] - lp[1]) ** 2
+          + (st[S_ALP + 2] - lp[2]) ** 2) / (g0 * g0)
+    q_lp = nz[N_QA, 0, 0] + ex_lp * ex_lp + d2 + rot * rot
+    if abs(ex_lp) > tol:  # refused (the low-pass holds a sustained acceleration)
+        return u_lp, kq * q_lp, u_raw, q_raw, 2
+    if abs(ex) > tol:  # an implausible raw sample has no say (the low-pass still takes it:
+        return u_lp, kq * q_lp, u_raw, q_raw, 1  # shaking is symmetric about gravity)
+    q_rw = nz[N_QA, 0, 0] + ex2 + 2.0 * st[S_AEX]
+    w = q_rw / (q_rw + q_lp)
+    u = (w * u_lp[0] + (1.0 - w) * u_raw[0], w * u_lp[1] + (1.0 - w) * u_raw[1],
+         w * u_lp[2] + (1.0 - w) * u_raw[2])
+    return _unit_t(u), kq * q_lp * q_rw / (q_lp + q_rw), u_raw, q_raw, 0
 
 
 @jit_inline
@@ -474,15 +500,54 @@ def _lowpass_state(st: np.ndarray, o: int, v: tuple, al: float) -> None:
 
 
 @jit_inline
+def _gyro_gate(cfg: np.ndarray, st: np.ndarray, P: np.ndarray, nx: int, cnt: np.ndarray,
+               g: tuple) -> bool:
+    """The gyro's innovation gate (issue 13): the innovation ``g − ω̄ − b̄`` against
+    ``S = H P Hᵀ + R_ω`` (``H = [0, I, I]``), χ² with ``gyro_gate``. One sample alone beyond it
+    is an outlier (a corrupted message): it is skipped — it reaches neither the filter nor the
+    inertial low-passes — and counted. A second one in a row says the rate did change that
+    much: the rate's prior was too narrow by the innovation, so its variance grows by it
+    (``P_ωω += diag(r²)``) and the sample is taken. Returns whether to use the sample."""
+    bias = nx == 9
+    r = (g[0] - st[S_W] - (st[S_B] if bias else 0.0), g[1] - st[S_W + 1]
+         - (st[S_B + 1] if bias else 0.0), g[2] - st[S_W + 2] - (st[S_B + 2] if bias else 0.0))
+    rw = cfg[C_RW]
+    s = [[0.0, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]]
+    for i in range(3):
+        for j in range(3):
+            v = P[3 + i, 3 + j]
+            if bias:
+                v += P[3 + i, 6 + j] + P[6 + i, 3 + j] + P[6 + i, 6 + j]
+            s[i][j] = v + (rw if i == j else 0.0)
+    okinv, Si = inv3_spd_t((s[0][0], s[0][1], s[0][2], s[1][1], s[1][2], s[2][2]))
+    nis = 0.0
+    for i in range(3):
+        for j in range(3):
+            nis += r[i] * Si[i][j] * r[j]
+    if okinv and not nis > cfg[C_GYR_GATE]:
+        st[S_GREJ] = 0.0
+        return True
+    cnt[K_GYR_REJ_CHI2] += 1
+    if st[S_GREJ] > 0:
+        for i in range(3):
+            P[3 + i, 3 + i] += r[i] * r[i]
+        st[S_GREJ] = 0.0
+        return True
+    st[S_GREJ] = 1.0
+    return False
+
+
+@jit_inline
 def _rest_test(cfg: np.ndarray, st: np.ndarray, P: np.ndarray, nx: int, dt: float, g: tuple,
                has_g: bool, a: tuple, has_a: bool) -> bool:
     """Rest detection (extension): for ``rest_time`` without a break, the gyro and the
     accelerometer stay within ``rest_gyro_threshold`` / ``rest_acc_threshold`` of their own
-    low-pass (REST_LP_TAU: the body is steady; a vibrating or rolling body is not) and the
-    low-passed rate agrees with the gyro bias estimate, χ² against ``P_bb`` plus the rest
-    noise (a turn the bias cannot explain is not rest). A steady slow turn within the bias
-    uncertainty cannot be told from a bias by an IMU alone; the zero-rate update therefore
-    never moves the attitude (the rate updates in :func:`_sensor_step`)."""
+    low-pass, RMS over REST_LP_TAU (the body is steady; a vibrating or rolling body is not) and the
+    low-passed rate, less the bias estimate, could be a gyro bias: χ² against the prior
+    ``gyro_bias_stddev²`` plus the rest noise (a faster turn is not rest; the current ``P_bb``
+    would lock a wrongly learned bias out of its own correction). A steady slow turn within
+    that cannot be told from a bias by an IMU alone; the zero-rate update therefore never
+    moves the attitude (the rate updates in :func:`_sensor_step`)."""
     if cfg[C_REST] <= 0 or not (has_g and has_a):
         st[S_T_REST] = 0.0
         return False
@@ -491,22 +556,18 @@ def _rest_test(cfg: np.ndarray, st: np.ndarray, P: np.ndarray, nx: int, dt: floa
     _lowpass_state(st, S_ALR, a, al)
     dg = (g[0] - st[S_GLP]) ** 2 + (g[1] - st[S_GLP + 1]) ** 2 + (g[2] - st[S_GLP + 2]) ** 2
     da = (a[0] - st[S_ALR]) ** 2 + (a[1] - st[S_ALR + 1]) ** 2 + (a[2] - st[S_ALR + 2]) ** 2
-    steady = dg < cfg[C_REST_GYR] ** 2 and da < cfg[C_REST_ACC] ** 2
+    st[S_RDEV] += al * (dg - st[S_RDEV])  # mean squared deviations: a single noisy sample
+    st[S_RDEV + 1] += al * (da - st[S_RDEV + 1])  # does not end a rest
+    steady = st[S_RDEV] < cfg[C_REST_GYR] ** 2 and st[S_RDEV + 1] < cfg[C_REST_ACC] ** 2
     if steady:
         v = cfg[C_REST_VAR] + cfg[C_RW] * dt / (2.0 * REST_LP_TAU)
         if nx == 9:
-            pb = (P[6, 6] + v, P[6, 7], P[6, 8], P[7, 7] + v, P[7, 8], P[8, 8] + v)
+            v += cfg[C_B0]
             b = (st[S_B], st[S_B + 1], st[S_B + 2])
         else:
-            pb = (v, 0.0, 0.0, v, 0.0, v)
             b = (0.0, 0.0, 0.0)
-        okinv, Si = inv3_spd_t(pb)
         r = (st[S_GLP] - b[0], st[S_GLP + 1] - b[1], st[S_GLP + 2] - b[2])
-        chi2 = 0.0
-        for i in range(3):
-            for j in range(3):
-                chi2 += r[i] * Si[i][j] * r[j]
-        steady = okinv and chi2 < REST_CHI2
+        steady = (r[0] * r[0] + r[1] * r[1] + r[2] * r[2]) / v < REST_CHI2
     if steady:
         st[S_T_REST] += dt
     else:
@@ -516,8 +577,8 @@ def _rest_test(cfg: np.ndarray, st: np.ndarray, P: np.ndarray, nx: int, dt: floa
 
 @jit_inline
 def _mag_checks(cfg: np.ndarray, st: np.ndarray, P: np.ndarray, fl: np.ndarray,
-                cnt: np.ndarray, dt: float, wl: tuple, Rw: tuple, m_body: tuple, m_norm: float,
-                has_m: bool) -> bool:
+                cnt: np.ndarray, dt: float, dtm: float, wl: tuple, Rw: tuple, m_body: tuple,
+                m_norm: float, has_m: bool) -> bool:
     """Whether this magnetometer sample may be fused (extension, issue 13), in this order:
 
     * consistency: the field over its learned magnitude, low-passed in the same almost
@@ -537,7 +598,7 @@ def _mag_checks(cfg: np.ndarray, st: np.ndarray, P: np.ndarray, fl: np.ndarray,
     st[S_WLP] += alm * (np.sqrt(wl[0] ** 2 + wl[1] ** 2 + wl[2] ** 2) - st[S_WLP])
     if not has_m:
         return False
-    alm = _lowpass_gain(st, S_MLT, dt, cfg[C_MAG_TAU])
+    alm = _lowpass_gain(st, S_MLT, dtm, cfg[C_MAG_TAU])
     ok = True
     if fl[F_MCOUNT] > 0:
         k = m_norm / st[S_MNORM]
@@ -556,7 +617,7 @@ def _mag_checks(cfg: np.ndarray, st: np.ndarray, P: np.ndarray, fl: np.ndarray,
         st[S_T_MAGOK] = 0.0
         st[S_T_MAG] = 0.0  # disturbance, not evidence of a wrong heading
         return False
-    st[S_T_MAGOK] += dt
+    st[S_T_MAGOK] += dtm
     if st[S_T_MAGOK] < cfg[C_MAG_UNDIST]:
         return False
     if st[S_T_MAG] > cfg[C_MAG_RECOVER]:
@@ -668,6 +729,12 @@ def _bl_export(cfg: np.ndarray, st: np.ndarray, P: np.ndarray) -> None:
     if n == 3:  # KF, Madgwick: the gyro reading is the rate estimate
         for i in range(3, 6):
             P[i, i] = cfg[C_RW]
+    if int(cfg[C_NX]) == 9:  # ω̄ = g − b̄ (frozen bias): the rate inherits its uncertainty
+        for i in range(3):
+            for j in range(3):
+                P[3 + i, 3 + j] += P[6 + i, 6 + j]
+                P[3 + i, 6 + j] = -P[6 + i, 6 + j]
+                P[6 + j, 3 + i] = -P[6 + i, 6 + j]
 
 
 @jit
@@ -833,6 +900,7 @@ def _sensor_step(cfg: np.ndarray, nz: np.ndarray, st: np.ndarray, P: np.ndarray,
 
     nx = int(cfg[C_NX])
     chart = int(cfg[C_CHART])
+    algo_ = int(cfg[C_ALGO])
     if has_m and fl[F_HEADING] == 0:
         _bl_export(cfg, st, P)  # baselines: the sensor layer works on (q̄, P_ee, ...)
         _heading_init(cfg, st, P, fl, np.array(m_body), m_norm)
@@ -842,6 +910,10 @@ def _sensor_step(cfg: np.ndarray, nz: np.ndarray, st: np.ndarray, P: np.ndarray,
     if st[S_T_MAG] > 0.0:  # inside a period of disagreement with a plausible field
         st[S_T_MAG] += dt
 
+    if has_g and algo_ <= ALGO_MUKF and cfg[C_GYR_GATE] > 0 and cfg[C_PAPER] <= 0:
+        has_g = _gyro_gate(cfg, st, P, nx, cnt, g)
+        if not has_g:
+            g = zero3
     # the gyro's rate (bias removed) over this step, for the inertial low-passes below
     wl = ((g[0] - st[S_B], g[1] - st[S_B + 1], g[2] - st[S_B + 2]) if has_g
           else (st[S_W], st[S_W + 1], st[S_W + 2]))
@@ -849,7 +921,7 @@ def _sensor_step(cfg: np.ndarray, nz: np.ndarray, st: np.ndarray, P: np.ndarray,
     a_raw = acc
     # accelerometer: the raw sample and its low-pass in an almost inertial frame
     # (acc_time_constant > 0), blended by their variances; then the magnitude test
-    a_body, qa = _acc_measurement(cfg, nz, st, dt, wl, Rw, acc, has_a)
+    a_body, qa, a_rawu, qa_raw, a_stat = _acc_measurement(cfg, nz, st, dt, wl, Rw, acc, has_a)
     acc_gate = cfg[C_ACC_GATE] if cfg[C_ACC_GATE] > 0 else np.inf
     if has_a:
         if st[S_T_ACC] > cfg[C_ACC_RECOVER]:
@@ -863,25 +935,29 @@ def _sensor_step(cfg: np.ndarray, nz: np.ndarray, st: np.ndarray, P: np.ndarray,
             _inflate_world(st, P, ang * ang, 0.0)
             from_canonical(cfg, st, P)
             st[S_T_ACC] = 0.0
-        if qa < 0.0:
+        if a_stat > 0:
             cnt[K_ACC_REJ_NORM] += 1
+        if a_stat == 2:
             has_a = False
-    qa = abs(qa)
     Qa = ((qa, 0.0, 0.0), (0.0, qa, 0.0), (0.0, 0.0, qa))
     rest = _rest_test(cfg, st, P, nx, dt, g, has_g, a_raw, has_a)
     heading = int(cfg[C_MAG_MODE]) == MAG_HEADING
     mag_gate = cfg[C_MAG_GATE] if cfg[C_MAG_GATE] > 0 else np.inf
     if cfg[C_PAPER] > 0:  # the paper's start has no prior to gate against
         acc_gate = mag_gate = np.inf
+    st[S_DTM] += dt
+    dtm = st[S_DTM]  # time since the previous magnetometer sample
+    if has_m:
+        st[S_DTM] = 0.0
     if use_mag and fl[F_HEADING] > 0 and cfg[C_PAPER] <= 0:
-        has_m = _mag_checks(cfg, st, P, fl, cnt, dt, wl, Rw, m_body, m_norm, has_m)
+        has_m = _mag_checks(cfg, st, P, fl, cnt, dt, dtm, wl, Rw, m_body, m_norm, has_m)
     ok = True
     acc_nis = 0.0
     mag_nis = 0.0
     mref = (st[S_MREF], st[S_MREF + 1], st[S_MREF + 2])
     h = np.sqrt(st[S_MREF] ** 2 + st[S_MREF + 1] ** 2)
     href = (st[S_MREF] / h, st[S_MREF + 1] / h, 0.0) if has_m and heading else zero3
-    var_h = (_mag_yaw_var(cfg, np.array(mref)) * max(1.0, cfg[C_MAG_DTIME] / dt) if has_m
+    var_h = (_mag_yaw_var(cfg, np.array(mref)) * max(1.0, cfg[C_MAG_DTIME] / dtm) if has_m
              else 0.0)
     algo = int(cfg[C_ALGO])
     if algo <= ALGO_MUKF and cfg[C_GYR_SCALE] > 0:
@@ -892,7 +968,8 @@ def _sensor_step(cfg: np.ndarray, nz: np.ndarray, st: np.ndarray, P: np.ndarray,
     if algo >= ALGO_EULER_KF:  # baselines: no rate/bias state to sharpen at rest
         rest = False
         ok, acc_nis, mag_nis = _baseline_update(cfg, nz, st, P, cnt, dt, np.array(g), has_g,
-                                                np.array(a_body), has_a, Qa[0][0],
+                                                np.array(a_rawu), has_a and a_stat == 0,
+                                                qa_raw,
                                                 np.array(m_body), has_m, acc_gate, mag_gate)
     else:
         # The rate measurements first: a gyro sample is the rate over the interval that ends
@@ -904,24 +981,8 @@ def _sensor_step(cfg: np.ndarray, nz: np.ndarray, st: np.ndarray, P: np.ndarray,
         for i in range(nx):
             dx[i] = 0.0
         if has_g:
-            gate = cfg[C_GYR_GATE] if cfg[C_GYR_GATE] > 0 and cfg[C_PAPER] <= 0 else np.inf
-            nis = mekf_rate_update_t(P, nx, dx, w, b, g, _n33(nz, N_RW), True, gate, work)
-            if nis > gate:
-                cnt[K_GYR_REJ_CHI2] += 1
-                if st[S_GREJ] > 0:
-                    # the second in a row: the rate did change that much. The rate prior was
-                    # too narrow by the innovation: widen it by that, and take the sample
-                    for i in range(3):
-                        r = g[i] - w[i] - (b[i] if nx == 9 else 0.0)
-                        P[3 + i, 3 + i] += r * r
-                    nis = mekf_rate_update_t(P, nx, dx, w, b, g, _n33(nz, N_RW), True, np.inf,
-                                             work)
-                    st[S_GREJ] = 0.0
-                else:
-                    st[S_GREJ] = 1.0  # one sample alone: an outlier; the rate carries on
-            else:
-                st[S_GREJ] = 0.0
-            ok &= nis >= 0
+            ok &= mekf_rate_update_t(P, nx, dx, w, b, g, _n33(nz, N_RW), True, np.inf,
+                                     work) >= 0
         if rest:
             vz = cfg[C_REST_VAR]
             ok &= mekf_rate_update_t(P, nx, dx, w, b, zero3, ((vz, 0.0, 0.0), (0.0, vz, 0.0),
@@ -1062,7 +1123,12 @@ def _world_output_t(cfg: np.ndarray, st: np.ndarray, P: np.ndarray,
     if q[0] < 0.0:
         n = -n
     q = (q[0] / n, q[1] / n, q[2] / n, q[3] / n)
-    return q, congruence33_t(rotmat_t(q), Pb)
+    C = congruence33_t(rotmat_t(q), Pb)
+    f2 = cfg[C_ACC_ALIGN] ** 2 if int(cfg[C_ALGO]) != ALGO_MADGWICK else 0.0
+    # the accelerometer's own misalignment: a constant no filter averages out (published only,
+    # by every filter but Madgwick, whose published value is a parameter; every world frame
+    # here has its z vertical, so x and y are the tilt axes)
+    return q, ((C[0][0] + f2, C[0][1], C[0][2]), (C[1][0], C[1][1] + f2, C[1][2]), C[2])
 
 
 @jit
@@ -1141,6 +1207,7 @@ def build_cfg(p: FilterParams) -> np.ndarray:
     cfg[C_MAG_CTOL] = p.mag_consistency_tolerance
     cfg[C_MAG_UNDIST] = p.mag_undisturbed_time
     cfg[C_MAG_DTIME] = p.mag_disturbance_time
+    cfg[C_ACC_ALIGN] = p.acc_alignment_error
     cfg[C_GRAVITY] = g
     cfg[C_ACC_TOL] = p.acc_norm_tolerance
     cfg[C_ACC_GATE] = p.acc_gate

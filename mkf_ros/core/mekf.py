@@ -374,8 +374,9 @@ def mekf_heading_update_t(
     k = np.empty(NX_MAX_HEADING)
     for i in range(nx):
         k[i] = v[i] / S
-    ku = u[0] * k[0] + u[1] * k[1] + u[2] * k[2]
-    k[0], k[1], k[2] = u[0] * ku, u[1] * ku, u[2] * ku  # attitude gain onto the vertical
+    for o in range(0, nx, 3):  # every group's gain (attitude, rate, bias) onto the vertical
+        ku = u[0] * k[o] + u[1] * k[o + 1] + u[2] * k[o + 2]
+        k[o], k[o + 1], k[o + 2] = u[0] * ku, u[1] * ku, u[2] * ku
     for i in range(nx):
         dx[i] += k[i] * r
     # Joseph form for any gain: P − K vᵀ − v Kᵀ + S K Kᵀ
@@ -401,9 +402,10 @@ def mekf_heading_update(
     ``R(q̄ δ) m ≈ R(q̄)(m + e × m)``: ``H_e = −(d × m)``, ``d = R(q̄)ᵀ (m_y, −m_x, 0)/|m_h|²``
     (``m_x, m_y`` the world-horizontal components of ``R(q̄) m``). Along the vertical
     ``u = R(q̄)ᵀ ẑ`` this is ``H u = −1``; the tilt components, of size ≈ tan(dip), say how a
-    tilt error moves the apparent heading, so that ``S = H P Hᵀ + var`` counts it. The attitude
-    part of the gain is projected onto ``u``: the magnetometer turns the estimate about the
-    vertical only and can never tilt it (a wrong dip, a disturbed field); the covariance uses
+    tilt error moves the apparent heading, so that ``S = H P Hᵀ + var`` counts it. The gain of
+    each group (attitude, rate, bias) is projected onto ``u``: the magnetometer turns the
+    estimate about the vertical only and can never tilt it, not even later through the rate
+    or the bias (a wrong dip, a disturbed field); the covariance uses
     the Joseph form, valid for any gain: ``P ← (I − K H) P (I − K H)ᵀ + K var Kᵀ``. Returns
     the NIS (−1 if ``S ≤ 0``)."""
     return mekf_heading_update_t(P, nx, dx, t33(R), t3(m_body), t3(ref), var, gate)

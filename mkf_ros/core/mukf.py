@@ -179,11 +179,11 @@ def mukf_step_ext(
     rate and bias, as in :func:`mkf_ros.core.mekf.mekf_vector_update`; a magnetometer for
     heading only
     (``hm``: body field, ``href``: horizontal world reference, the pseudo-measurement
-    ``0 = ψ(q) + n`` of :func:`mkf_ros.core.mekf.mekf_heading_update`, its gain projected onto
-    the vertical, Joseph-form covariance), the zero-rate pseudo-measurement ``0 = ω + n`` of rest
-    detection, and a χ² gate per block (vector 0, vector 1, heading, gyro; a block whose
-    ``rᵀ P_yy⁻¹ r`` exceeds its gate is left out; ``nis`` receives every block's value).
-    At most two vector sensors (``use_v`` of length 1 or 2)."""
+    ``0 = ψ(q) + n`` of :func:`mkf_ros.core.mekf.mekf_heading_update`, the gain of attitude,
+    rate and bias each projected onto the vertical, Joseph-form covariance), the zero-rate
+    pseudo-measurement ``0 = ω + n`` of rest detection, and a χ² gate per block (vector 0,
+    vector 1, heading, gyro; a block whose ``rᵀ P_yy⁻¹ r`` exceeds its gate is left out;
+    ``nis`` receives every block's value). At most two vector sensors (``use_v`` of length 1 or 2)."""
     return _mukf_step(chart, chart_update, noise_mode, w0, qc, ebar, w, b, P, nx, dt, Qw, Qb,
                       vm, vref, Rv, Qv, use_v, wm, use_w, Rw, hm, href, use_h, var_h, use_z, var_z,
                       gates, nis, tilt_v0)
@@ -522,12 +522,12 @@ def mukf_step_t(
                 for g in range(nx // 3):
                     ku = u0 * Kt[a, 3 * g] + u1 * Kt[a, 3 * g + 1] + u2 * Kt[a, 3 * g + 2]
                     dK[3 * g, t], dK[3 * g + 1, t], dK[3 * g + 2, t] = -u0 * ku, -u1 * ku, -u2 * ku
-            else:  # heading turns about the vertical only: the attitude gain projected onto u
-                ku = u0 * Kt[a, 0] + u1 * Kt[a, 1] + u2 * Kt[a, 2]
-                dK[0, t], dK[1, t], dK[2, t] = (u0 * ku - Kt[a, 0], u1 * ku - Kt[a, 1],
-                                                u2 * ku - Kt[a, 2])
-                for i in range(3, nx):
-                    dK[i, t] = 0.0
+            else:  # heading: every group's gain (attitude, rate, bias) onto the vertical u
+                for g in range(nx // 3):
+                    ku = u0 * Kt[a, 3 * g] + u1 * Kt[a, 3 * g + 1] + u2 * Kt[a, 3 * g + 2]
+                    dK[3 * g, t], dK[3 * g + 1, t], dK[3 * g + 2, t] = (
+                        u0 * ku - Kt[a, 3 * g], u1 * ku - Kt[a, 3 * g + 1],
+                        u2 * ku - Kt[a, 3 * g + 2])
         for i in range(nx):  # Δx = K (y − ȳ) = K₀ (y − ȳ) + ΔK (y − ȳ)
             s_ = 0.0
             for a in range(ma):

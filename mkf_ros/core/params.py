@@ -143,7 +143,8 @@ PARAMS: tuple[Param, ...] = (
        group="noise"),
     _P("gyro_bias_noise", float, 1e-4, "Random walk of the gyro bias (sqrt of its PSD)",
        unit="rad/s/sqrt(s)", range=(0.0, 1.0), group="noise"),
-    _P("gyro_bias_stddev", float, 0.02, "Initial uncertainty of the gyro bias", unit="rad/s",
+    _P("gyro_bias_stddev", float, 0.05, "Initial uncertainty of the gyro bias (a MEMS gyro's "
+       "turn-on bias: up to a few deg/s)", unit="rad/s",
        range=(1e-9, 1.0), group="noise"),
     # --- disturbances and calibration (extensions for real sensors) --------------------------
     _P("acc_norm_tolerance", float, 0.5, "Accelerometer samples (after the low-pass) whose "
@@ -157,17 +158,21 @@ PARAMS: tuple[Param, ...] = (
        "sample, the tilt variance grows by the measured disagreement (no forced update: the "
        "gates then judge against the wider prior)", unit="s", range=(0.0, 3600.0),
        group="robustness"),
-    _P("acc_time_constant", float, 1.0, "The accelerometer is low-passed in an almost "
+    _P("acc_time_constant", float, 0.8, "The accelerometer is low-passed in an almost "
        "inertial frame before it corrects the tilt (extension): two first-order stages with "
        "this time constant whose memory turns with the body by the gyro. Gravity passes "
        "however the body turns; shaking, vibration and other non-gravitational acceleration "
        "(the derivative of a bounded velocity) average out. 0 = every raw sample (the paper)",
        unit="s", range=(0.0, 100.0), group="robustness"),
-    _P("acc_disturbance_time", float, 0.2, "Correlation time of the non-gravitational "
+    _P("acc_disturbance_time", float, 0.1, "Correlation time of the non-gravitational "
        "acceleration left in the fused accelerometer: its per-sample variance is "
        "acc_disturbance^2 * max(1, time/dt), so that its information per second does not grow "
        "with the sample rate; 0 = independent per sample (the paper)", unit="s",
        range=(0.0, 100.0), group="noise"),
+    _P("acc_alignment_error", float, 0.0175, "Misalignment and calibration error of the "
+       "accelerometer's axes against the body's (constant and unobservable: no filter "
+       "averages it out); added to the published tilt variance only (default 1 deg)",
+       unit="rad", range=(0.0, 0.5), group="noise"),
     _P("gyro_scale_error", float, 0.01, "Relative scale and axis-alignment error of the "
        "gyroscope: attitude noise (error * |w|)^2 * dt per step, so that the covariance grows "
        "while the body turns; it also widens the magnetometer consistency test; 0 = off "

@@ -51,6 +51,7 @@ class SimData:
     t_true: np.ndarray | None = None  #: (N,) s, true sampling instants (strictly increasing)
     lin_acc: np.ndarray | None = None  #: (N, 3) true linear acceleration, ENU, m/s²
     mag_dist: np.ndarray | None = None  #: (N, 3) local magnetic disturbance, ENU, T
+    mag_body: np.ndarray | None = None  #: (N, 3) field carried by the body (a magnet), body, T
 
     def __len__(self) -> int:
         return int(self.t.shape[0])
@@ -143,6 +144,7 @@ class Context:
     omega_fine: np.ndarray | None = None  #: (M, 3) body rate on t_fine (required)
     lin_acc: np.ndarray | None = None  #: (N, 3) ENU linear acceleration at t
     mag_dist: np.ndarray | None = None  #: (N, 3) ENU field disturbance at t
+    mag_body: np.ndarray | None = None  #: (N, 3) field added in body axes (a magnet on it)
     bias: np.ndarray | None = None  #: (N, 3) extra gyro bias at t
     drop: np.ndarray | None = None  #: (N,) bool: sample not delivered at all
     mag_drop: np.ndarray | None = None  #: (N,) bool: no magnetometer sample
@@ -317,6 +319,60 @@ def _accel_bursts(c: Context) -> None:
     c.intervals["acc_disturbed"] = ivs
 
 
+def _shaking(c: Context) -> None:
+    """Sustained shaking (issue 13, like BROAD's fast translation): two stretches of a quarter
+    of the recording each in which the body is shaken back and forth at ``shake_freq`` Hz with
+    peaks up to ``shake_acc`` g along a direction that changes every second (whole periods of a
+    velocity oscillating about zero), while it also rocks about all axes (up to ``shake_rate``
+    rad/s at the same frequency); slow motion in between."""
+    w = _slow_rates(c.rng, c.t_fine, 0.5)
+    acc = np.zeros((c.t.size, 3))
+    f = c.args["shake_freq"]
+    ivs = [(0.15 * c.duration, 0.4 * c.duration), (0.55 * c.duration, 0.8 * c.duration)]
+    for a, b in ivs:
+        t0 = a
+        while t0 + 1.0 <= b:
+            u = c.rng.normal(size=3)
+            u /= np.linalg.norm(u)
+            v = c.rng.normal(size=3)
+            v /= np.linalg.norm(v)
+            peak = c.args["shake_acc"] * GRAVITY * c.rng.uniform(0.5, 1.0)
+            inside = (c.t >= t0) & (c.t < t0 + 1.0)  # velocity (peak/ω) sin(ωt): mean zero
+            acc[inside] += peak * np.cos(2 * np.pi * f * (c.t[inside] - t0))[:, None] * u
+            fin = (c.t_fine >= t0) & (c.t_fine < t0 + 1.0)
+            w[fin] += (c.args["shake_rate"] * c.rng.uniform(0.5, 1.0)
+                       * np.sin(2 * np.pi * f * (c.t_fine[fin] - t0)))[:, None] * v
+            t0 += 1.0
+    c.omega_fine = w
+    c.lin_acc = acc
+    c.intervals["acc_disturbed"] = [(float(a), float(b)) for a, b in ivs]
+
+
+def _slow_turn(c: Context) -> None:
+    """Level, at rest for ``rest`` s, then a steady turn about the vertical at ``turn_rate``
+    rad/s (a robot turning slowly, issue 13) with a linear vibration of ``vib_acc`` m/s² (a
+    rolling robot; 0 = a perfectly smooth turn, which no IMU can tell from a gyro bias)."""
+    c.level_start = True
+    w = np.zeros((c.t_fine.size, 3))
+    w[c.t_fine >= c.args["rest"], 2] = c.args["turn_rate"]
+    c.omega_fine = w
+    if c.args["vib_acc"] > 0:
+        moving = (c.t >= c.args["rest"])[:, None]
+        c.lin_acc = moving * c.rng.normal(0.0, c.args["vib_acc"], (c.t.size, 3))
+    c.intervals["turning"] = [(float(c.args["rest"]), c.duration)]
+
+
+def _mag_attached(c: Context) -> None:
+    """A magnet attached to the body (issue 13, like BROAD's attached-magnet trials): a
+    constant field ``mag_offset`` (T, body axes; hundreds of µT at 1 cm) from 0.3 to 0.7 of
+    the recording, on slow motion: it turns with the body, so the measured north swings."""
+    c.omega_fine = _slow_rates(c.rng, c.t_fine)
+    a, b = 0.3 * c.duration, 0.7 * c.duration
+    on = ((c.t >= a) & (c.t < b))[:, None]
+    c.mag_body = on * np.asarray(c.args["mag_offset"], float)
+    c.intervals["mag_disturbed"] = [(float(a), float(b))]
+
+
 def _dropouts(c: Context) -> None:
     """Lost messages on slow motion: a short gap (5 samples), a long one (``gap`` s, longer than
     the filters' default ``max_dt``), and a magnetometer outage of 2 s."""
@@ -379,6 +435,12 @@ SCENARIOS: dict[str, Scenario] = _register(
              _mag_disturbance, {"mag_dist": 25e-6}),
     Scenario("accel_bursts", "translational acceleration bursts up to acc_peak g",
              _accel_bursts, {"acc_peak": 3.0, "burst_every": 3.0}),
+    Scenario("shaking", "sustained shaking up to shake_acc g with rocking up to shake_rate "
+             "rad/s", _shaking, {"shake_acc": 10.0, "shake_freq": 4.0, "shake_rate": 6.0}),
+    Scenario("slow_turn", "level rest, then a steady slow turn about the vertical", _slow_turn,
+             {"turn_rate": 0.04, "rest": 5.0, "vib_acc": 0.0}),
+    Scenario("mag_attached", "a magnet attached to the body over the middle of the recording",
+             _mag_attached, {"mag_offset": (150e-6, -80e-6, 60e-6)}),
     Scenario("dropouts", "lost IMU messages (short and long gap) and a magnetometer outage",
              _dropouts, {"gap": 1.0}),
     Scenario("jitter", "time stamps jitter around the true sampling instants", _jitter,
@@ -458,9 +520,14 @@ def simulate(
     w_fine = ctx.omega_fine[: t_fine.size]
     q_fine = integrate(q0, np.ascontiguousarray(w_fine), fine_dt)
     quat = q_fine[::substeps]
-    # the rate that was active at (just before) each sample; at t=0 the first one
-    omega = np.vstack([w_fine[:1], w_fine[substeps - 1::substeps]]) if w_fine.size else \
-        np.zeros((n, 3))
+    # what the gyro reports: the mean rate over the sample interval that ends at its stamp
+    # (a MEMS gyro's anti-alias filter and decimation; at t=0 the first rate)
+    if w_fine.size:
+        m = (n - 1) * substeps
+        mean = w_fine[:m].reshape(n - 1, substeps, 3).mean(axis=1)
+        omega = np.vstack([w_fine[:1], mean])
+    else:
+        omega = np.zeros((n, 3))
     R = rotmat_np(quat)
     bias = np.broadcast_to(np.asarray(gyro_bias, dtype=float), (n, 3)).copy()
     if ctx.bias is not None:
@@ -472,6 +539,8 @@ def simulate(
     acc = np.einsum("nji,nj->ni", R, up + lin_acc) + rng.normal(0, acc_noise, (n, 3))
     mag = np.einsum("nji,nj->ni", R, np.asarray(mag_field, float) + mag_dist) + \
         rng.normal(0, mag_noise, (n, 3))
+    mag_body = np.zeros((n, 3)) if ctx.mag_body is None else ctx.mag_body
+    mag = mag + mag_body
     if mag_rate is not None:
         keep = np.zeros(n, dtype=bool)
         keep[np.unique(np.round(np.arange(0, duration, 1.0 / mag_rate) * rate).astype(int))] = True
@@ -489,7 +558,7 @@ def simulate(
                                 description=sc.description, params=dict(ctx.args),
                                 intervals=intervals, **ctx.extra)
     sd = SimData(t=stamps, gyr=gyr, acc=acc, mag=mag, quat=quat, omega=omega, bias=bias,
-                 meta=meta, t_true=t, lin_acc=lin_acc, mag_dist=mag_dist)
+                 meta=meta, t_true=t, lin_acc=lin_acc, mag_dist=mag_dist, mag_body=mag_body)
     if ctx.drop is not None:
         sd = _select(sd, ~ctx.drop)
     return sd
@@ -498,5 +567,6 @@ def simulate(
 def _select(sd: SimData, keep: np.ndarray) -> SimData:
     """The rows of ``sd`` where ``keep`` is true (dropped messages vanish entirely)."""
     arrays = {k: getattr(sd, k)[keep] for k in ("t", "gyr", "acc", "mag", "quat", "omega",
-                                                 "bias", "t_true", "lin_acc", "mag_dist")}
+                                                 "bias", "t_true", "lin_acc", "mag_dist",
+                                                 "mag_body")}
     return SimData(meta=sd.meta, **arrays)

@@ -157,7 +157,11 @@ def test_switching_keeps_the_estimate(a: str, b: str) -> None:
     if b == "madgwick":
         np.testing.assert_allclose(c1, f.params.madgwick_stddev**2 * np.eye(3), atol=1e-12)
     else:
-        np.testing.assert_allclose(c1, c0, rtol=1e-9, atol=1e-15)
+        # every filter but Madgwick also publishes the accelerometer's alignment error on
+        # tilt (acc_alignment_error, not part of the state): it appears when leaving Madgwick
+        floor = np.diag([1.0, 1.0, 0.0]) * f.params.acc_alignment_error**2
+        np.testing.assert_allclose(c1, c0 + floor if a == "madgwick" else c0, rtol=1e-9,
+                                   atol=1e-15)
     errs = []
     for k in range(k_sw, len(sim.t)):
         f.step(1 / RATE, sim.gyr[k], sim.acc[k], sim.mag[k])

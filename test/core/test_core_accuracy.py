@@ -31,7 +31,8 @@ from mkf_ros.sim import simulate
 
 SIGMA = 0.01  # R = 1e-4
 PARAMS = dict(gyro_noise=SIGMA, acc_noise=SIGMA * 9.80665, mag_noise=SIGMA,
-              acc_disturbance=0.0, mag_disturbance=0.0, rate_process_noise=1.0)
+              acc_disturbance=0.0, mag_disturbance=0.0, rate_process_noise=1.0,
+              acc_alignment_error=0.0)  # the simulated accelerometer is perfectly aligned
 SKIP = 100  # the first second: convergence from the first-sample alignment
 
 

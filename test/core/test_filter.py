@@ -120,8 +120,8 @@ def test_gap_realigns_and_keeps_heading(algorithm: str) -> None:
     f.step(10.0, np.zeros(3), acc1)  # 10 s later, tilted by 0.5 rad
     assert f.counter_dict()["gaps"] == 1
     err = orientation_errors(f.quaternion[None], qmul(yaw_before, q1)[None])
-    assert np.degrees(err["inclination"][0]) < 1e-6
-    assert np.degrees(err["heading"][0]) < 1e-6
+    assert np.degrees(err["inclination"][0]) < 1e-5
+    assert np.degrees(err["heading"][0]) < 1e-5
 
 
 @pytest.mark.parametrize("old,new", [({"algorithm": "mukf"}, {"algorithm": "mekf"}),

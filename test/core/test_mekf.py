@@ -6,15 +6,16 @@ import numpy as np
 import pytest
 from spec_reference import mekf_predict_ref, mekf_update_ref
 
-from mkf_ros.core.charts import CHART_NAMES, chart_id
+from mkf_ros.core.charts import CHART_NAMES, chart_id, from_chart
 from mkf_ros.core.mekf import (
     mekf_apply,
     mekf_gyro_update,
+    mekf_heading_update,
     mekf_predict,
     mekf_update,
     mekf_vector_update,
 )
-from mkf_ros.core.quaternion import rotmat
+from mkf_ros.core.quaternion import qmul, rotmat
 
 
 def _kat_inputs() -> tuple:
@@ -166,3 +167,86 @@ def test_update_equals_public_blocks(nx: int) -> None:
                                np.array([True, True]), wm, True, Rw)
         out.append(np.concatenate([qk, wk, bk, Pk.ravel()]))
     np.testing.assert_array_equal(out[0], out[1])
+
+
+# ---------------------------------------------------------------- heading-only magnetometer
+
+
+def _psi(q: np.ndarray, m_body: np.ndarray, ref: np.ndarray) -> float:
+    """The heading residual of the spec's measurement ``0 = ψ(q)``, from the rotation matrix
+    (independent of the kernel): the angle about the world vertical from the horizontal part
+    of ``R(q) m`` to the horizontal reference."""
+    mw = rotmat(q) @ m_body
+    return float(np.arctan2(mw[0] * ref[1] - mw[1] * ref[0], mw[0] * ref[0] + mw[1] * ref[1]))
+
+
+def _heading_case(seed: int) -> tuple:
+    rng = np.random.default_rng(seed)
+    q = rng.normal(size=4)
+    q /= np.linalg.norm(q)
+    dip = np.radians(rng.uniform(-70.0, 70.0))
+    ref_w = np.array([0.0, np.cos(dip), np.sin(dip)])  # field: north and dip
+    psi_err = np.radians(rng.uniform(-10.0, 10.0))  # the measured field is off by this
+    qz = np.array([np.cos(psi_err / 2), 0.0, 0.0, np.sin(psi_err / 2)])
+    m_body = rotmat(q).T @ (rotmat(qz) @ ref_w)
+    return q, m_body, np.array([0.0, 1.0, 0.0]), dip
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_heading_jacobian_matches_finite_differences(seed: int) -> None:
+    """Issue 13: the MEKF's heading update linearises ψ(q̄ * δ(e)) with the full Jacobian,
+    tilt coupling (≈ tan(dip)) included, so that ``S = H P Hᵀ + var`` counts the tilt
+    uncertainty. Read ``S`` back from the returned NIS = r²/S for attitude covariances
+    ``ε a aᵀ`` along several directions a and compare ``(S − var)/ε = (H·a)²`` with central
+    differences of ψ about q̄ (the old ``H = −uᵀ`` fails this wherever the dip is not zero)."""
+    q, m_body, ref, dip = _heading_case(seed)
+    h = 1e-6
+    fd = np.array([(_psi(qmul(q, from_chart(chart_id("rv"), h * e)), m_body, ref)
+                    - _psi(qmul(q, from_chart(chart_id("rv"), -h * e)), m_body, ref)) / (2 * h)
+                   for e in np.eye(3)])
+    u = rotmat(q)[2]  # the world vertical in body axes: a turn about it moves ψ by −1
+    assert fd @ u == pytest.approx(-1.0, abs=1e-6)
+    eps, var = 1e-4, 1e-3
+    r = -_psi(q, m_body, ref)
+    dirs = [*np.eye(3), np.array([1.0, 1.0, 0.0]), np.array([0.0, 1.0, -1.0]),
+            np.array([1.0, 0.0, 1.0]), u]
+    for a in dirs:
+        P = np.zeros((9, 9))
+        P[:3, :3] = eps * np.outer(a, a)
+        nis = mekf_heading_update(P, 6, np.zeros(9), rotmat(q), m_body, ref, var, np.inf)
+        assert (r * r / nis - var) / eps == pytest.approx((fd @ a) ** 2, rel=1e-5, abs=1e-9)
+    tilt = fd - (fd @ u) * u
+    if abs(dip) > np.radians(20):
+        assert np.linalg.norm(tilt) > 0.3 * abs(np.tan(dip))  # the coupling the old H dropped
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_heading_update_agrees_with_the_mukf(seed: int) -> None:
+    """For a small covariance the MEKF's linearised heading row and the MUKF's, which carries
+    ψ through the sigma points, see the same innovation covariance and move the estimate
+    alike (the two filters disagreed on the tilt coupling before issue 13)."""
+    from mkf_ros.core.filter import AttitudeFilter
+
+    rng = np.random.default_rng(seed)
+    q = rng.normal(size=4)
+    q /= np.linalg.norm(q)
+    field = np.array([0.0, np.cos(0.9), -np.sin(0.9)])  # north, dip 52° down
+    acc = rotmat(q).T @ np.array([0.0, 0.0, 9.80665])
+    qz = np.array([np.cos(0.02), 0.0, 0.0, np.sin(0.02)])  # then the field turns by 2.3°
+    mags = (rotmat(q).T @ field, rotmat(q).T @ (rotmat(qz) @ field))
+    res = {}
+    for algorithm in ("mekf", "mukf"):
+        f = AttitudeFilter(algorithm=algorithm, use_mag=True, mag_reference=list(field),
+                           mag_undisturbed_time=0.0, rest_detection=False)
+        f.step(0.0, np.zeros(3), acc, mags[0])  # alignment: heading from this field
+        for _ in range(20):
+            f.step(0.01, np.zeros(3), acc, mags[0])
+        q0 = f.quaternion
+        f.step(0.01, np.zeros(3), acc, mags[1])
+        d = qmul(f.quaternion, q0 * np.array([1.0, -1.0, -1.0, -1.0]))  # world-frame change
+        res[algorithm] = (q0, 2.0 * np.arcsin(np.clip(d[3], -1.0, 1.0)), f.covariance)
+    (a0, ta, ca), (b0, tb, cb) = res["mekf"], res["mukf"]
+    assert np.degrees(np.arccos(min(1.0, abs(a0 @ b0)))) * 2 < 0.05  # the same prior
+    assert abs(ta) > 1e-5  # the update did turn the estimate
+    assert ta == pytest.approx(tb, rel=0.02)
+    assert ca[2, 2] == pytest.approx(cb[2, 2], rel=0.05)  # the yaw variance after it

@@ -18,7 +18,7 @@ def test_every_scenario_is_consistent(name: str) -> None:
     n = len(s)
     assert n > 1000
     for arr, cols in ((s.gyr, 3), (s.acc, 3), (s.mag, 3), (s.quat, 4), (s.omega, 3),
-                      (s.bias, 3), (s.lin_acc, 3), (s.mag_dist, 3)):
+                      (s.bias, 3), (s.lin_acc, 3), (s.mag_dist, 3), (s.mag_body, 3)):
         assert arr.shape == (n, cols)
     assert s.t.shape == s.t_true.shape == (n,)
     assert np.all(np.diff(s.t_true) > 0)
@@ -30,7 +30,7 @@ def test_every_scenario_is_consistent(name: str) -> None:
     acc = np.einsum("nji,nj->ni", R, np.array([0, 0, GRAVITY]) + s.lin_acc)
     np.testing.assert_allclose(s.acc, acc, atol=1e-9)
     ok = s.mag_valid
-    mag = np.einsum("nji,nj->ni", R, MAG_FIELD_ENU + s.mag_dist)
+    mag = np.einsum("nji,nj->ni", R, MAG_FIELD_ENU + s.mag_dist) + s.mag_body
     np.testing.assert_allclose(s.mag[ok], mag[ok], atol=1e-15)
     assert s.meta["scenario"] == name and s.meta["description"]
 
