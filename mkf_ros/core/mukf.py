@@ -183,7 +183,8 @@ def mukf_step_ext(
     rate and bias each projected onto the vertical, Joseph-form covariance), the zero-rate
     pseudo-measurement ``0 = ω + n`` of rest detection, and a χ² gate per block (vector 0,
     vector 1, heading, gyro; a block whose ``rᵀ P_yy⁻¹ r`` exceeds its gate is left out;
-    ``nis`` receives every block's value). At most two vector sensors (``use_v`` of length 1 or 2)."""
+    ``nis`` receives every block's value). At most two vector sensors (``use_v`` of length 1
+    or 2)."""
     return _mukf_step(chart, chart_update, noise_mode, w0, qc, ebar, w, b, P, nx, dt, Qw, Qb,
                       vm, vref, Rv, Qv, use_v, wm, use_w, Rw, hm, href, use_h, var_h, use_z, var_z,
                       gates, nis, tilt_v0)

@@ -32,7 +32,8 @@ from mkf_ros.sim import simulate
 SIGMA = 0.01  # R = 1e-4
 PARAMS = dict(gyro_noise=SIGMA, acc_noise=SIGMA * 9.80665, mag_noise=SIGMA,
               acc_disturbance=0.0, mag_disturbance=0.0, rate_process_noise=1.0,
-              acc_alignment_error=0.0)  # the simulated accelerometer is perfectly aligned
+              acc_alignment_error=0.0, gyro_scale_error=0.003)  # the simulated sensors are
+# perfectly aligned and scaled: a small allowance (issue 13 defaults to 1 %, 1°) for them
 SKIP = 100  # the first second: convergence from the first-sample alignment
 
 
@@ -74,4 +75,8 @@ def test_6d_inclination(case, variant: str, chart: str) -> None:
         ew = 2.0 * d[:, 1:3] * np.sign(d[:, :1])  # about world x, y (tilt)
         C = r.cov[:, :2, :2]
         nees = np.mean(np.einsum("ni,nij,nj->n", ew, np.linalg.inv(C), ew)[SKIP:])
-        assert 0.5 < nees < 4.0, f"{name}: tilt NEES {nees:.2f} (2 expected)"
+        # the Wiener motion reaches 8 rad/s: the allowance for the gyro's scale error (issue
+        # 13; the simulated gyro has none, but the allowance also covers the discrete-time
+        # integration of such rates) keeps σ on the safe side there, NEES ≈ 0.4
+        low = 0.3 if name == "wiener" else 0.5
+        assert low < nees < 4.0, f"{name}: tilt NEES {nees:.2f} (2 expected)"
