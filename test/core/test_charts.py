@@ -6,9 +6,8 @@ import numpy as np
 import pytest
 from core_strategies import unit_quaternions, vectors
 from hypothesis import assume, given, settings
-from hypothesis import strategies as st
 
-from mkf_ros.core.charts import CHART_NAMES, CHARTS, RADIUS, chart_id
+from mkf_ros.core.charts import CHART_NAMES, CHARTS, chart_id, from_chart, to_chart
 from mkf_ros.core.quaternion import angle_between, qconj_mul, qmul
 
 E_KAT = np.array([0.3, -0.2, 0.1])
@@ -135,21 +134,55 @@ def test_t_matrix_limits(name: str) -> None:
     assert np.all(np.isfinite(c.t_matrix(d)))
 
 
+#: Saturation radii of the spec (§2.2): O clipped to 2 − 10⁻³ (the recommendation, so that
+#: δ0 > 0), RP unbounded, MRP 4, RV π. Written here, not read from the code under test.
+SPEC_RADIUS = {"o": 2.0 - 1e-3, "rp": np.inf, "mrp": 4.0, "rv": np.pi}
+
+
 @pytest.mark.parametrize("name", CHART_NAMES)
 @settings(max_examples=100, deadline=None)
 @given(e=vectors(scale=20.0))
 def test_saturation(name: str, e: np.ndarray) -> None:
     c = CHARTS[name]
     s = c.saturate(e)
-    r = RADIUS[chart_id(name)]
-    assert np.linalg.norm(s) <= r + 1e-12
-    if np.linalg.norm(e) <= r:
+    r = SPEC_RADIUS[name]
+    n = np.linalg.norm(e)
+    assert c.radius == r
+    if n <= r:
         np.testing.assert_array_equal(s, e)
-    elif np.linalg.norm(e) > 0:
-        np.testing.assert_allclose(s / np.linalg.norm(s), e / np.linalg.norm(e), atol=1e-12)
+    else:  # radially onto the sphere of radius r (§2.2)
+        np.testing.assert_allclose(np.linalg.norm(s), r, rtol=1e-12)
+        np.testing.assert_allclose(s / np.linalg.norm(s), e / n, atol=1e-12)
     q = c.from_chart(s)
     assert np.all(np.isfinite(q)) and abs(np.linalg.norm(q) - 1) < 1e-12
-    assert np.all(np.isfinite(c.t_matrix(q)))  # O: 2 − 10⁻³ keeps δ0 > 0 (§2.2)
+
+
+@pytest.mark.parametrize("name", CHART_NAMES)
+def test_saturation_at_the_image_boundary(name: str) -> None:
+    """Far outside the image, the saturated point is on the spec's radius (§2.2), and for O
+    it keeps δ0 = √(1 − r²/4) ≥ 0.0316 > 0, so that the O-chart T-matrix of Table 4 (written
+    here, without any guard) is finite and equals the code's (no ``max(δ0, tiny)`` needed)."""
+    c = CHARTS[name]
+    for u in (np.array([1.0, 0, 0]), np.array([0.6, -0.8, 0.0]), np.array([1.0, 1, 1]) / 3**0.5):
+        s = c.saturate(1e3 * u)
+        if name == "rp":  # RP's image is all of R³: nothing to clip
+            np.testing.assert_array_equal(s, 1e3 * u)
+            continue
+        np.testing.assert_allclose(s, SPEC_RADIUS[name] * u, rtol=1e-12)
+        d = c.from_chart(s)
+        if name == "o":
+            d0_spec = np.sqrt(1 - SPEC_RADIUS["o"] ** 2 / 4)  # = 0.0316
+            assert d[0] == pytest.approx(d0_spec, rel=1e-6) and d[0] > 0.03
+            dv = d[1:]
+            with np.errstate(divide="raise", invalid="raise"):
+                t_spec = d[0] * np.eye(3) - skew_np(dv) + np.outer(dv, dv) / d[0]
+            np.testing.assert_allclose(c.t_matrix(d), t_spec, rtol=1e-12, atol=1e-12)
+        assert np.all(np.isfinite(c.t_matrix(d)))
+
+
+def skew_np(a: np.ndarray) -> np.ndarray:
+    """``[a]×`` (so that ``[a]× b = a × b``), written out."""
+    return np.array([[0.0, -a[2], a[1]], [a[2], 0.0, -a[0]], [-a[1], a[0], 0.0]])
 
 
 @pytest.mark.parametrize("name", CHART_NAMES)
@@ -181,7 +214,23 @@ def test_unknown_chart_is_a_clear_error(bad: object) -> None:
         chart_id(bad)  # type: ignore[arg-type]
 
 
-@settings(max_examples=30, deadline=None)
-@given(st.sampled_from(CHART_NAMES))
-def test_chart_object_names(name: str) -> None:
-    assert CHARTS[name].id == CHART_NAMES.index(name)
+def test_chart_names_select_the_spec_maps() -> None:
+    """Each name (and its id, through :func:`chart_id`, as the filters use it) selects the map
+    of that name in the spec's Table 2: for a rotation by θ, ‖φ(δ)‖ is 2 sin(θ/2) (O),
+    2 tan(θ/2) (RP), 4 tan(θ/4) (MRP) and θ (RV); and φ⁻¹ is that chart's closed form."""
+    norm = {"o": lambda th: 2 * np.sin(th / 2), "rp": lambda th: 2 * np.tan(th / 2),
+            "mrp": lambda th: 4 * np.tan(th / 4), "rv": lambda th: th}
+    inverse = {"o": lambda e: np.r_[np.sqrt(1 - e @ e / 4), e / 2],
+               "rp": lambda e: np.r_[2.0, e] / np.sqrt(4 + e @ e),
+               "mrp": lambda e: np.r_[16 - e @ e, 8 * e] / (16 + e @ e),
+               "rv": lambda e: np.r_[np.cos(np.linalg.norm(e) / 2),
+                                     e / np.linalg.norm(e) * np.sin(np.linalg.norm(e) / 2)]}
+    axis = np.array([2.0, -1.0, 2.0]) / 3.0
+    th = 1.3
+    d = np.r_[np.cos(th / 2), np.sin(th / 2) * axis]
+    for name in CHART_NAMES:
+        for via in (CHARTS[name].to_chart(d), to_chart(chart_id(name), d),
+                    to_chart(chart_id(name.upper()), d)):
+            np.testing.assert_allclose(via, norm[name](th) * axis, rtol=1e-12)
+        e = norm[name](th) * axis
+        np.testing.assert_allclose(from_chart(chart_id(name), e), inverse[name](e), atol=1e-12)

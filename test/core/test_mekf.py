@@ -4,7 +4,12 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from spec_reference import mekf_predict_ref, mekf_update_ref
+from spec_reference import (
+    mekf_heading_update_ref,
+    mekf_predict_ref,
+    mekf_update_ref,
+    mekf_vector_update_ref,
+)
 
 from mkf_ros.core.charts import CHART_NAMES, chart_id, from_chart
 from mkf_ros.core.mekf import (
@@ -250,3 +255,57 @@ def test_heading_update_agrees_with_the_mukf(seed: int) -> None:
     assert abs(ta) > 1e-5  # the update did turn the estimate
     assert ta == pytest.approx(tb, rel=0.02)
     assert ca[2, 2] == pytest.approx(cb[2, 2], rel=0.05)  # the yaw variance after it
+
+
+# ---------------------------------------------------------------- the extensions' updates,
+# against literal transcriptions (spec_reference.py): the tilt-only accelerometer and the
+# heading-only magnetometer, each a Kalman update with a projected gain in Joseph form
+
+
+@pytest.mark.parametrize("nx", [6, 9])
+@pytest.mark.parametrize("tilt_only", [True, False], ids=["tilt_only", "vector"])
+def test_vector_update_equals_transcription(nx: int, tilt_only: bool) -> None:
+    """mekf_vector_update (tilt-only: the closed form ``P − K₀(PHᵀ)ᵀ + c_gh u uᵀ`` of the
+    Joseph form) equals ``(I − KH) P (I − KH)ᵀ + K R Kᵀ`` with ``K = blockdiag(I − uuᵀ) K₀``,
+    the state correction ``K r`` and the NIS, after an earlier block has moved Δx."""
+    rng = np.random.default_rng(31 + nx + 2 * tilt_only)
+    for _ in range(10):
+        q, _, _, P0 = _random_case(rng, nx)
+        vref = np.array([0.0, 0.0, 1.0])
+        vm = rotmat(q).T @ vref + rng.normal(size=3) * 0.2
+        B = rng.normal(size=(3, 3)) * 0.05
+        Rv, Qv = 1e-3 * np.eye(3), B @ B.T + 1e-2 * np.eye(3)
+        dx0 = rng.normal(size=nx) * 0.01
+        Pr, dxr, nisr = mekf_vector_update_ref(P0, nx, dx0, q, vm, vref, Rv, Qv, tilt_only)
+        Pk = np.zeros((9, 9))
+        Pk[:nx, :nx] = P0
+        dxk = dx0.copy()
+        nis = mekf_vector_update(Pk, nx, dxk, rotmat(q), vm, vref, Rv, Qv, np.inf, tilt_only)
+        np.testing.assert_allclose(Pk[:nx, :nx], Pr, atol=1e-12)
+        np.testing.assert_allclose(dxk, dxr, atol=1e-12)
+        assert nis == pytest.approx(nisr, rel=1e-10)
+        if tilt_only:  # nothing about the world vertical, for any group
+            u = rotmat(q)[2]
+            for g in range(nx // 3):
+                assert abs(u @ (dxk - dx0)[3 * g:3 * g + 3]) < 1e-14
+
+
+@pytest.mark.parametrize("nx", [6, 9])
+def test_heading_update_equals_transcription(nx: int) -> None:
+    """mekf_heading_update equals the literal heading-only Kalman update: ``H = [−(d × m), 0]``,
+    the gain of each group projected onto the vertical, Joseph form, innovation ``−ψ − HΔx``."""
+    for seed in range(8):
+        q, m_body, ref, _ = _heading_case(100 + seed)
+        rng = np.random.default_rng(seed)
+        A = rng.normal(size=(nx, nx)) * 0.05
+        P0 = A @ A.T + 1e-4 * np.eye(nx)
+        dx0 = rng.normal(size=nx) * 0.01
+        var = 1e-3
+        Pr, dxr, nisr = mekf_heading_update_ref(P0, nx, dx0, q, m_body, ref, var)
+        Pk = np.zeros((9, 9))
+        Pk[:nx, :nx] = P0
+        dxk = dx0.copy()
+        nis = mekf_heading_update(Pk, nx, dxk, rotmat(q), m_body, ref, var, np.inf)
+        np.testing.assert_allclose(Pk[:nx, :nx], Pr, atol=1e-12)
+        np.testing.assert_allclose(dxk, dxr, atol=1e-12)
+        assert nis == pytest.approx(nisr, rel=1e-10)

@@ -169,34 +169,89 @@ def test_step_equals_ext_without_gates() -> None:
     np.testing.assert_array_equal(out[0], out[1])
 
 
+def _ext(chart: str, q, P0, ebar, w, b, vm, vr, Rv, Qv, use_v, heading=None,
+         tilt: bool = False, nx: int = 9, cu: bool = True, wm=None):
+    """mukf_step_ext on copies (integrated noise); returns (q̄, ē, ω̄, b̄, P)."""
+    qc, e, wk, bk = q.copy(), ebar.copy(), w.copy(), b.copy()
+    P = np.zeros((9, 9))
+    P[:nx, :nx] = P0
+    hm, href, var_h = heading if heading is not None else (np.zeros(3), np.zeros(3), 0.0)
+    assert mukf_step_ext(chart_id(chart), cu, 2, 1 / 25, qc, e, wk, bk, P, nx, DT, QW, QB,
+                         vm, vr, Rv, Qv, use_v, wm if wm is not None else w, wm is not None,
+                         1e-4 * np.eye(3), hm, href, heading is not None, var_h, False, 0.0,
+                         np.full(4, np.inf), np.zeros(4), tilt)
+    return qc, e, wk, bk, P[:nx, :nx]
+
+
 @pytest.mark.parametrize("chart", CHART_NAMES)
 def test_projected_gain_costs_exactly_its_joseph_term(chart: str) -> None:
     """A gain projected by the real-sensor extensions (gravity tilt-only) is sub-optimal: the
-    covariance after it is the optimal update's plus ΔK P_yy ΔKᵀ, so never smaller (a sign
-    error in that term would make it smaller), and the attitude correction has no component
-    along the world vertical."""
+    covariance after it is the optimal update's plus exactly ΔK P_yy ΔKᵀ, with K₀ and P_yy
+    from the full 2N+1-point transcription and ΔK = −blockdiag(u uᵀ) K₀ on the gravity
+    columns (u the world vertical at the new mean); and the attitude correction has no
+    component along the world vertical."""
     rng = np.random.default_rng(11 + chart_id(chart))
     for _ in range(5):
         q, P0, ebar, w, b = _random_state(rng, 9)
         vr = np.array([[0, 0, 1.0], [0, 0, 0]])
         vm = np.array([rng.normal(size=3) * 0.2 + vr[0], np.zeros(3)])
         Rv, Qv = np.array([1e-3 * np.eye(3)] * 2), np.array([1e-2 * np.eye(3)] * 2)
-        out = []
-        for tilt in (False, True):
-            qc, e, wk, bk, P = q.copy(), ebar.copy(), w.copy(), b.copy(), P0.copy()
-            assert mukf_step_ext(chart_id(chart), True, 0, 1 / 25, qc, e, wk, bk, P, 9, DT, QW,
-                                 QB, vm, vr, Rv, Qv, np.array([True, False]), w, False,
-                                 1e-4 * np.eye(3), np.zeros(3), np.zeros(3), False, 0.0, False,
-                                 0.0, np.full(4, np.inf), np.zeros(4), tilt)
-            out.append((qc, e, P))
-        (q0, e0, P_opt), (q1, e1, P_tilt) = out
+        use_v = np.array([True, False])
+        q0, e0, _, _, P_opt = _ext(chart, q, P0, ebar, w, b, vm, vr, Rv, Qv, use_v)
+        q1, e1, _, _, P_tilt = _ext(chart, q, P0, ebar, w, b, vm, vr, Rv, Qv, use_v, tilt=True)
         np.testing.assert_allclose(q0, q1, atol=1e-15)  # same sigma points, same mean
-        dP = P_tilt - P_opt
-        assert np.linalg.eigvalsh(dP).min() > -1e-12 * np.abs(P_opt).max()
-        assert np.abs(dP).max() > 1e-9  # the projection did something
+        ref: dict = {}
+        mukf_step_ref(chart_id(chart), True, 2, 1 / 25, q, ebar, w, b, P0, 9, DT, QW, QB,
+                      [vm[0]], [vr[0]], [Rv[0]], [Qv[0]], None, None, internals=ref)
+        u = rotmat_np(q1)[2]
+        np.testing.assert_allclose(ref["u"], u, atol=1e-12)
+        dK = -np.kron(np.eye(3), np.outer(u, u)) @ ref["K0"]  # all three rows are gravity's
+        term = dK @ ref["Pyy"] @ dK.T
+        assert np.abs(term).max() > 1e-9  # the projection does cost something here
+        np.testing.assert_allclose(P_tilt - P_opt, term, atol=1e-10 * np.abs(P_opt).max())
         # the correction ē (in the chart at the new mean q̄⁻, gravity the only measurement):
         # none of it about the world vertical u = R(q̄⁻)ᵀ ẑ (saturation keeps the direction)
-        u = rotmat_np(q1)[2]
         assert abs(u @ e1) < 1e-12 * max(1.0, np.linalg.norm(e1))
         assert np.linalg.norm(e1) > 1e-6
         assert abs(u @ e0) > 1e-9  # the optimal gain does turn about it
+
+
+def _heading_inputs(rng: np.random.Generator, q: np.ndarray) -> tuple:
+    """A magnetometer reading for the heading row: the field (dip 60° down) seen from an
+    attitude near q, a horizontal north reference and the row's variance."""
+    field = np.array([0.0, np.cos(np.radians(60)), -np.sin(np.radians(60))])
+    q_seen = q + rng.normal(size=4) * 0.05
+    q_seen /= np.linalg.norm(q_seen)
+    return rotmat_np(q_seen).T @ field, np.array([0.0, 1.0, 0.0]), 1e-3
+
+
+@pytest.mark.parametrize("nx", [6, 9])
+@pytest.mark.parametrize("chart", CHART_NAMES)
+@pytest.mark.parametrize("tilt", [False, True], ids=["vector", "tilt_only"])
+def test_heading_row_equals_transcription(nx: int, chart: str, tilt: bool) -> None:
+    """The MUKF's heading row (ψ carried through every sigma point, unwrapped around the
+    central one; the gain of each group projected onto the world vertical; Joseph form), alone
+    and with a tilt-only gravity row and the gyro, against the full 2N+1-point transcription
+    with the gain K written column by column and P = P_xx − K P_xyᵀ − P_xy Kᵀ + K P_yy Kᵀ."""
+    rng = np.random.default_rng(3 + nx + 10 * chart_id(chart) + 100 * tilt)
+    for nvec in (0, 1):
+        for with_gyro in (False, True):
+            q, P0, ebar, w, b = _random_state(rng, nx)
+            heading = _heading_inputs(rng, q)
+            vr = np.array([[0, 0, 1.0], [0, 0, 0]])
+            vm = np.array([rotmat_np(q).T @ vr[0] + rng.normal(size=3) * 0.1, np.zeros(3)])
+            Rv, Qv = np.array([1e-3 * np.eye(3)] * 2), np.array([1e-2 * np.eye(3)] * 2)
+            wm = w + rng.normal(size=3) * 0.1 if with_gyro else None
+            got = _ext(chart, q, P0, ebar, w, b, vm, vr, Rv, Qv, np.array([nvec > 0, False]),
+                       heading=heading, tilt=tilt, nx=nx, wm=wm)
+            want = mukf_step_ref(chart_id(chart), True, 2, 1 / 25, q, ebar, w, b, P0, nx, DT,
+                                 QW, QB, [vm[0]][:nvec], [vr[0]][:nvec], [Rv[0]][:nvec],
+                                 [Qv[0]][:nvec], wm, 1e-4 * np.eye(3), heading=heading,
+                                 tilt_v0=tilt)
+            qk, ek, wk, bk, Pk = got
+            qm, er, wr, br, Pr = want
+            assert min(np.abs(qk - qm).max(), np.abs(qk + qm).max()) < 1e-10
+            np.testing.assert_allclose(ek, er, atol=1e-10)
+            np.testing.assert_allclose(wk, wr, atol=1e-10)
+            np.testing.assert_allclose(bk, br, atol=1e-10)
+            np.testing.assert_allclose(Pk, Pr, atol=1e-10)

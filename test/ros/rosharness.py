@@ -132,15 +132,13 @@ class Harness:
                  acc: Any = (0.0, 0.0, 9.80665)) -> None:
         self.send([imu_msg(t, gyr, acc) for t in stamps])
 
-    def send_recording(self, rec: Any, t0: float = 100.0, mag: bool = True) -> None:
+    def send_recording(self, rec: Any, t0: float = 100.0, mag: bool = True) -> list[Any]:
         """A simulated recording: IMU every row, magnetometer on its non-NaN rows, in stamp
-        order (the magnetometer after the IMU message of the same stamp)."""
-        msgs: list[Any] = []
-        for k in range(len(rec.t)):
-            msgs.append(imu_msg(t0 + rec.t[k], rec.gyr[k], rec.acc[k]))
-            if mag and not math.isnan(rec.mag[k, 0]):
-                msgs.append(mag_msg(t0 + rec.t[k], rec.mag[k]))
+        order (the magnetometer after the IMU message of the same stamp). Returns the
+        messages sent."""
+        msgs = recording_messages(rec, t0, mag)
         self.send(msgs)
+        return msgs
 
     # --- services ----------------------------------------------------------------------------
     def wait(self, fut: Any, timeout: float = 10.0) -> Any:
@@ -173,21 +171,75 @@ class Harness:
         self.cli.destroy_node()
 
 
-def record_calls(stream: Any) -> list[tuple[str, tuple]]:
-    """Record the adapter calls the node makes (in order), for a replay."""
-    calls: list[tuple[str, tuple]] = []
+def recording_messages(rec: Any, t0: float = 100.0, mag: bool = True) -> list[Any]:
+    """The messages of :meth:`Harness.send_recording`, in publishing order."""
+    msgs: list[Any] = []
+    for k in range(len(rec.t)):
+        msgs.append(imu_msg(t0 + rec.t[k], rec.gyr[k], rec.acc[k]))
+        if mag and not math.isnan(rec.mag[k, 0]):
+            msgs.append(mag_msg(t0 + rec.t[k], rec.mag[k]))
+    return msgs
+
+
+def record_arrival(stream: Any) -> list[str]:
+    """The kinds (``"imu"``, ``"mag"``) of the samples the node hands to its adapter, in order:
+    which of the two topics the executor served first. Only the order is recorded; a
+    reference adapter is fed from the messages the test sent (:func:`reference_outputs`),
+    so the node's message conversion is under test, not replayed."""
+    kinds: list[str] = []
     on_imu, on_mag = stream.on_imu, stream.on_mag
 
     def imu(*args):
-        calls.append(("imu", args))
+        kinds.append("imu")
         return on_imu(*args)
 
     def mag(*args):
-        calls.append(("mag", args))
+        kinds.append("mag")
         return on_mag(*args)
 
     stream.on_imu, stream.on_mag = imu, mag
-    return calls
+    return kinds
+
+
+def _stamp(m: Any) -> float:
+    return m.header.stamp.sec + m.header.stamp.nanosec * 1e-9
+
+
+def reference_outputs(adapter: Any, sent: Sequence[Any], kinds: Sequence[str]) -> list[Any]:
+    """Feed ``adapter`` (a fresh :class:`~mkf_ros.stream.StreamAdapter`) the messages the test
+    sent, read field by field from the message objects (what went on the wire), in the node's
+    arrival order ``kinds`` (each topic in its own publishing order); returns the output of
+    every IMU message (None where nothing was published)."""
+    imus = iter([m for m in sent if isinstance(m, Imu)])
+    mags = iter([m for m in sent if isinstance(m, MagneticField)])
+    out = []
+    for kind in kinds:
+        if kind == "imu":
+            m = next(imus)
+            g, a = m.angular_velocity, m.linear_acceleration
+            gyr = None if m.angular_velocity_covariance[0] == -1.0 else [g.x, g.y, g.z]
+            acc = None if m.linear_acceleration_covariance[0] == -1.0 else [a.x, a.y, a.z]
+            out.append(adapter.on_imu(_stamp(m), gyr, acc))
+        else:
+            m = next(mags)
+            f = m.magnetic_field
+            adapter.on_mag(_stamp(m), [f.x, f.y, f.z])
+    return out
+
+
+def assert_message_is(m: Imu, inp: Imu, ref: Any) -> None:
+    """The published ``m`` carries the reference adapter's estimate ``ref`` for input ``inp``,
+    field by field (REP-145: x, y, z, w; covariance row-major; input header, rate and
+    specific force passed through when the source is ``input``), to the last bit."""
+    assert (m.header.stamp.sec, m.header.stamp.nanosec, m.header.frame_id) == (
+        inp.header.stamp.sec, inp.header.stamp.nanosec, inp.header.frame_id)
+    o = m.orientation
+    np.testing.assert_array_equal([o.w, o.x, o.y, o.z], ref.quat_wxyz)
+    np.testing.assert_array_equal(np.asarray(m.orientation_covariance),
+                                  np.asarray(ref.orientation_cov).reshape(9))
+    for field in ("angular_velocity", "linear_acceleration"):
+        a, b = getattr(m, field), getattr(inp, field)
+        assert (a.x, a.y, a.z) == (b.x, b.y, b.z), field
 
 
 def quat(m: Imu) -> np.ndarray:

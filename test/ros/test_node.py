@@ -5,13 +5,14 @@ from __future__ import annotations
 
 import math
 import sys
+import time
 import types
 
 import numpy as np
 import pytest
 from geometry_msgs.msg import Vector3Stamped
 from rclpy.qos import QoSProfile, ReliabilityPolicy
-from rosharness import imu_msg, quat
+from rosharness import assert_message_is, imu_msg, quat
 from sensor_msgs.msg import Imu
 
 from mkf_ros.core.quaternion import qconj_np
@@ -41,30 +42,57 @@ def test_reset_service(harness) -> None:
     np.testing.assert_allclose(quat(h.out[-1]), [1, 0, 0, 0], atol=1e-12)
 
 
-def test_diagnostics_report(harness) -> None:
-    h = harness({"diagnostics_period": 0.25, "estimate_gyro_bias": True})
-    n = 0
-    while not statuses(h) or n < 50:
-        h.send_imu([T0 + 0.01 * n])
-        n += 1
-        h.spin_for(0.01)
-    assert h.spin_until(lambda: len(statuses(h)) >= 2, 3.0)
+class FakeMonotonic:
+    """Stands in for the estimator module's ``time``: ``monotonic()`` is set by the test (the
+    node's rates and silences are wall-clock measures; the test decides the wall clock)."""
+
+    def __init__(self, t: float) -> None:
+        self.t = t
+
+    def monotonic(self) -> float:
+        return self.t
+
+    def __getattr__(self, name: str):
+        return getattr(time, name)
+
+
+def test_diagnostics_report(harness, monkeypatch) -> None:
+    """Event-driven: the diagnostics timer is not left to the wall clock (its period is an
+    hour); the test advances the node's clock and runs the timer's callback itself, so the
+    reported rates are exact: 50 IMU messages in 0.5 s are 100.0 Hz, then 20 in 0.25 s 80.0."""
+    from mkf_ros.ros import estimator_node
+
+    clock = FakeMonotonic(1000.0)
+    monkeypatch.setattr(estimator_node, "time", clock)
+    h = harness({"diagnostics_period": 3600.0, "estimate_gyro_bias": True})
+    h.send_imu([T0 + 0.01 * k for k in range(50)])
+    clock.t += 0.5
+    h.est._on_timer()
+    assert h.spin_until(lambda: len(statuses(h)) >= 1, 10.0)
     st = statuses(h)[-1]
     assert st.name == "estimator: attitude estimator" and st.hardware_id == "imu_link"
     assert st.level == OK, st.message
     assert st.message == "running, heading relative to the start-up heading"
     v = values(st)
-    assert float(v["imu rate (Hz)"]) > 10
+    assert v["imu rate (Hz)"] == "100.0" and v["published rate (Hz)"] == "100.0"
+    assert v["imu_received"] == "50"
     assert v["initialised"] == "true" and v["magnetometer"] == "disabled"
     assert v["imu topic"] == "/imu/data_raw" and v["algorithm / chart"] == "mekf / rp"
     sd = [float(x) for x in v["orientation stddev x/y/z, world axes (deg)"].split(" / ")]
-    assert all(0 < x < 5 for x in sd)
-    assert float(v["orientation covariance trace (rad^2)"]) > 0
+    cov = h.est.stream.filter.covariance
+    np.testing.assert_allclose(sd, np.degrees(np.sqrt(np.diag(cov))), rtol=1e-2, atol=1e-3)
+    assert float(v["orientation covariance trace (rad^2)"]) == pytest.approx(
+        np.trace(cov), rel=1e-2)
     assert "gyro bias stddev (rad/s)" in v
-    assert v["imu_received"] == str(h.est.stream.counters["imu_received"]) or int(
-        v["imu_received"]) <= h.est.stream.counters["imu_received"]
     for key in ("imu_out_of_order", "acc_implausible", "mag_too_old", "resets"):
-        assert key in v
+        assert v[key] == "0"
+    # the next period: 20 more messages in 0.25 s
+    h.send_imu([T0 + 0.5 + 0.01 * k for k in range(20)])
+    clock.t += 0.25
+    h.est._on_timer()
+    assert h.spin_until(lambda: len(statuses(h)) >= 2, 10.0)
+    v = values(statuses(h)[-1])
+    assert v["imu rate (Hz)"] == "80.0" and v["imu_received"] == "70"
 
 
 def test_silent_inputs_named_with_resolved_topics(harness, capfd) -> None:
@@ -181,3 +209,53 @@ def test_covariances_copied_filled_or_estimated(harness) -> None:
     assert c.angular_velocity.x == pytest.approx(h.est.stream.filter.omega[0])
     cov = np.reshape(c.angular_velocity_covariance, (3, 3))
     assert np.all(np.linalg.eigvalsh(cov) > 0)  # the filter's rate covariance
+
+
+def test_big_endian_input_takes_the_message_path(harness) -> None:
+    """Input that is not little-endian CDR (a big-endian publisher) cannot take the raw fast
+    path: the node deserialises it with rclpy and answers through message objects. The
+    estimate is the ROS-free adapter's on the samples sent, field by field, to the last bit,
+    like the little-endian path's."""
+    from rclpy.serialization import serialize_message
+    from rosbags.typesys import Stores, get_typestore
+    from rosharness import record_arrival, recording_messages, reference_outputs
+
+    from mkf_ros.sim import simulate
+    from mkf_ros.stream import StreamAdapter
+
+    ts = get_typestore(Stores.ROS2_JAZZY)
+
+    def big_endian(m) -> bytes:
+        name = "sensor_msgs/msg/Imu" if isinstance(m, Imu) else "sensor_msgs/msg/MagneticField"
+        le = serialize_message(m)
+        assert le[:2] == b"\x00\x01"  # CDR little endian
+        be = bytes(ts.serialize_cdr(ts.deserialize_cdr(le, name), name, little_endian=False))
+        assert be[:2] == b"\x00\x00"  # CDR big endian
+        return be
+
+    rec = simulate("slow_rotation", duration=0.5, rate=100.0, seed=2, mag_rate=50.0)
+    sent = recording_messages(rec, T0)
+    params = {"use_mag": True}
+    outs = {}
+    for ns, wire in (("/le", None), ("/be", big_endian)):
+        h = harness(params, namespace=ns)
+        kinds = record_arrival(h.est.stream)
+        slow: list[int] = []  # IMU messages that took the message-object path
+        h.est._on_imu_msg = lambda msg, h=h, f=h.est._on_imu_msg: (slow.append(1), f(msg))[1]
+        if wire is None:
+            h.send(sent)
+        else:
+            for m in sent:
+                (h.pub_imu if isinstance(m, Imu) else h.pub_mag).publish(wire(m))
+            assert h.spin_until(lambda h=h: h.received() >= len(sent), 10.0)
+            assert h.spin_until(lambda h=h: len(h.out) >= h.est._published, 5.0)
+        assert h.est._exceptions == 0, h.est._last_exception
+        ref = reference_outputs(StreamAdapter(params), sent, kinds)
+        sent_imu = [m for m in sent if isinstance(m, Imu)]
+        assert len(h.out) == len(sent_imu) and all(r is not None for r in ref)
+        for m, inp, r in zip(h.out, sent_imu, ref, strict=True):
+            assert_message_is(m, inp, r)
+        assert h.est.stream.counters["mag_received"] == len(sent) - len(sent_imu)
+        assert len(slow) == (0 if wire is None else len(sent_imu))
+        outs[ns] = [quat(m) for m in h.out]
+    np.testing.assert_array_equal(outs["/le"], outs["/be"])

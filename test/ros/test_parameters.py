@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from rosharness import Harness, imu_msg, mag_msg, quat, record_calls
+from rosharness import Harness, quat, record_arrival, recording_messages, reference_outputs
 from sensor_msgs.msg import Imu
 
 from mkf_ros.core.params import BY_NAME, PARAMS, Param
@@ -162,17 +162,38 @@ def test_cross_parameter_rule_rejects_all_atomically(running) -> None:
 
 
 def test_other_nodes_parameters_do_not_affect_it(running, ros_context) -> None:
-    """imu_filter_madgwick reacted to any node's parameter events (imu_tools PR #220)."""
+    """imu_filter_madgwick reacted to any node's parameter events (imu_tools PR #220).
+
+    Event-driven: another node changes its own ``algorithm`` and ``gyro_noise``; once a probe
+    has received those changes on /parameter_events (so every subscriber of that topic in
+    this executor has had them), and the estimator has answered a service call after that,
+    its parameters must still be its own."""
+    from rcl_interfaces.msg import ParameterEvent
+
     h = running
+    assert "/parameter_events" not in {s.topic_name for s in h.est.subscriptions}
+    seen: set[str] = set()
+
+    def on_event(ev: ParameterEvent) -> None:
+        if ev.node == "/other":
+            seen.update(p.name for p in ev.changed_parameters)
+
+    h.cli.create_subscription(ParameterEvent, "/parameter_events", on_event, 100)
     other = Node("other", context=ros_context)
+    h.ex.add_node(other)
     other.declare_parameter("algorithm", "mekf")
     other.declare_parameter("gyro_noise", 0.01)
-    other.set_parameters([Parameter("algorithm", value="mukf"),
-                          Parameter("gyro_noise", value=0.5)])
-    h.ex.add_node(other)
-    h.spin_for(0.3)
+    # parameter events are published without waiting for subscribers: repeat until seen
+    for value in range(20):
+        other.set_parameters([Parameter("algorithm", value="mukf"),
+                              Parameter("gyro_noise", value=0.5 + value)])
+        if h.spin_until(lambda: {"algorithm", "gyro_noise"} <= seen, 1.0):
+            break
+    assert {"algorithm", "gyro_noise"} <= seen, "the other node's events never arrived"
+    assert h.get("algorithm", "gyro_noise") == ["mekf", 0.01]  # a round trip to the node
     assert h.est.stream.params["algorithm"] == "mekf"
     assert h.est.stream.params["gyro_noise"] == 0.01
+    h.ex.remove_node(other)
     other.destroy_node()
 
 
@@ -193,13 +214,9 @@ def test_switch_continuity(harness, switch: dict[str, Any]) -> None:
     rec = simulate("slow_rotation", duration=3.0, rate=100.0, seed=5, mag_rate=50.0)
     base = {"use_mag": True, "algorithm": "mekf", "chart": "rp", "chart_update": True}
     h = harness(base)
-    calls = record_calls(h.est.stream)
+    kinds = record_arrival(h.est.stream)
     k_switch = 150
-    msgs = []
-    for k in range(len(rec.t)):
-        msgs.append(imu_msg(T0 + rec.t[k], rec.gyr[k], rec.acc[k]))
-        if not np.isnan(rec.mag[k, 0]):
-            msgs.append(mag_msg(T0 + rec.t[k], rec.mag[k]))
+    msgs = recording_messages(rec, T0)
     cut = [i for i, m in enumerate(msgs) if isinstance(m, Imu)][k_switch]
     h.send(msgs[:cut])
     assert len(h.out) == k_switch
@@ -207,10 +224,8 @@ def test_switch_continuity(harness, switch: dict[str, Any]) -> None:
     h.send(msgs[cut:])
     q = np.array([quat(m) for m in h.out])
     cov = np.array([np.reshape(m.orientation_covariance, (3, 3)) for m in h.out])
-    # the reference: the same calls, in the node's order, without the switch
-    ref = StreamAdapter(base)
-    ref_out = [ref.on_imu(*a) if kind == "imu" else ref.on_mag(*a) for kind, a in calls]
-    ref_out = [o for (kind, _), o in zip(calls, ref_out, strict=True) if kind == "imu"]
+    # the reference: the messages sent, in the node's arrival order, without the switch
+    ref_out = reference_outputs(StreamAdapter(base), msgs, kinds)
     q_ref_before = ref_out[k_switch - 1].quat_wxyz
     c_ref_before = ref_out[k_switch - 1].orientation_cov
     q_ref_after = ref_out[k_switch].quat_wxyz
