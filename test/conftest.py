@@ -27,9 +27,9 @@ def ros_context() -> Iterator[Any]:
     """A fresh, initialised ``rclpy.context.Context``, shut down after the test.
 
     Pass it on explicitly: ``Node(..., context=ctx)``, ``SingleThreadedExecutor(context=ctx)``.
-    The test is skipped when rclpy is not importable.
+    rclpy is a hard dependency (requirements/ros-jazzy.txt): a broken install fails.
     """
-    rclpy = pytest.importorskip("rclpy")
+    import rclpy
     from rclpy.context import Context
 
     context = Context()

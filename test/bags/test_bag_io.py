@@ -8,13 +8,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from rosbags import rosbag1, rosbag2, typesys  # a hard dependency (install_requires)
 
 from mkf_ros.bags import BagError, BagReader, BagWriter, cdr
 from mkf_ros.bags.synth import read_description, sim_streams, write_bag
 from mkf_ros.sim import simulate
 
-rosbag2 = pytest.importorskip("rosbags.rosbag2")
-typesys = pytest.importorskip("rosbags.typesys")
 TS = typesys.get_typestore(typesys.Stores.ROS2_JAZZY)
 IMU = "sensor_msgs/msg/Imu"
 
@@ -76,7 +75,6 @@ def test_bare_storage_files_and_directories_without_metadata(tmp_path: Path) -> 
 
 
 def test_ros1_bags_are_converted_to_ros2_cdr(tmp_path: Path) -> None:
-    rosbag1 = pytest.importorskip("rosbags.rosbag1")
     ts1 = typesys.get_typestore(typesys.Stores.ROS1_NOETIC)
     stamps, rows = _rows(20)
     msgs = [TS.deserialize_cdr(bytes(r), IMU) for r in rows]

@@ -4,11 +4,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from rosbags.typesys import Stores, get_typestore  # a hard dependency (install_requires)
 
 from mkf_ros.bags import cdr
 
-ts = pytest.importorskip("rosbags.typesys").get_typestore(
-    pytest.importorskip("rosbags.typesys").Stores.ROS2_JAZZY)
+ts = get_typestore(Stores.ROS2_JAZZY)
 
 
 def _rosbags_imu(i: int, frame: str) -> object:

@@ -116,8 +116,7 @@ def test_dropouts_are_gaps(tmp_path: Path) -> None:
 def test_output_is_what_the_node_publishes(tmp_path: Path) -> None:
     """Same adapter calls in the same order, and convert.fill_imu's message rules: missing
     fields (covariance[0] = -1), unknown covariances filled from *_stddev, bias-corrected rate."""
-    rclpy_ser = pytest.importorskip("rclpy.serialization")
-    pytest.importorskip("sensor_msgs.msg")
+    import rclpy.serialization as rclpy_ser
     from sensor_msgs.msg import Imu, MagneticField
 
     from mkf_ros.ros import convert
@@ -255,8 +254,8 @@ def test_existing_output(tmp_path: Path, good: Path, capsys: pytest.CaptureFixtu
 
 def test_progress_bars_and_ros1_input(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     """Long bags get tqdm bars (forced on here); a ROS 1 bag is processed like a ROS 2 one."""
-    rosbag1 = pytest.importorskip("rosbags.rosbag1")
-    typesys = pytest.importorskip("rosbags.typesys")
+    from rosbags import rosbag1, typesys
+
     from mkf_ros.bags.synth import sim_streams
     from mkf_ros.cli.process import _Bars
 

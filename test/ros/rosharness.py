@@ -11,21 +11,17 @@ from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
-import pytest
+from diagnostic_msgs.msg import DiagnosticArray
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.parameter import Parameter, parameter_value_to_python
+from rclpy.parameter_client import AsyncParameterClient
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import Imu, MagneticField
+from std_srvs.srv import Trigger
 
-rclpy = pytest.importorskip("rclpy")
-
-from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
-from rclpy.executors import SingleThreadedExecutor  # noqa: E402
-from rclpy.node import Node  # noqa: E402
-from rclpy.parameter import Parameter, parameter_value_to_python  # noqa: E402
-from rclpy.parameter_client import AsyncParameterClient  # noqa: E402
-from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
-from sensor_msgs.msg import Imu, MagneticField  # noqa: E402
-from std_srvs.srv import Trigger  # noqa: E402
-
-from mkf_ros.ros import convert  # noqa: E402
-from mkf_ros.ros.estimator_node import EstimatorNode  # noqa: E402
+from mkf_ros.ros import convert
+from mkf_ros.ros.estimator_node import EstimatorNode
 
 RELIABLE_IN = {
     "qos_overrides./imu/data_raw.subscription.reliability": "reliable",

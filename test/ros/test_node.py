@@ -241,7 +241,7 @@ def test_big_endian_input_takes_the_message_path(harness) -> None:
         h = harness(params, namespace=ns)
         kinds = record_arrival(h.est.stream)
         slow: list[int] = []  # IMU messages that took the message-object path
-        h.est._on_imu_msg = lambda msg, h=h, f=h.est._on_imu_msg: (slow.append(1), f(msg))[1]
+        h.est._on_imu_msg = lambda msg, s=slow, f=h.est._on_imu_msg: (s.append(1), f(msg))[1]
         if wire is None:
             h.send(sent)
         else:

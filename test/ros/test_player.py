@@ -14,21 +14,18 @@ from typing import Any
 
 import numpy as np
 import pytest
+from geometry_msgs.msg import QuaternionStamped
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rosgraph_msgs.msg import Clock
+from sensor_msgs.msg import Imu, MagneticField
 
-rclpy = pytest.importorskip("rclpy")
-
-from geometry_msgs.msg import QuaternionStamped  # noqa: E402
-from rclpy.executors import SingleThreadedExecutor  # noqa: E402
-from rclpy.node import Node  # noqa: E402
-from rclpy.parameter import Parameter  # noqa: E402
-from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
-from rosgraph_msgs.msg import Clock  # noqa: E402
-from sensor_msgs.msg import Imu, MagneticField  # noqa: E402
-
-from mkf_ros.bags import cdr  # noqa: E402
-from mkf_ros.bags.synth import DEFAULT_START_NS, sim_streams, write_bag  # noqa: E402
-from mkf_ros.ros.player_node import PlayerError, PlayerNode  # noqa: E402
-from mkf_ros.sim import simulate  # noqa: E402
+from mkf_ros.bags import cdr
+from mkf_ros.bags.synth import DEFAULT_START_NS, sim_streams, write_bag
+from mkf_ros.ros.player_node import PlayerError, PlayerNode
+from mkf_ros.sim import simulate
 
 pytestmark = pytest.mark.ros
 #: the probe must not lose anything (best-effort matching is tested with the estimator)
@@ -201,8 +198,7 @@ def test_loop_and_clock(probe: Callable[..., Probe], tmp_path: Path) -> None:
 
 
 def test_ros1_bag_replay(probe: Callable[..., Probe], tmp_path: Path) -> None:
-    rosbag1 = pytest.importorskip("rosbags.rosbag1")
-    typesys = pytest.importorskip("rosbags.typesys")
+    from rosbags import rosbag1, typesys
     ts1 = typesys.get_typestore(typesys.Stores.ROS1_NOETIC)
     ts2 = typesys.get_typestore(typesys.Stores.ROS2_JAZZY)
     sim = simulate("static", duration=0.2, rate=50.0)

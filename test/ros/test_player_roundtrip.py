@@ -22,20 +22,17 @@ from typing import Any
 
 import numpy as np
 import pytest
+from geometry_msgs.msg import QuaternionStamped
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import Imu
 
-rclpy = pytest.importorskip("rclpy")
-
-from geometry_msgs.msg import QuaternionStamped  # noqa: E402
-from rclpy.executors import SingleThreadedExecutor  # noqa: E402
-from rclpy.node import Node  # noqa: E402
-from rclpy.parameter import Parameter  # noqa: E402
-from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
-from sensor_msgs.msg import Imu  # noqa: E402
-
-from mkf_ros.cli.main import main as mkf  # noqa: E402
-from mkf_ros.metrics import orientation_errors, rmse_deg  # noqa: E402
-from mkf_ros.ros.estimator_node import EstimatorNode  # noqa: E402
-from mkf_ros.ros.player_node import PlayerNode  # noqa: E402
+from mkf_ros.cli.main import main as mkf
+from mkf_ros.metrics import orientation_errors, rmse_deg
+from mkf_ros.ros.estimator_node import EstimatorNode
+from mkf_ros.ros.player_node import PlayerNode
 
 pytestmark = pytest.mark.ros
 BOUND_DEG = 1.22
