@@ -58,16 +58,29 @@ def _is_ros_package(module: str) -> bool:
 
 
 def _setup_kwargs() -> dict[str, object]:
-    """Literal keyword arguments of the ``setup(...)`` call in setup.py (without running it)."""
+    """Keyword arguments of the ``setup(...)`` call in setup.py (without running it): literals,
+    and names bound to a literal at module level (``name=package_name``); ``None`` for what
+    is computed (e.g. data_files with glob)."""
     tree = ast.parse((REPO / "setup.py").read_text(), filename="setup.py")
+    names: dict[str, object] = {}
+    for node in tree.body:
+        if isinstance(node, ast.Assign) and len(node.targets) == 1 \
+                and isinstance(node.targets[0], ast.Name):
+            try:
+                names[node.targets[0].id] = ast.literal_eval(node.value)
+            except ValueError:
+                pass
     for node in ast.walk(tree):
         if isinstance(node, ast.Call) and getattr(node.func, "id", None) == "setup":
-            kwargs = {}
+            kwargs: dict[str, object] = {}
             for kw in node.keywords:
+                if isinstance(kw.value, ast.Name) and kw.value.id in names:
+                    kwargs[kw.arg] = names[kw.value.id]
+                    continue
                 try:
                     kwargs[kw.arg] = ast.literal_eval(kw.value)
                 except ValueError:
-                    kwargs[kw.arg] = None  # computed (e.g. data_files with glob)
+                    kwargs[kw.arg] = None
             return kwargs
     raise AssertionError("setup.py has no setup(...) call")
 
@@ -285,7 +298,7 @@ def test_package_xml_metadata_matches_setup_py() -> None:
     assert root.findtext("name") == PKG
     assert root.findtext("export/build_type") == "ament_python"
     kwargs = _setup_kwargs()
-    assert kwargs.get("name", PKG) in (PKG, None)
+    assert kwargs["name"] == PKG, "name differs: package.xml vs setup.py"
     assert root.findtext("version") == kwargs["version"], "version differs: package.xml vs setup.py"
     assert root.findtext("license") == kwargs.get("license", "Apache-2.0") == "Apache-2.0"
 
@@ -325,10 +338,39 @@ def test_install_requires_has_no_ros_wheels() -> None:
 # ---------------------------------------------------------------- environment
 
 
-def test_ros_discovery_is_local() -> None:
-    assert os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] == "LOCALHOST"
-    assert 1 <= int(os.environ["ROS_DOMAIN_ID"]) <= 101
-    assert os.environ.get("ROS_LOG_DIR")
+_ROS_VARS = ("ROS_AUTOMATIC_DISCOVERY_RANGE", "ROS_DOMAIN_ID", "ROS_LOG_DIR")
+
+
+def _env_from(setup: list[str], domain: str | None) -> dict[str, str]:
+    """The ROS variables a child sees after ``setup`` ran in an environment without them (or
+    with only ``ROS_DOMAIN_ID=domain``), printed by the child itself."""
+    env = {k: v for k, v in os.environ.items() if k not in _ROS_VARS}
+    if domain is not None:
+        env["ROS_DOMAIN_ID"] = domain
+    out = subprocess.run(setup, env=env, capture_output=True, text=True, timeout=60,
+                         check=True, cwd=REPO).stdout
+    return dict(line.split("=", 1) for line in out.splitlines() if line.startswith("ROS_"))
+
+
+@pytest.mark.parametrize("entry", ["run", "conftest"])
+@pytest.mark.parametrize("domain", [None, "77"])
+def test_ros_discovery_is_local(entry: str, domain: str | None) -> None:
+    """``./run`` (its ``ros_env``) and test/conftest.py, started from an environment without
+    the ROS variables, give every child LOCALHOST discovery, a domain in 1..101 (a preset one
+    kept) and a log directory that exists."""
+    show = "; ".join(f'echo {k}="${k}"' for k in _ROS_VARS)
+    if entry == "run":  # the function of ./run, sourced without running ./run's commands
+        setup = ["bash", "-c", f'eval "$(sed -n \'/^ros_env()/,/^}}/p\' run)"; ros_env; {show}']
+    else:
+        code = ("import os, runpy; runpy.run_path('test/conftest.py'); "
+                "print('\\n'.join(f'{k}={os.environ[k]}' for k in %r))" % (_ROS_VARS,))
+        setup = [sys.executable, "-c", code]
+    got = _env_from(setup, domain)
+    assert got["ROS_AUTOMATIC_DISCOVERY_RANGE"] == "LOCALHOST"
+    assert 1 <= int(got["ROS_DOMAIN_ID"]) <= 101
+    if domain is not None:
+        assert got["ROS_DOMAIN_ID"] == domain
+    assert Path(got["ROS_LOG_DIR"]).is_dir()
 
 
 @pytest.mark.ros
