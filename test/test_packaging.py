@@ -7,6 +7,7 @@ plain, not ``--symlink-install``) into a temporary directory, so the source tree
 from __future__ import annotations
 
 import ast
+import contextlib
 import os
 import shutil
 import subprocess
@@ -66,10 +67,8 @@ def _setup_kwargs() -> dict[str, object]:
     for node in tree.body:
         if isinstance(node, ast.Assign) and len(node.targets) == 1 \
                 and isinstance(node.targets[0], ast.Name):
-            try:
+            with contextlib.suppress(ValueError):
                 names[node.targets[0].id] = ast.literal_eval(node.value)
-            except ValueError:
-                pass
     for node in ast.walk(tree):
         if isinstance(node, ast.Call) and getattr(node.func, "id", None) == "setup":
             kwargs: dict[str, object] = {}
@@ -363,7 +362,7 @@ def test_ros_discovery_is_local(entry: str, domain: str | None) -> None:
         setup = ["bash", "-c", f'eval "$(sed -n \'/^ros_env()/,/^}}/p\' run)"; ros_env; {show}']
     else:
         code = ("import os, runpy; runpy.run_path('test/conftest.py'); "
-                "print('\\n'.join(f'{k}={os.environ[k]}' for k in %r))" % (_ROS_VARS,))
+                f"print('\\n'.join(k + '=' + os.environ[k] for k in {_ROS_VARS!r}))")
         setup = [sys.executable, "-c", code]
     got = _env_from(setup, domain)
     assert got["ROS_AUTOMATIC_DISCOVERY_RANGE"] == "LOCALHOST"

@@ -17,7 +17,7 @@ def add_filter_options(parser: argparse.ArgumentParser) -> None:
     g = parser.add_argument_group("filter parameters")
     for p in filter_params():
         kw: dict[str, Any] = dict(default=None, dest=p.name,
-                                  help=f"{p.doc()} (default: {p.default})")
+                                  help=f"{p.doc()} (default: {p.default})".replace("%", "%%"))
         if p.type is bool:
             g.add_argument(flag(p), action=argparse.BooleanOptionalAction, **kw)
         elif p.type is list:
