@@ -34,7 +34,10 @@ def test_demo_runs_end_to_end(tmp_path: Path) -> None:
     assert m, out[-2000:]
     published, received, answered = (int(g.replace(",", "")) for g in m.groups())
     assert published == 801 and answered == received, out[-2500:]  # one estimate per message
-    assert received >= 0.8 * published  # best-effort input may drop a few on a busy machine
+    # the demo's estimator input is best effort: how many are lost depends on the machine's
+    # load, so no share is asserted (test_player_roundtrip.py checks a reliable input loses
+    # none); what was received was answered, and is scored below
+    assert 0 < received <= published
     m = re.search(r"RMSE, after the first second\s+([\d.]+)\s+([\d.]+)\s+([\d.]+)", out)
     assert m and float(m.group(1)) < 1.22, out[-2000:]  # bound: see test_player_roundtrip.py
     assert png.is_file() and png.read_bytes()[:4] == b"\x89PNG"
