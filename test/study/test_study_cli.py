@@ -96,3 +96,66 @@ def test_ctrl_c_keeps_finished_units_and_a_rerun_resumes(tmp_path: Path) -> None
     assert done.returncode == 0, done.stderr
     assert len(list((out / "parts").glob("*.npz"))) == 12
     assert len((out / "cells.csv").read_text().splitlines()) == 2
+
+
+def _cells_csv(path: Path) -> dict[tuple[str, str], dict[str, str]]:
+    import csv
+
+    with open(path, newline="") as f:
+        return {(r["filter"], r["mukf_scaling"]): r for r in csv.DictReader(f)}
+
+
+def test_mukf_scaling_both_is_the_union_of_each(tmp_path: Path) -> None:
+    """``--mukf-scaling both`` gives one MUKF cell per scaling, each equal to the run with
+    that scaling alone (same seed, same trajectories), and the scaling changes the result."""
+    args = ["study", "--n-s", "2", "--filters", "mukf", "--charts", "rp", "--updates", "cu",
+            "--R", "1e-4", "--rates", "50", "--no-progress", "--workers", "1", "--no-report"]
+    rows = {}
+    for scaling in ("both", "published", "consistent"):
+        assert main([*args, "--mukf-scaling", scaling, "--out", str(tmp_path / scaling)]) == 0
+        rows[scaling] = _cells_csv(tmp_path / scaling / "cells.csv")
+    both = rows["both"]
+    assert set(both) == {("mukf", "published"), ("mukf", "consistent")}
+    for scaling in ("published", "consistent"):
+        assert list(rows[scaling]) == [("mukf", scaling)]
+        assert both["mukf", scaling] == rows[scaling]["mukf", scaling]
+    assert both["mukf", "published"]["mu_deg"] != both["mukf", "consistent"]["mu_deg"]
+
+
+def test_speed_is_measured_once_and_reported(tmp_path: Path, monkeypatch) -> None:
+    """``--speed`` times every variant (MEKF and the MUKF under both noise scalings, each
+    chart and update) into speed.json, and the summary and Fig. 4 analogue show it; by
+    default a finished study is measured only if it has no measurement yet; ``--no-speed``
+    never measures. (The benchmark is shortened: its length is not what is tested.)"""
+    import functools
+    import json
+
+    from mkf_ros.study import config as cfg
+    from mkf_ros.study import speed
+
+    calls: list[int] = []
+    short = functools.partial(speed.measure_speeds, n_updates=300, repeats=2)
+    monkeypatch.setattr(speed, "measure_speeds",
+                        lambda **kw: (calls.append(1), short(**kw))[1])
+    out = tmp_path / "s"
+    base = ["study", "--n-s", "2", *TINY, "--out", str(out)]
+    assert main([*base, "--no-speed"]) == 0
+    assert not (out / "speed.json").exists() and calls == []
+    assert main([*base, "--speed"]) == 0
+    assert calls == [1]
+    data = json.loads((out / "speed.json").read_text())
+    got = {(s["filter"], s["chart"], s["update"], s["mukf_scaling"]) for s in data["speeds"]}
+    want = {("mekf", c, u, s) for c in cfg.CHARTS for u in cfg.UPDATES for s in ("published",)}
+    want |= {("mukf", c, u, s) for c in cfg.CHARTS for u in cfg.UPDATES
+             for s in ("published", "consistent")}
+    assert {(f, c, u) for f, c, u, _ in got} == {(f, c, u) for f, c, u, _ in want}
+    assert {(c, u, s) for f, c, u, s in got if f == "mukf"} == {
+        (c, u, s) for f, c, u, s in want if f == "mukf"}
+    for s in data["speeds"]:
+        assert 0 < s["mean_hz"] < float("inf") and s["us_per_update"] > 0
+    assert data["mekf_mukf_ratio"] > 0
+    summary = (out / "summary.md").read_text()
+    assert "## Speed" in summary and f"MEKF/MUKF = **{data['mekf_mukf_ratio']:.2f}**" in summary
+    assert any(p.name.startswith("fig4") for p in (out / "figures").iterdir())
+    assert main(base) == 0  # complete and measured: the default does not measure again
+    assert calls == [1]
