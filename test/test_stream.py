@@ -24,7 +24,7 @@ from mkf_ros.stream import (
     covariance_out,
     validate_param,
 )
-from mkf_ros.stream_kernel import rotate_back
+from mkf_ros.stream_kernel import MAX_PENDING_MAG, rotate_back
 
 G = [0.0, 0.0, 9.80665]
 Z = [0.0, 0.0, 0.0]
@@ -154,6 +154,28 @@ def test_magnetometer_too_old_or_too_far_ahead_is_dropped() -> None:
     assert c["mag_too_old"] == 1 and c["mag_ahead"] == 1 and c["mag_fused"] == 0
     assert s.mag_offset == pytest.approx(2.0)
     assert not s.filter.heading_initialized
+
+
+def test_magnetometer_overflow_drops_the_oldest_held() -> None:
+    """More magnetometer samples waiting for the IMU stream than the adapter holds
+    (``MAX_PENDING_MAG``): the oldest go, each counted as ``mag_overflow``; the rest are
+    fused once the IMU stream reaches them, in stamp order."""
+    s = StreamAdapter(use_mag=True)
+    feed(s, 3)  # t = T0 + 0.02
+    extra = 5
+    n = MAX_PENDING_MAG + extra
+    for k in range(n):  # 1 ms apart, all ahead of the IMU stream (within max_dt)
+        s.on_mag(T0 + 0.02 + 0.001 * (k + 1), [0.0, 20e-6, -40e-6])
+    c = s.all_counters()
+    assert c["mag_overflow"] == extra and c["mag_fused"] == 0 and c["mag_ahead"] == 0
+    # the IMU stream reaches just past the last dropped stamp: nothing held is due yet
+    s.on_imu(T0 + 0.02 + 0.001 * (extra + 0.5), Z, G)
+    assert s.all_counters()["mag_fused"] == 0
+    s.on_imu(T0 + 0.02 + 0.001 * (extra + 1), Z, G)  # the oldest kept one is due
+    assert s.all_counters()["mag_fused"] == 1
+    s.on_imu(T0 + 0.02 + 0.001 * n, Z, G)
+    c = s.all_counters()
+    assert c["mag_fused"] == MAX_PENDING_MAG and c["mag_overflow"] == extra
 
 
 def test_magnetometer_unused_invalid_missing() -> None:
