@@ -1,0 +1,198 @@
+"""The kernel cache and compile switches (mkf_ros/core/_jit.py, mkf_ros.warmup): the cache key
+covers every kernel source, the cache lives where the docs say and is reused by the next
+process, ``NUMBA_DISABLE_JIT=1`` runs the same equations as plain Python, and ``warmup()``
+leaves nothing for the first real samples to compile.
+
+The checks that start Python run in child processes (numba's switches are read at import);
+they use the shared warm cache, so they take seconds, not a cold compile."""
+
+from __future__ import annotations
+
+import ast
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from mkf_ros.core import _jit
+
+PKG = Path(_jit.__file__).resolve().parents[1]
+
+
+def _child(code: str, **env: str) -> dict:
+    """Run ``code`` in a fresh Python; it prints one JSON line last, returned."""
+    out = subprocess.run([sys.executable, "-c", code], env={**os.environ, **env},
+                         capture_output=True, text=True, timeout=280, check=False)
+    assert out.returncode == 0, out.stderr[-3000:]
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def _decorated_with_jit(path: Path) -> bool:
+    """True if any function in ``path`` carries ``@jit`` / ``@jit_inline`` (read by AST)."""
+    tree = ast.parse(path.read_text(encoding="utf-8"))
+    for node in ast.walk(tree):
+        if isinstance(node, ast.FunctionDef):
+            for d in node.decorator_list:
+                d = d.func if isinstance(d, ast.Call) else d
+                if isinstance(d, ast.Name) and d.id in ("jit", "jit_inline"):
+                    return True
+    return False
+
+
+def test_every_kernel_file_is_in_the_cache_key() -> None:
+    """The key hashes every file of the package that defines a kernel (found here by its
+    decorators, not by the module's own marker string), and _jit.py itself."""
+    kernels = {p.resolve() for p in PKG.rglob("*.py") if _decorated_with_jit(p)}
+    assert len(kernels) >= 5
+    assert kernels | {Path(_jit.__file__).resolve()} <= set(_jit._KERNEL_FILES)
+
+
+def test_the_key_changes_with_any_kernel_source(tmp_path: Path, monkeypatch) -> None:
+    """Any byte of any kernel source changes the key (so a kernel that calls a changed
+    kernel in another file is recompiled), a non-kernel file does not, and an unchanged tree
+    gives the same key."""
+    copy = tmp_path / "mkf_ros"
+    files = []
+    for p in _jit._KERNEL_FILES:
+        q = copy / p.relative_to(PKG)
+        q.parent.mkdir(parents=True, exist_ok=True)
+        shutil.copy(p, q)
+        files.append(q)
+    other = copy / "not_a_kernel.py"
+    other.write_text("x = 1\n")
+    monkeypatch.setattr(_jit, "_PACKAGE_DIR", copy)
+    monkeypatch.setattr(_jit, "_KERNEL_FILES", files)
+    key = _jit._kernel_hash()
+    assert key == _jit.KERNEL_HASH  # the copy is the same sources
+    for f in files:
+        text = f.read_bytes()
+        f.write_bytes(text + b"\n# edited\n")
+        assert _jit._kernel_hash() != key, f.name
+        f.write_bytes(text)
+    other.write_text("x = 2\n")
+    assert _jit._kernel_hash() == key
+
+
+def test_cache_dir_follows_the_environment(tmp_path: Path, monkeypatch) -> None:
+    """$MKF_ROS_CACHE_DIR, else $XDG_CACHE_HOME/mkf_ros, else ~/.cache/mkf_ros; one folder
+    per key."""
+    monkeypatch.delenv("MKF_ROS_CACHE_DIR", raising=False)
+    monkeypatch.delenv("XDG_CACHE_HOME", raising=False)
+    monkeypatch.setenv("HOME", str(tmp_path / "home"))
+    name = f"numba-{_jit.KERNEL_HASH}"
+    assert _jit.kernel_cache_dir() == tmp_path / "home" / ".cache" / "mkf_ros" / name
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
+    assert _jit.kernel_cache_dir() == tmp_path / "xdg" / "mkf_ros" / name
+    monkeypatch.setenv("MKF_ROS_CACHE_DIR", str(tmp_path / "own"))
+    assert _jit.kernel_cache_dir() == tmp_path / "own" / name
+
+
+_COMPILE_ONE = """
+import json
+from mkf_ros.core._jit import kernel_cache_dir
+from mkf_ros.core.quaternion import qmul_t
+assert qmul_t((1.0, 0.0, 0.0, 0.0), (0.0, 1.0, 0.0, 0.0)) == (0.0, 1.0, 0.0, 0.0)
+s = qmul_t.stats
+print(json.dumps({"dir": str(kernel_cache_dir()), "hits": sum(s.cache_hits.values()),
+                  "misses": sum(s.cache_misses.values())}))
+"""
+
+
+def test_a_kernel_is_cached_and_reused_by_the_next_process(tmp_path: Path) -> None:
+    """A kernel compiled in one process is written under the cache folder of this key and
+    loaded, not compiled, by the next one."""
+    first = _child(_COMPILE_ONE, MKF_ROS_CACHE_DIR=str(tmp_path))
+    assert Path(first["dir"]) == tmp_path / f"numba-{_jit.KERNEL_HASH}"
+    assert first["misses"] == 1 and first["hits"] == 0
+    assert list((Path(first["dir"]) / "core").glob("quaternion.qmul_t-*.nbi"))
+    second = _child(_COMPILE_ONE, MKF_ROS_CACHE_DIR=str(tmp_path))
+    assert second["hits"] == 1 and second["misses"] == 0
+
+
+_ESTIMATE = """
+import json
+import numpy as np
+import numba
+from mkf_ros import estimate
+from mkf_ros.core import mekf, mukf
+from mkf_ros.sim import simulate
+r = simulate("slow_rotation", duration=0.5, rate=100.0, seed=4, mag_rate=100.0)
+out = {"dispatcher": isinstance(mekf.mekf_vector_update, numba.core.dispatcher.Dispatcher)
+                     or isinstance(mukf.mukf_step_ext, numba.core.dispatcher.Dispatcher)}
+for algo in ("mekf", "mukf"):
+    q = estimate(r.gyr, r.acc, r.mag, dt=0.01, algorithm=algo, estimate_gyro_bias=True)
+    out[algo] = q.quat.tolist()
+print(json.dumps(out))
+"""
+
+
+def test_numba_disable_jit_runs_the_same_equations_in_python() -> None:
+    """With ``NUMBA_DISABLE_JIT=1`` the kernels are the plain Python functions (a debugger
+    steps through them) and the filters give the compiled results to rounding."""
+    plain = _child(_ESTIMATE, NUMBA_DISABLE_JIT="1")
+    compiled = _child(_ESTIMATE, NUMBA_DISABLE_JIT="0")
+    assert plain["dispatcher"] is False and compiled["dispatcher"] is True
+    import numpy as np
+
+    for algo in ("mekf", "mukf"):
+        a, b = np.array(plain[algo]), np.array(compiled[algo])
+        assert a.shape == b.shape and a.size > 0
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-9)
+
+
+_WARMUP = """
+import json, sys
+import numpy as np
+import numba
+import mkf_ros
+
+def compiled():
+    seen = {}
+    for name, mod in list(sys.modules.items()):
+        if not name.startswith("mkf_ros"):
+            continue
+        for attr, obj in list(vars(mod).items()):
+            if isinstance(obj, numba.core.dispatcher.Dispatcher):
+                seen[f"{obj.py_func.__module__}.{attr}"] = sorted(map(str, obj.signatures))
+    return seen
+
+mkf_ros.warmup()
+before = compiled()
+from mkf_ros import estimate
+from mkf_ros.core.filter import AttitudeFilter
+from mkf_ros.sim import simulate
+from mkf_ros.stream import StreamAdapter
+r = simulate("slow_rotation", duration=0.3, rate=100.0, seed=1, mag_rate=50.0)
+for algo in ("mekf", "mukf"):
+    for mag in (r.mag, None):
+        estimate(r.gyr, r.acc, mag, dt=0.01, algorithm=algo)
+        estimate(r.gyr, r.acc, mag, dt=0.01, algorithm=algo, estimate_gyro_bias=True)
+    for use_mag in (False, True):
+        f = AttitudeFilter(algorithm=algo, use_mag=use_mag)
+        for k in range(len(r.t)):
+            f.step(0.01, r.gyr[k], r.acc[k], r.mag[k] if use_mag else None)
+        f.quaternion, f.covariance
+        s = StreamAdapter(algorithm=algo, use_mag=use_mag)
+        for k in range(len(r.t)):
+            if use_mag and not np.isnan(r.mag[k, 0]):
+                s.on_mag(100.0 + r.t[k], r.mag[k])
+            s.on_imu(100.0 + r.t[k], r.gyr[k], r.acc[k])
+        s.reset()
+        s.process(200.0 + r.t, r.gyr, r.acc, 200.0 + r.t, r.mag)
+after = compiled()
+new = {k: sorted(set(v) - set(before.get(k, []))) for k, v in after.items()}
+print(json.dumps({k: v for k, v in new.items() if v}))
+"""
+
+
+@pytest.mark.slow
+def test_warmup_leaves_nothing_to_compile_for_the_filters() -> None:
+    """After ``warmup()``, the public ways to run a filter (estimate, AttitudeFilter.step,
+    StreamAdapter per message and per recording; MEKF and MUKF, with and without the
+    magnetometer and the bias) compile no new kernel signature: the first real sample is not
+    delayed by a compile."""
+    assert _child(_WARMUP) == {}
