@@ -158,16 +158,6 @@ def eye(n: int, s: float = 1.0) -> np.ndarray:
 
 
 @jit
-def outer3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """``a bᵀ`` for 3-vectors."""
-    r = np.empty((3, 3))
-    for i in range(3):
-        for j in range(3):
-            r[i, j] = a[i] * b[j]
-    return r
-
-
-@jit
 def cross3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """``a × b``."""
     return np.array((a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2],

@@ -104,17 +104,6 @@ def inv3_spd_t(S: tuple) -> tuple[bool, tuple]:
 
 
 @jit
-def inv3_spd(S: np.ndarray, out: np.ndarray) -> bool:
-    """Inverse of a symmetric 3×3 matrix by cofactors; False unless positive definite."""
-    ok, Si = inv3_spd_t((S[0, 0], S[0, 1], S[0, 2], S[1, 1], S[1, 2], S[2, 2]))
-    if ok:
-        for i in range(3):
-            for j in range(3):
-                out[i, j] = Si[i][j]
-    return ok
-
-
-@jit
 def _nis3(r: tuple, Si: tuple) -> float:
     """``rᵀ S⁻¹ r``."""
     nis = 0.0

@@ -207,13 +207,6 @@ def angle_between(p: np.ndarray, q: np.ndarray) -> float:
     return 2.0 * np.arctan2(np.sqrt(d[1] * d[1] + d[2] * d[2] + d[3] * d[3]), abs(d[0]))
 
 
-def as_unit_quaternion(q: np.ndarray) -> np.ndarray:
-    """Normalise quaternions along the last axis and make ``q0 ≥ 0`` (canonical sign)."""
-    q = np.asarray(q, dtype=float)
-    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
-    return np.where(q[..., :1] < 0.0, -q, q)
-
-
 def rotmat_np(q: np.ndarray) -> np.ndarray:
     """Vectorised ``R(q)`` for an array of quaternions of shape (..., 4)."""
     q = np.asarray(q, dtype=float)
@@ -248,9 +241,3 @@ def qconj_np(q: np.ndarray) -> np.ndarray:
     q = np.array(q, dtype=float)
     q[..., 1:] *= -1.0
     return q
-
-
-def angle_between_np(p: np.ndarray, q: np.ndarray) -> np.ndarray:
-    """Vectorised :func:`angle_between` (rad)."""
-    d = qmul_np(qconj_np(p), q)
-    return 2.0 * np.arctan2(np.linalg.norm(d[..., 1:], axis=-1), np.abs(d[..., 0]))

@@ -11,7 +11,6 @@ import json
 import os
 import platform
 import shutil
-from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -805,7 +804,3 @@ def write_report(out: Path | str, docs: Path | str | None = None) -> list[Path]:
         runner.atomic_write_bytes(docs / runner.CSV_NAME, (out / runner.CSV_NAME).read_bytes())
         written += [docs / "README.md", docs / runner.CSV_NAME]
     return written
-
-
-def iter_cells(rows: Iterable[Row]) -> list[Cell]:
-    return [r.cell for r in rows]
