@@ -216,9 +216,11 @@ class CheckedExecutor(cf.Executor):
         self.inner.shutdown(wait=wait)
 
 
-def connect(address: str, timeout: float = CONNECT_TIMEOUT_S) -> Cluster:
-    """Connect to the Dask scheduler at ``address`` (``tcp://HOST:8786``), wait for a worker,
-    and check that every worker runs this mkf_ros (:class:`ClusterError` otherwise)."""
+def connect(address: str, timeout: float | None = None) -> Cluster:
+    """Connect to the Dask scheduler at ``address`` (``tcp://HOST:8786``), wait for a worker
+    (``timeout`` s each, default :data:`CONNECT_TIMEOUT_S`), and check that every worker runs
+    this mkf_ros (:class:`ClusterError` otherwise)."""
+    timeout = CONNECT_TIMEOUT_S if timeout is None else timeout
     try:
         import distributed
     except ImportError:
@@ -258,7 +260,7 @@ def connect(address: str, timeout: float = CONNECT_TIMEOUT_S) -> Cluster:
 
 
 @contextlib.contextmanager
-def cluster(address: str, timeout: float = CONNECT_TIMEOUT_S) -> Iterator[Cluster]:
+def cluster(address: str, timeout: float | None = None) -> Iterator[Cluster]:
     """:func:`connect`, closed afterwards."""
     c = connect(address, timeout)
     try:
