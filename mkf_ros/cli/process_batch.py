@@ -120,6 +120,9 @@ def run(args: argparse.Namespace) -> int:
                 parallel.stop_now(executor)
                 _remove_partial(jobs)
             raise
+    # a worker that died while writing could not remove its temporary folder (every other
+    # failure does): no unit is running any more, so remove them here
+    _remove_partial([j for j, s in zip(jobs, summaries, strict=True) if not s.ok])
     print(summary_table(summaries, names))
     atomic_write_text(out / "summary.csv", summary_csv(summaries, names))
     ok = sum(s.ok for s in summaries)

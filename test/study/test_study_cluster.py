@@ -109,7 +109,9 @@ def test_a_worker_with_other_code_is_refused(tmp_path: Path,
         rc = main(["study", "--n-s", "4", *SEL, "--scheduler", lc.address, "--out", str(out)])
         err = capsys.readouterr().err
         assert rc == 2, err
-        line = err.strip().splitlines()[-1]
+        lines = err.strip().splitlines()
+        assert len(lines) == 1, err
+        line = lines[0]
         assert "runs mkf_ros 0.1.0+src." in line and f"this client {parallel.code_version()}" \
             in line and "install the same mkf_ros on every worker" in line
         assert not list((out / runner.PARTS).glob("*.npz"))
@@ -136,3 +138,19 @@ def test_unreachable_scheduler_is_one_line(tmp_path: Path, capsys: pytest.Captur
     err = capsys.readouterr().err
     assert rc == 2 and f"cannot connect to the Dask scheduler at tcp://127.0.0.1:{port}" in err
     assert len(err.strip().splitlines()) == 1, err
+
+
+def test_without_dask_the_scheduler_option_is_one_line(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str],
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    import sys
+
+    monkeypatch.setitem(sys.modules, "distributed", None)  # `import distributed` fails
+    out = tmp_path / "s"
+    rc = main(["study", "--n-s", "4", *SEL, "--scheduler", "tcp://127.0.0.1:8786", "--out",
+               str(out)])
+    err = capsys.readouterr().err
+    assert rc == 2 and err.strip().splitlines() == [
+        "mkf study: error: --scheduler needs Dask, which is not installed: "
+        f"{parallel.INSTALL_HINT}"], err
+    assert not list((out / runner.PARTS).glob("*.npz"))
