@@ -154,3 +154,19 @@ def test_code_version_names_the_package_version_and_its_sources() -> None:
     with pytest.raises(parallel.VersionMismatch, match=re.escape(f"the client {v[:-1]}X")):
         parallel.checked_call(v[:-1] + "X", sum, [1])
     assert parallel.checked_call(v, sum, [1, 2]) == 3
+
+
+@pytest.mark.slow
+def test_the_local_cluster_listens_on_127_0_0_1_only(
+        dask_cluster: parallel.LocalCluster) -> None:
+    """Scheduler, nannies, workers and dashboards: every listening socket of every process of
+    the test cluster is on the loopback address."""
+    import psutil
+
+    procs = [psutil.Process(p.pid) for p in (dask_cluster.scheduler,
+                                             *dask_cluster.workers.values())]
+    procs += [c for p in procs for c in p.children(recursive=True)]
+    listening = [c.laddr for p in procs for c in p.net_connections("inet")
+                 if c.status == psutil.CONN_LISTEN]
+    assert len(listening) >= 1 + 2 * 2  # scheduler + (nanny, worker) per worker at least
+    assert {a.ip for a in listening} == {"127.0.0.1"}, listening
