@@ -27,7 +27,7 @@ def add_param_options(parser: argparse.ArgumentParser, names: list[str], title: 
     for name in names:
         p = BY_NAME[name]
         kw: dict[str, Any] = dict(default=None, dest=p.name,
-                                  help=f"{p.doc()} (default: {p.default})")
+                                  help=f"{p.doc()} (default: {p.default})".replace("%", "%%"))
         if p.type is bool:
             g.add_argument(flag(p), action=argparse.BooleanOptionalAction, **kw)
         elif p.type is list:

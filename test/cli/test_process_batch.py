@@ -123,6 +123,14 @@ def test_a_bag_failing_while_written_leaves_no_output(
     assert messages(out / "b0") == messages(tmp_path / "ref")
 
 
+def test_help_names_the_batch_options(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as e:
+        main(["process", "--help"])
+    text = capsys.readouterr().out
+    assert e.value.code == 0
+    assert "--jobs N" in text and "--scheduler ADDRESS" in text and "0.1% false" in text
+
+
 def test_bad_batch_arguments_are_one_line(bags: Path, tmp_path: Path,
                                           capsys: pytest.CaptureFixture[str]) -> None:
     def fails(argv: list[str], pattern: str) -> None:
