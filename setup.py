@@ -34,6 +34,11 @@ setup(
         "tqdm>=4.60",
         "pyyaml",
     ],
+    extras_require={
+        # `mkf study/process --scheduler tcp://HOST:8786`: work units on a Dask cluster
+        # (docs/study/cluster.md); never needed by the nodes
+        "cluster": ["dask[distributed]>=2024.1"],
+    },
     python_requires=">=3.10",
     zip_safe=True,
     entry_points={

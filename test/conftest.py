@@ -38,3 +38,20 @@ def ros_context() -> Iterator[Any]:
         yield context
     finally:
         rclpy.try_shutdown(context=context)
+
+
+@pytest.fixture(scope="session")
+def dask_cluster(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Any]:
+    """A real Dask cluster on this machine: ``dask scheduler`` and two ``dask worker``
+    processes (one thread each), every port on 127.0.0.1; killed at the end of the session.
+
+    The kernels are compiled (or loaded) here first, so the workers find them in the cache.
+    """
+    import mkf_ros
+    from mkf_ros.parallel import local_cluster
+    from mkf_ros.study.runner import warm_up
+
+    mkf_ros.warmup()
+    warm_up()
+    with local_cluster(2, tmp_path_factory.mktemp("dask")) as cluster:
+        yield cluster

@@ -1,4 +1,7 @@
-"""``mkf process``: the estimator over a bag, without DDS; accuracy and plots against the truth."""
+"""``mkf process``: the estimator over a bag, without DDS; accuracy and plots against the truth.
+
+Several bags (or a folder of bags) are processed in parallel by :mod:`mkf_ros.cli.process_batch`.
+"""
 
 from __future__ import annotations
 
@@ -38,9 +41,12 @@ def add_param_options(parser: argparse.ArgumentParser, names: list[str], title: 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from mkf_ros.bags.process import stream_param_names
 
-    parser.add_argument("bag", metavar="BAG", help="input bag: rosbag2 directory, .mcap, .db3 "
-                        "or ROS 1 .bag")
-    parser.add_argument("--out", required=True, metavar="OUT_BAG", help="output bag (new)")
+    parser.add_argument("bags", nargs="+", metavar="BAG", help="input bag: rosbag2 directory, "
+                        ".mcap, .db3 or ROS 1 .bag; several bags or a folder of bags are "
+                        "processed in parallel into the folder --out")
+    parser.add_argument("--out", required=True, metavar="OUT_BAG",
+                        help="output bag (new); with several bags the output folder (one bag "
+                             "and plot per input, summary.csv)")
     parser.add_argument("--storage", default="mcap", metavar="{mcap,sqlite3}",
                         help="output storage (default mcap)")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing OUT_BAG")
@@ -56,6 +62,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--skip", type=float, default=0.0, metavar="S",
                         help="leave the first S seconds out of the scores (default 0)")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
+    b = parser.add_argument_group("several bags")
+    b.add_argument("--jobs", type=int, default=None, metavar="N",
+                   help="bags processed at once on this machine (default: number of cores)")
+    b.add_argument("--scheduler", metavar="ADDRESS", default=None,
+                   help="process the bags on the Dask cluster of this scheduler "
+                        "(tcp://HOST:8786; paths must be the same on every worker, "
+                        "docs/bags.md)")
     add_param_options(parser, stream_param_names(), "estimator parameters (as the node's)")
 
 
@@ -113,8 +126,12 @@ def default_plot_path(out: str | Path) -> Path:
 def run(args: argparse.Namespace) -> int:
     from mkf_ros.bags import BagError
     from mkf_ros.bags.process import process_bag
+    from mkf_ros.cli import process_batch
     from mkf_ros.cli.main import CliError
 
+    if process_batch.wanted(args):
+        return process_batch.run(args)
+    args.bag = args.bags[0]
     if args.storage not in ("mcap", "sqlite3"):
         raise CliError(f"unknown storage {args.storage!r} (choose from mcap, sqlite3)")
     out = Path(args.out)
@@ -149,8 +166,9 @@ def report(r: Any, args: argparse.Namespace) -> None:
     from mkf_ros.bags import normalize_topic
 
     print(f"  output  {normalize_topic(args.output_topic)} {r.n_out:,} messages")
-    rej = {k: v for k, v in r.counters.items()
-           if v and k not in ("imu_received", "mag_received", "mag_fused")}
+    from mkf_ros.bags.batch import events
+
+    rej = events(r.counters)
     if rej:
         print("  events  " + ", ".join(f"{k} {v}" for k, v in rej.items()))
     for note in r.notes:
@@ -168,18 +186,10 @@ def report(r: Any, args: argparse.Namespace) -> None:
             print(f"          during {kind:<14} total {w['total']:7.3f}   heading "
                   f"{w['heading']:7.3f}   inclination {w['inclination']:7.3f}")
         if not args.no_plot:
-            from mkf_ros.bags.synth import read_description
-            from mkf_ros.plots import accuracy_figure
+            from mkf_ros.bags.batch import plot_result
 
             path = Path(args.plot) if args.plot else default_plot_path(r.out)
-            desc = read_description(args.bag) or {}
-            first = s.t[0] - (r.log_s[0] if len(r.log_s) else 0.0)
-            ivs = {k: [(a + first, b + first) for a, b in v]
-                   for k, v in (desc.get("intervals") or {}).items()}
-            title = (f"{Path(args.bag).name}: {p['algorithm'].upper()}-{p['chart'].upper()}, "
-                     f"use_mag {str(p['use_mag']).lower()}")
-            accuracy_figure(path, s.t, s.q_est, s.q_true, s.errors, title=title,
-                            intervals=ivs)
+            plot_result(r, args.bag, path)
             print(f"  plot    {path}")
     tm = r.timings
     total = sum(tm.values())

@@ -1,12 +1,14 @@
 """``mkf study``: the paper's simulation study (spec ``mkf-math.md`` §7), with figures and summary.
 
 Runs every selected cell (filter × chart × chart update/reset × R × rate) on N_s trajectories,
-resumably, on all cores, then writes ``cells.csv``, the figures and ``summary.md`` into ``--out``.
+resumably, on all cores (or on a Dask cluster with ``--scheduler``), then writes ``cells.csv``,
+the figures and ``summary.md`` into ``--out``.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import sys
 import time
 from pathlib import Path
@@ -35,6 +37,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--seed", type=int, default=1, help="random seed (default 1)")
     g.add_argument("--workers", type=int, default=None,
                    help="processes (default: number of cores)")
+    g.add_argument("--scheduler", metavar="ADDRESS", default=None,
+                   help="run the work units on the Dask cluster of this scheduler "
+                        "(tcp://HOST:8786) instead of local processes; needs mkf_ros[cluster] "
+                        "and the same mkf_ros on every worker (docs/study/cluster.md)")
     g.add_argument("--cap", type=int, default=CONV_CAP,
                    help=f"convergence-phase cap in updates (default {CONV_CAP}, §8 item 12)")
     g.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -99,6 +105,7 @@ def _selection(args: argparse.Namespace) -> list:
 
 
 def run(args: argparse.Namespace) -> int:
+    from mkf_ros import parallel
     from mkf_ros.cli.main import CliError
     from mkf_ros.study import runner
 
@@ -120,11 +127,17 @@ def run(args: argparse.Namespace) -> int:
             n_s = int(meta["n_s"])
         else:
             runner.prepare_folder(out, args.seed, n_s, args.cap)  # errors before any output
-            print(f"mkf study: {len(cells)} cells x N_s = {n_s}, seed {args.seed}, "
-                  f"{workers} worker(s) -> {out}/", file=sys.stderr)
-            rep = runner.run_study(cells, n_s, args.seed, out, workers=workers, cap=args.cap,
-                                   progress=not args.no_progress,
-                                   command=_command(args, n_s, out))
+            with contextlib.ExitStack() as stack:
+                executor, where = None, f"{workers} worker(s)"
+                if args.scheduler:
+                    c = stack.enter_context(parallel.cluster(args.scheduler))
+                    executor, workers = c.executor, c.threads
+                    where = f"Dask cluster {args.scheduler} ({workers} worker threads)"
+                print(f"mkf study: {len(cells)} cells x N_s = {n_s}, seed {args.seed}, "
+                      f"{where} -> {out}/", file=sys.stderr)
+                rep = runner.run_study(cells, n_s, args.seed, out, workers=workers,
+                                       cap=args.cap, progress=not args.no_progress,
+                                       command=_command(args, n_s, out), executor=executor)
             interrupted = rep.interrupted
             done = len(cells) - rep.pending
             print(f"mkf study: {done}/{len(cells)} cells finished ({rep.already} before, "
@@ -133,7 +146,7 @@ def run(args: argparse.Namespace) -> int:
                      else ""), file=sys.stderr)
         if not args.no_report and not interrupted:
             _report(args, out, cells, n_s)
-    except runner.StudyError as e:
+    except (runner.StudyError, parallel.ClusterError) as e:
         raise CliError(str(e)) from None
     except OSError as e:
         raise CliError(f"{e.filename or out}: {e.strerror or e}") from None
@@ -173,17 +186,16 @@ def _command(args: argparse.Namespace, n_s: int, out: Path) -> str:
             parts.append(f"--{'R' if k == 'rs' else k.replace('_', '-')} {v}")
     if args.cap != CONV_CAP:
         parts.append(f"--cap {args.cap}")
+    if args.scheduler:
+        parts.append(f"--scheduler {args.scheduler}")
     parts.append(f"--out {out}")
     return " ".join(parts)
 
 
 def _cores() -> int:
-    import os
+    from mkf_ros.parallel import cores
 
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except AttributeError:  # pragma: no cover - not Linux
-        return max(1, os.cpu_count() or 1)
+    return cores()
 
 
 def _hms(s: float) -> str:

@@ -11,15 +11,20 @@ there. Its trajectories are simulated once and every filter variant × R of the 
 (common random numbers, see :mod:`mkf_ros.study.sim`). The parent process is the only writer;
 every file is written to a temporary name and renamed, so an interrupted run leaves only whole
 files and a re-run continues with the missing units.
+
+The units run on a :class:`concurrent.futures.Executor` (:mod:`mkf_ros.parallel`): local worker
+processes by default, or a Dask cluster's executor (``mkf study --scheduler``). Only the unit and
+its results cross to the worker and back; what a unit computes depends on the unit alone, so the
+numbers are the same wherever it ran.
 """
 
 from __future__ import annotations
 
+import concurrent.futures as cf
 import contextlib
 import csv
 import hashlib
 import json
-import multiprocessing as mp
 import os
 import signal
 import threading
@@ -30,6 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
+from mkf_ros import parallel
 from mkf_ros.study import config as cfg
 from mkf_ros.study import sim
 from mkf_ros.study.config import Cell
@@ -78,6 +84,8 @@ class RunReport:
     elapsed_s: float = 0.0
     cpu_s: float = 0.0  # CPU seconds of the finished units, summed over the workers
     interrupted: bool = False
+    unit_cpu_s: list[tuple[Unit, float]] = field(default_factory=list)  # per finished unit
+    parent_s: float = 0.0  # time the parent spent writing results (serial part of the run)
 
 
 # --------------------------------------------------------------------------- atomic files
@@ -198,7 +206,10 @@ class Parts:
         return t0 in self.index.get(key, {})
 
     def complete(self, key: str, n_s: int) -> bool:
-        return all(self.has(key, t0) for t0, _ in cfg.chunks(n_s))
+        ranges = self.index.get(key, {})
+        if len(ranges) < -(-n_s // cfg.CHUNK):  # cheap test first: called for every unit
+            return False
+        return all(t0 in ranges for t0, _ in cfg.chunks(n_s))
 
     def write(self, unit: Unit, res: dict[str, np.ndarray]) -> None:
         keys = np.array([c.key for c in unit.cells])
@@ -319,10 +330,6 @@ def _timed_unit(unit: Unit) -> tuple[Unit, dict[str, np.ndarray], float]:
     return unit, res, time.process_time() - t
 
 
-def _ignore_sigint() -> None:
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-
-
 def warm_up() -> None:
     """Compile (or load from the cache) the kernels before forking the workers."""
     inp = sim.trajectory_inputs(0, 10.0, 0, "sigma")
@@ -357,13 +364,19 @@ def run_study(
     cells: Sequence[Cell], n_s: int, seed: int, out: Path | str, workers: int = 2,
     cap: int = sim.CONV_CAP, progress: bool = True,
     on_unit: Callable[[Unit], None] | None = None, command: str | None = None,
+    executor: cf.Executor | None = None,
 ) -> RunReport:
     """Run (or resume) the study of ``cells`` with ``n_s`` trajectories each into ``out``.
 
+    ``executor``: where the units run, e.g. a Dask cluster's (:func:`mkf_ros.parallel.connect`),
+    with ``workers`` its number of parallel slots; the caller owns it. Default: ``workers`` local
+    processes (the parent itself for one).
     ``on_unit`` is called in the parent after each finished unit (tests use it to interrupt);
     ``command`` is logged in ``study.json`` for the summary.
     A ``KeyboardInterrupt`` stops the workers; every finished unit and cell is kept and the
-    report says ``interrupted``.
+    report says ``interrupted``. A unit lost with its worker (a killed process, a vanished
+    cluster node that Dask gave up on) stops the run after the running units finished, with a
+    :class:`StudyError`; a re-run does the missing units.
     """
     out = Path(out)
     meta = prepare_folder(out, seed, n_s, cap)
@@ -392,7 +405,9 @@ def run_study(
         bar.set_postfix_str(f"cells {len(rows.keys() & selected.keys())}/{len(selected)}")
 
     def finish(unit: Unit, res: dict[str, np.ndarray], cpu: float) -> None:
+        t_parent = time.perf_counter()
         report.cpu_s += cpu
+        report.unit_cpu_s.append((unit, cpu))
         with deferred_sigint():  # the part file and the CSV rows are written as a whole
             parts.write(unit, res)
             new = [c for c in unit.cells if c.key in pending and parts.complete(c.key, n_s)]
@@ -402,36 +417,50 @@ def run_study(
                 report.finished.append(c)
             if new:
                 write_rows(out, rows)
+        report.parent_s += time.perf_counter() - t_parent
         if bar is not None:
             bar.update(unit.cost)
             bar.set_postfix_str(f"cells {len(rows.keys() & selected.keys())}/{len(selected)}")
         if on_unit is not None:
             on_unit(unit)
 
+    lost: list[tuple[Unit, BaseException]] = []
+
+    def failed(unit: Unit, e: BaseException) -> bool:
+        lost.append((unit, e))
+        return False  # submit no more; the running units still finish and are kept
+
     try:
-        if units:
+        ex = executor
+        if units and ex is None:
             with _sigint_noted() as noted:
                 try:
-                    warm_up()
+                    warm_up()  # before forking: the workers inherit the kernels
                 except Exception:
                     if noted:  # Ctrl-C inside numba's compiler can surface as another error
                         raise KeyboardInterrupt from None
                     raise
-        if workers <= 1 or len(units) <= 1:
-            for u in units:
-                finish(*_timed_unit(u))
-        else:
-            ctx = mp.get_context("fork")  # kernels compiled above are inherited
-            pool = ctx.Pool(min(workers, len(units)), initializer=_ignore_sigint)
+            n = min(workers, len(units))
+            ex = parallel.InlineExecutor() if n <= 1 else parallel.local_pool(n)
+        if units and ex is not None:
             try:
-                for unit, res, cpu in pool.imap_unordered(_timed_unit, units, chunksize=1):
-                    finish(unit, res, cpu)
-                pool.close()
+                parallel.run_in_order(ex, _timed_unit, units, 2 * max(1, workers),
+                                      lambda u, r: finish(*r), failed)
             except BaseException:
-                pool.terminate()
+                if executor is None:
+                    parallel.stop_now(ex)
                 raise
-            finally:
-                pool.join()
+            if executor is None:
+                ex.shutdown(wait=True)
+        if lost:
+            bug = next((e for _, e in lost if not parallel.is_worker_loss(e)), None)
+            if bug is not None:
+                raise bug
+            e = lost[0][1]
+            raise StudyError(f"{len(lost)} work unit(s) lost with their worker "
+                             f"({type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''})"
+                             "; the finished units are kept - run the same command again to "
+                             "resume")
     except KeyboardInterrupt:
         report.interrupted = True
     finally:
