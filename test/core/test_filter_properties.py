@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 
 import mkf_ros
@@ -47,9 +47,14 @@ configs = st.fixed_dictionaries({
     "world_frame": st.sampled_from(WORLD_FRAMES),
 })
 
-#: what a hostile caller may put in a reading (each row: 3 components)
-_BAD = [np.nan, np.inf, -np.inf, 1e150, -1e200, 1e308, 0.0, 1e-200]
-garbage = st.lists(st.sampled_from(_BAD), min_size=3, max_size=3).map(np.array)
+#: what a hostile caller may put in a reading (each row: 3 components); estimate() refuses an
+#: infinite value as a whole (ValueError naming the sample), the stateful API skips it
+_BAD = [np.nan, 1e150, -1e200, 1e308, 0.0, 1e-200, 5e3]
+garbage = st.lists(st.sampled_from([*_BAD, np.inf, -np.inf]), min_size=3,
+                   max_size=3).map(np.array)
+#: readings that are invalid for every sensor (NaN, beyond any sensor, no direction)
+_INVALID = [np.nan, 1e150, -1e200, 1e308, 1e-200]
+invalid_rows = st.lists(st.sampled_from(_INVALID), min_size=3, max_size=3).map(np.array)
 bad_dts = st.sampled_from([np.nan, np.inf, -np.inf, -1e-3, -100.0])
 
 
@@ -122,7 +127,7 @@ def test_step_keeps_its_contract_on_hostile_streams(cfg: dict, stream: list[tupl
 
 
 @examples(15)
-@given(cfg=configs, burst=st.lists(st.tuples(st.sampled_from("gam"), garbage), min_size=1,
+@given(cfg=configs, burst=st.lists(st.tuples(st.sampled_from("gam"), invalid_rows), min_size=1,
                                    max_size=50),
        start=st.integers(100, 400))
 def test_estimate_recovers_after_a_burst_of_garbage(cfg: dict, burst: list, start: int) -> None:
@@ -136,10 +141,13 @@ def test_estimate_recovers_after_a_burst_of_garbage(cfg: dict, burst: list, star
     r = mkf_ros.estimate(data["g"], data["a"], mag, dt=0.01, **kw)
     for name in ("quat", "cov", "omega", "bias", "bias_std"):
         assert np.all(np.isfinite(getattr(r, name))), name
-    nbad = sum(int(not (cfg["use_mag"] or w != "m")) for w, _ in burst)
+    # at least every row with a NaN or a value no sensor reads (≥ 1e150) is skipped and counted
+    # (a zero gyro, say, is a reading; a magnetometer row is ignored without use_mag)
+    must = sum(1 for w, bad in burst if (cfg["use_mag"] or w != "m")
+               and (np.isnan(bad).any() or np.abs(bad).max() >= 1e150))
     counted = sum(r.counters[f"{s}_{c}"] for s in ("gyr", "acc", "mag")
                   for c in ("missing", "invalid"))
-    assert counted >= len(burst) - nbad
+    assert counted >= must
     clean = mkf_ros.estimate(STATIC.gyr, STATIC.acc, STATIC.mag if cfg["use_mag"] else None,
                              dt=0.01, **kw)
     q_true = mkf_ros.core.frames.FROM_ENU[cfg["world_frame"]]
@@ -194,10 +202,27 @@ def test_every_accepted_parameter_set_keeps_the_contract(ps: dict, data: str,
     """10 s of data (or 40 steps of a long Δt) through the stateful filter, checked at every
     step."""
     sim = SIM if data == "rotation" else STATIC
-    f = AttitudeFilter(**ps)
+    try:
+        f = AttitudeFilter(**ps)
+    except ValueError as e:  # a combination the parameters refuse: not an accepted set
+        assert "init_mode 'paper' with use_mag needs mag_reference" in str(e)
+        assume(False)
     n = 1000 if dt < 0.1 else 40
     for k in range(n):
         f.step(dt if k else 0.0, sim.gyr[k], sim.acc[k], sim.mag[k] if ps["use_mag"] else None)
         if k % 10 == 0 or k < 5:
             check_outputs(f, f"sample {k}")
     check_outputs(f, "end")
+
+
+@pytest.mark.xfail(strict=True, reason="a plausible-range but absurd accelerometer sample "
+                   "contaminates the accelerometer low-pass: gating/recovery logic, the "
+                   "real-world robustness issue (issue 14 defers it there)")
+def test_one_absurd_accelerometer_sample_is_recovered_within_seconds() -> None:
+    """Found by the property above with a 510 g sample (below the 10,000 g invalid limit):
+    the MEKF tilts by 74° and is still 6° off 28 s later."""
+    acc = STATIC.acc.copy()
+    acc[100] = [0.0, 0.0, 5000.0]
+    r = mkf_ros.estimate(STATIC.gyr, acc, dt=0.01)
+    e = np.degrees(orientation_errors(r.quat[400:], STATIC.quat[400:])["inclination"])
+    assert e.max() < 2.0
