@@ -110,7 +110,7 @@ def hostile_streams(draw: st.DrawFn) -> list[tuple]:
     return steps
 
 
-@examples(25)
+@examples(100)
 @given(cfg=configs, stream=hostile_streams())
 def test_step_keeps_its_contract_on_hostile_streams(cfg: dict, stream: list[tuple]) -> None:
     f = AttitudeFilter(**cfg)
@@ -126,7 +126,7 @@ def test_step_keeps_its_contract_on_hostile_streams(cfg: dict, stream: list[tupl
         check_outputs(f, f"step {i} ({kind})")
 
 
-@examples(15)
+@examples(60)
 @given(cfg=configs, burst=st.lists(st.tuples(st.sampled_from("gam"), invalid_rows), min_size=1,
                                    max_size=50),
        start=st.integers(100, 400))
@@ -194,7 +194,7 @@ def parameter_sets(draw: st.DrawFn) -> dict:
     return ps
 
 
-@examples(30)
+@examples(200)
 @given(ps=parameter_sets(), data=st.sampled_from(["rotation", "static"]),
        dt=st.sampled_from([0.01, 0.01, 1.0, 10.0]))
 def test_every_accepted_parameter_set_keeps_the_contract(ps: dict, data: str,
