@@ -45,7 +45,7 @@ import numpy as np
 
 from mkf_ros import stream_kernel as sk
 from mkf_ros.core.filter import COUNTER_NAMES as FILTER_COUNTERS
-from mkf_ros.core.filter import AttitudeFilter, build_cfg
+from mkf_ros.core.filter import MAX_ACC_G, MAX_GYRO_RATE, MAX_MAG, AttitudeFilter, build_cfg
 from mkf_ros.core.frames import FROM_ENU
 from mkf_ros.core.params import BY_NAME, PARAMS, FilterParams, Param
 from mkf_ros.core.quaternion import qconj_np, qmul_np, rotmat_np
@@ -61,14 +61,17 @@ COUNTER_REASONS: dict[str, str] = {
     "imu_out_of_order": "IMU samples dropped: stamp older than the previous one",
     "imu_bad_stamp": "IMU samples dropped: stamp zero or not finite (set constant_dt?)",
     "gyr_missing": "gyro readings missing (all NaN or covariance[0] = -1)",
-    "gyr_invalid": "gyro readings skipped: partly NaN/Inf, or faster than 1000 rad/s",
+    "gyr_invalid": "gyro readings skipped: partly NaN/Inf, or faster than "
+                   f"{MAX_GYRO_RATE:g} rad/s",
     "acc_missing": "accelerometer readings missing (all NaN or covariance[0] = -1)",
-    "acc_invalid": "accelerometer readings skipped: NaN/Inf or zero vector",
+    "acc_invalid": "accelerometer readings skipped: NaN/Inf, zero vector, or beyond "
+                   f"{MAX_ACC_G:g} g",
     "acc_implausible": "accelerometer readings skipped: magnitude far from gravity",
     "mag_received": "magnetometer samples received",
     "mag_unused": "magnetometer samples ignored: use_mag is false",
     "mag_missing": "magnetometer samples missing (all NaN)",
-    "mag_invalid": "magnetometer samples skipped: partly NaN/Inf or zero vector",
+    "mag_invalid": "magnetometer samples skipped: partly NaN/Inf, zero vector, or larger "
+                   f"than {MAX_MAG:g}",
     "mag_too_old": "magnetometer samples dropped: older than mag_max_delay",
     "mag_ahead": "magnetometer samples dropped: stamp ahead of the IMU stream by > max_dt",
     "mag_overflow": "magnetometer samples dropped: too many waiting for the IMU stream",

@@ -27,6 +27,9 @@ from mkf_ros.core.filter import (
     F_HEADING,
     F_INIT,
     K_GAPS,
+    MAX_ACC_G,
+    MAX_GYRO_RATE,
+    MAX_MAG,
     S_B,
     S_W,
     classify_reading,
@@ -47,8 +50,6 @@ SAME_STAMP = 1e-6
 #: Published yaw variance (rad²) while the heading is unknown: after a gap the filter keeps
 #: the heading it had, but the sensor may have turned by any angle meanwhile (uniform on ±π).
 YAW_UNKNOWN_VAR = np.pi**2 / 3.0
-#: A gyro reading faster than this (rad/s, ~9500 rpm) is beyond any MEMS range: invalid.
-MAX_RATE = 1000.0
 
 #: The adapter's own counters (the filter's are synced separately), in ``acnt`` order.
 ADAPTER_COUNTERS = (
@@ -110,12 +111,13 @@ def norm3(v: np.ndarray) -> float:
 
 
 @jit
-def check_input(acnt: np.ndarray, v: np.ndarray, k_missing: int, is_gyro: bool) -> bool:
+def check_input(acnt: np.ndarray, v: np.ndarray, k_missing: int, is_vector: bool,
+                limit: float) -> bool:
     """True if ``v`` is a usable reading; otherwise counted (``k_missing``, or the invalid
-    counter right after it). A gyro faster than :data:`MAX_RATE` is invalid."""
-    c = classify_reading((v[0], v[1], v[2]), not is_gyro)
-    if c == 0 and is_gyro and norm3(v) > MAX_RATE:
-        c = 2
+    counter right after it). The filter's own rule, :func:`~mkf_ros.core.filter.classify_reading`
+    with its plausibility limits (``limit``: a gyro faster than
+    :data:`~mkf_ros.core.filter.MAX_GYRO_RATE` is invalid, etc.)."""
+    c = classify_reading((v[0], v[1], v[2]), is_vector, limit)
     if c:
         acnt[k_missing + c - 1] += 1
         return False
@@ -269,7 +271,7 @@ def mag_event(cfg: np.ndarray, nz: np.ndarray, st: np.ndarray, P: np.ndarray, fl
     if cfg[C_USE_MAG] <= 0:
         acnt[A_MAG_UNUSED] += 1
         return
-    if not check_input(acnt, mag, A_MAG_MISSING, False):
+    if not check_input(acnt, mag, A_MAG_MISSING, True, MAX_MAG):
         return
     m = mag.copy()
     # hard/soft-iron calibration (mag_bias_*, mag_soft_iron) is applied by the core filter
@@ -339,8 +341,8 @@ def imu_event(cfg: np.ndarray, nz: np.ndarray, st: np.ndarray, P: np.ndarray, fl
                 return R_TIME_JUMP  # Python resets; the sample comes back with resume
     ts[T_BACK] = 0
     ts[T_LAST_IMU] = stamp
-    has_g = check_input(acnt, gyr, A_GYR_MISSING, True)
-    has_a_in = check_input(acnt, acc, A_ACC_MISSING, False)
+    has_g = check_input(acnt, gyr, A_GYR_MISSING, False, MAX_GYRO_RATE)
+    has_a_in = check_input(acnt, acc, A_ACC_MISSING, True, MAX_ACC_G * cfg[C_GRAVITY])
     has_a = has_a_in
     if has_a:
         norm = norm3(acc)

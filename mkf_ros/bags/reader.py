@@ -323,6 +323,8 @@ _HINTS = (
     ("malformed", "corrupt or truncated sqlite3 database"),
     ("not a database", "not an sqlite3 database"),
     ("no such table", "not a rosbag2 sqlite3 database"),
+    ("a metadata key is missing", "metadata.yaml is incomplete or not rosbag2 metadata"),
+    ("invalid bag metadata", "metadata.yaml is not rosbag2 metadata"),
 )
 
 
@@ -336,4 +338,17 @@ def _reason(e: BaseException) -> str:
             return f"{hint} ({text})"
     if isinstance(e, EOFError) or "truncat" in low:
         return f"truncated ({text})"
+    # the backends' internals on a damaged file (issue 14: "'rss2msg'", "KeyError('version')",
+    # "ord() expected a character…", "'int' object is not subscriptable", a MemoryError):
+    # say what that means for the file, keep the internal text only as a detail
+    if isinstance(e, MemoryError):
+        return ("damaged: a length field asks for more memory than is available "
+                "(corrupt record header)")
+    if isinstance(e, KeyError):
+        key = e.args[0] if e.args else text
+        return f"damaged or incomplete: a required entry is missing ({key!r})"
+    if type(e).__name__ == "ReaderError" and not any(k in low for k, _ in _HINTS):
+        return f"damaged or not a bag ({text})"
+    if isinstance(e, (TypeError, AttributeError, IndexError, UnicodeError, ValueError)):
+        return f"damaged or not a bag: unexpected content ({type(e).__name__}: {text})"
     return text

@@ -20,6 +20,8 @@ face used by the ROS node, and :func:`run_batch` the loop used by :func:`mkf_ros
 
 from __future__ import annotations
 
+import contextlib
+
 import numpy as np
 
 from mkf_ros.core._jit import jit, jit_inline
@@ -148,10 +150,27 @@ REST_LP_TAU = 0.5  # s: rest detection compares the gyro and accelerometer with 
 REST_CHI2 = 16.27  # 3 degrees of freedom, 0.1 %: the low-passed rate agrees with the bias
 
 
+# --- plausibility of a reading (issue 14): the one definition, for the library and the node ----
+#: A gyro reading faster than this (rad/s, ~9500 rpm) is beyond any MEMS gyro's range: invalid.
+MAX_GYRO_RATE = 1000.0
+#: An accelerometer reading larger than this many times ``gravity`` is invalid (no IMU's
+#: accelerometer reads 10,000 g; the filter's own magnitude test, ``acc_norm_tolerance``, judges
+#: the plausible ones).
+MAX_ACC_G = 1e4
+#: A (calibrated) magnetometer reading larger than this, in any unit, is invalid: no field in
+#: tesla, gauss, µT or raw counts comes near it, and the square of a larger one can overflow.
+MAX_MAG = 1e100
+#: The smallest magnitude of an accelerometer or magnetometer vector: below it (a zero vector,
+#: or one whose square underflows) the direction is undefined and the reading invalid.
+MIN_VECTOR = 1e-150
+
+
 @jit_inline
-def classify_reading(v: tuple, is_vector: bool) -> int:
+def classify_reading(v: tuple, is_vector: bool, limit: float) -> int:
     """One sensor reading, for the batch loop and the stream adapter alike: 0 valid, 1 missing
-    (all NaN), 2 invalid (partly non-finite, or a zero vector)."""
+    (all NaN), 2 invalid (partly non-finite, a vector below :data:`MIN_VECTOR` or a reading
+    whose magnitude exceeds ``limit``: :data:`MAX_GYRO_RATE`, :data:`MAX_ACC_G` times gravity,
+    :data:`MAX_MAG`)."""
     nan = 0
     bad = False
     for i in range(3):
@@ -163,7 +182,8 @@ def classify_reading(v: tuple, is_vector: bool) -> int:
         return 1
     if nan > 0 or bad:
         return 2
-    if is_vector and v[0] * v[0] + v[1] * v[1] + v[2] * v[2] < 1e-300:
+    s = v[0] * v[0] + v[1] * v[1] + v[2] * v[2]
+    if s > limit * limit or (is_vector and s < MIN_VECTOR * MIN_VECTOR):
         return 2
     return 0
 
@@ -451,7 +471,7 @@ def _acc_measurement(cfg: np.ndarray, nz: np.ndarray, st: np.ndarray, dt: float,
     ex2 = max(0.0, ex * ex - cfg[C_RA])  # the excess beyond what white noise explains
     q_raw = nz[N_QA, 0, 0] + ex * ex
     u_raw = (a[0] / n_raw, a[1] / n_raw, a[2] / n_raw)
-    kq = max(1.0, cfg[C_ACC_DTIME] / dta)
+    kq = _correlated(cfg[C_ACC_DTIME], dta)
     tol = cfg[C_ACC_TOL]
     if tau <= 0.0:
         return u_raw, kq * q_raw, u_raw, q_raw, 0 if abs(ex) <= tol else 2
@@ -500,12 +520,27 @@ def _lowpass_gain(st: np.ndarray, o: int, k: int, dt: float, tau: float) -> tupl
     """Gain of a first-order low-pass with time constant ``tau`` (cache slot ``k`` of
     :func:`_alpha`) that starts as the running mean: for the first ``tau`` seconds since its
     start (``st[o]``, s) it averages every sample equally, so that no single first sample
-    dominates its memory (as VQF does). Also whether it is still in that start."""
+    dominates its memory (as VQF does). Also whether it is still in that start.
+
+    ``Δt = 0`` (a sample at the same instant as the previous one) has no time to average over:
+    the low-pass keeps its memory (gain 0), unless nothing is averaged yet (``st[o] = 0``):
+    then, as for any first sample, it starts from this one (gain 1)."""
     t = st[o]
     st[o] = t + dt
+    if not dt > 0.0:
+        return (1.0, True) if t <= 0.0 else (0.0, t < tau)
     a = _alpha(st, k, dt, tau)
     m = dt / (t + dt)
     return (m, True) if m > a else (a, False)
+
+
+@jit_inline
+def _correlated(T: float, dt: float) -> float:
+    """``max(1, T/Δt)``: how much a disturbance correlated over ``T`` (s) widens the variance
+    of samples ``Δt`` apart, so that their information per second does not grow with the rate.
+    ``Δt = 0`` (readings at one instant, or the first since the start) has no rate: 1, the
+    per-sample variance."""
+    return T / dt if 0.0 < dt < T else 1.0
 
 
 @jit_inline
@@ -885,10 +920,10 @@ def _sensor_step(cfg: np.ndarray, nz: np.ndarray, st: np.ndarray, P: np.ndarray,
     operations that outweigh a small filter's arithmetic); the rare paths build arrays."""
     cnt[K_SAMPLES] += 1
     use_mag = cfg[C_USE_MAG] > 0
-    gs = classify_reading(gyr, False)
-    as_ = classify_reading(acc, True)
+    gs = classify_reading(gyr, False, MAX_GYRO_RATE)
+    as_ = classify_reading(acc, True, MAX_ACC_G * cfg[C_GRAVITY])
     m_cal = calibrate_mag(cfg, mag) if use_mag else mag
-    ms = classify_reading(m_cal, True) if use_mag else 1
+    ms = classify_reading(m_cal, True, MAX_MAG) if use_mag else 1
     if gs > 0:
         cnt[K_GYR_MISSING if gs == 1 else K_GYR_INVALID] += 1
     if as_ > 0:
@@ -976,7 +1011,7 @@ def _sensor_step(cfg: np.ndarray, nz: np.ndarray, st: np.ndarray, P: np.ndarray,
     mref = (st[S_MREF], st[S_MREF + 1], st[S_MREF + 2])
     h = np.sqrt(st[S_MREF] ** 2 + st[S_MREF + 1] ** 2)
     href = (st[S_MREF] / h, st[S_MREF + 1] / h, 0.0) if has_m and heading else zero3
-    var_h = (_mag_yaw_var(cfg, np.array(mref)) * max(1.0, cfg[C_MAG_DTIME] / dtm) if has_m
+    var_h = (_mag_yaw_var(cfg, np.array(mref)) * _correlated(cfg[C_MAG_DTIME], dtm) if has_m
              else 0.0)
     algo = int(cfg[C_ALGO])
     if algo <= ALGO_MUKF and cfg[C_GYR_SCALE] > 0:
@@ -1146,8 +1181,11 @@ def _world_output_t(cfg: np.ndarray, st: np.ndarray, P: np.ndarray,
     f2 = cfg[C_ACC_ALIGN] ** 2 if int(cfg[C_ALGO]) != ALGO_MADGWICK else 0.0
     # the accelerometer's own misalignment: a constant no filter averages out (published only,
     # by every filter but Madgwick, whose published value is a parameter; every world frame
-    # here has its z vertical, so x and y are the tilt axes)
-    return q, ((C[0][0] + f2, C[0][1], C[0][2]), (C[1][0], C[1][1] + f2, C[1][2]), C[2])
+    # here has its z vertical, so x and y are the tilt axes). Symmetric by construction: the
+    # mean of the two triangles, which the congruence's rounding makes differ by ~1e-16 of
+    # the largest element (bit-identical where they agree)
+    c01, c02, c12 = 0.5 * (C[0][1] + C[1][0]), 0.5 * (C[0][2] + C[2][0]), 0.5 * (C[1][2] + C[2][1])
+    return q, ((C[0][0] + f2, c01, c02), (c01, C[1][1] + f2, c12), (c02, c12, C[2][2]))
 
 
 @jit
@@ -1322,9 +1360,18 @@ class AttitudeFilter:
         return new
 
     def step(self, dt: float, gyr: object = None, acc: object = None, mag: object = None) -> None:
-        """Process one sample; ``None`` means the sensor has no reading at this time."""
-        sensor_step(self._cfg, self._nz, self._st, self._P, self._fl, self.counters, float(dt),
-                    _vec(gyr), _vec(acc), _vec(mag))
+        """Process one sample; ``None`` means the sensor has no reading at this time.
+
+        ``dt`` (s) is the time since the previous sample: finite and ``≥ 0``. ``dt = 0`` is a
+        sample at the same instant: no prediction, its readings are fused as further
+        measurements at that instant (Madgwick's correction is a rate: it has no effect over
+        no time). Readings as for :func:`mkf_ros.estimate` (all NaN: missing; partly
+        non-finite, a zero vector or beyond the plausibility limits: invalid, skipped and
+        counted). An invalid ``dt`` or a sample of the wrong shape raises ValueError naming
+        the argument and leaves the filter exactly as it was."""
+        d = _dt(dt)
+        g, a, m = _vec(gyr, "gyr"), _vec(acc, "acc"), _vec(mag, "mag")
+        sensor_step(self._cfg, self._nz, self._st, self._P, self._fl, self.counters, d, g, a, m)
 
     @property
     def initialized(self) -> bool:
@@ -1382,12 +1429,27 @@ class AttitudeFilter:
 _NAN3 = np.full(3, np.nan)
 
 
-def _vec(v: object) -> np.ndarray:
+def _dt(dt: object) -> float:
+    """``dt`` of :meth:`AttitudeFilter.step` as a float; ValueError unless finite and ≥ 0."""
+    d = np.nan
+    if not isinstance(dt, (str, bytes, bool, np.bool_)):
+        with contextlib.suppress(TypeError, ValueError):
+            d = float(dt)  # type: ignore[arg-type]
+    if not (np.isfinite(d) and d >= 0.0):
+        raise ValueError(f"dt must be a finite number of seconds >= 0 (the time since the "
+                         f"previous sample), got {dt!r}")
+    return d
+
+
+def _vec(v: object, name: str) -> np.ndarray:
     if v is None:
         return _NAN3
     # a fresh C-contiguous, writable float64 array: anything else would make numba compile a
     # new specialisation of the kernels in the middle of a stream
-    a = np.array(v, dtype=np.float64, copy=True).reshape(-1)
+    try:
+        a = np.array(v, dtype=np.float64, copy=True).reshape(-1)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be 3 numbers or None, got {v!r}") from None
     if a.shape != (3,):
-        raise ValueError(f"sensor sample must have 3 components, got shape {np.shape(v)}")
+        raise ValueError(f"{name} must have 3 components, got shape {np.shape(v)}")
     return a

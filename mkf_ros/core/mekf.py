@@ -34,11 +34,25 @@ from mkf_ros.core.quaternion import q_omega_t, qmul_t, qnormalize_t, rotmat_t, t
 # Scratch layout of one block update (``work``, :func:`mekf_scratch`), by row offsets rather than
 # views (every view costs reference counting): rows ``0:nx`` ``P Hᵀ``, ``nx:2nx`` the gain ``K``,
 # ``2nx:2nx+3`` ``S``, then (projected updates) ``ℓ_g = (P Hᵀ)_gᵀ u`` per group ``g`` and the
-# 3×3 ``c_gh = ℓ_gᵀ S⁻¹ ℓ_h``.
+# 3×3 ``c_gh = ℓ_gᵀ S⁻¹ ℓ_h``, then (``2nx+9:2nx+12``) the block's measurement noise ``R``.
 @jit_inline
 def mekf_scratch(nx: int) -> np.ndarray:
     """Scratch for the block updates (layout above)."""
-    return np.empty((2 * nx + 9, 3))
+    return np.empty((2 * nx + 12, 3))
+
+
+# How a block's H acts (for the Joseph form, which needs B Hᵀ of a full matrix B): a vector
+# sensor ``[v̄]×`` on the attitude, the rate ``[0, I, 0]``, the gyro ``[0, I, I]``.
+H_VECTOR, H_RATE, H_RATE_BIAS = 0, 1, 2
+#: The covariance update of a block is the simple ``P − K (P Hᵀ)ᵀ`` while the smallest
+#: eigenvalue of its measurement noise ``R`` (Gershgorin bound) is at least this fraction of
+#: ``tr P + tr S``: then ``S`` is conditioned well enough (cond ≤ 1/τ) for its inverse to be
+#: accurate to ~1e-10 and the rounding of ``P`` is far below the posterior's own spread in the
+#: measured directions. Beyond it (a very precise sensor against a very wide prior: the ends of
+#: the noise parameters' ranges, the paper's ``P0 = 100 I``) the Joseph form, PSD for any gain
+#: (issue 14: the simple form made the bias variance negative, and the inverse of an
+#: ill-conditioned ``S`` made ``P`` indefinite by up to 1 % of its size).
+JOSEPH_TAU = 1e-6
 
 
 @jit_inline
@@ -138,11 +152,60 @@ def _innovation_test(work: np.ndarray, nx: int, r: tuple,
 
 
 @jit_inline
+def _needs_joseph(P: np.ndarray, nx: int, work: np.ndarray) -> bool:
+    """Whether a block's covariance update needs the Joseph form (:data:`JOSEPH_TAU`): ``R`` in
+    rows ``2nx+9…`` of ``work``, ``S`` in rows ``2nx…``."""
+    s0, r0 = 2 * nx, 2 * nx + 9
+    tr = work[s0, 0] + work[s0 + 1, 1] + work[s0 + 2, 2]
+    for i in range(nx):
+        tr += P[i, i]
+    lo = min(work[r0, 0] - abs(work[r0, 1]) - abs(work[r0, 2]),
+             work[r0 + 1, 1] - abs(work[r0 + 1, 0]) - abs(work[r0 + 1, 2]),
+             work[r0 + 2, 2] - abs(work[r0 + 2, 0]) - abs(work[r0 + 2, 1]))
+    return not lo >= JOSEPH_TAU * tr
+
+
+@jit_inline
+def _joseph(P: np.ndarray, nx: int, work: np.ndarray, hk: int, vb: tuple) -> None:
+    """``P ← (I − K H) P (I − K H)ᵀ + K R Kᵀ`` for any gain ``K`` (rows ``nx:2nx`` of ``work``),
+    ``R`` in rows ``2nx+9…``, ``H`` of kind ``hk`` (``vb`` = v̄ for :data:`H_VECTOR`): PSD for
+    any gain, and computed as that product, so that the rounding of the large prior terms is
+    multiplied by the small ``I − K H`` rather than left in a difference: ``B = P − K (PHᵀ)ᵀ``
+    (``= (I − K H) P``, in place), then ``P' = B − (B Hᵀ − K R) Kᵀ`` (the upper triangle from
+    ``B``'s, mirrored). Overwrites ``P Hᵀ`` (rows ``0:nx``)."""
+    r0 = 2 * nx + 9
+    for i in range(nx):  # B = P − K Cᵀ, C = P Hᵀ (full: B is not symmetric)
+        k0, k1, k2 = work[nx + i, 0], work[nx + i, 1], work[nx + i, 2]
+        for j in range(nx):
+            P[i, j] -= k0 * work[j, 0] + k1 * work[j, 1] + k2 * work[j, 2]
+    for i in range(nx):  # G = B Hᵀ − K R into rows 0:nx
+        if hk == H_VECTOR:  # (B Hᵀ)_i = v̄ × B[i, 0:3]
+            b0, b1, b2 = P[i, 0], P[i, 1], P[i, 2]
+            h0, h1, h2 = vb[1] * b2 - vb[2] * b1, vb[2] * b0 - vb[0] * b2, vb[0] * b1 - vb[1] * b0
+        elif hk == H_RATE:
+            h0, h1, h2 = P[i, 3], P[i, 4], P[i, 5]
+        else:
+            h0, h1, h2 = P[i, 3] + P[i, 6], P[i, 4] + P[i, 7], P[i, 5] + P[i, 8]
+        k0, k1, k2 = work[nx + i, 0], work[nx + i, 1], work[nx + i, 2]
+        work[i, 0] = h0 - (k0 * work[r0, 0] + k1 * work[r0 + 1, 0] + k2 * work[r0 + 2, 0])
+        work[i, 1] = h1 - (k0 * work[r0, 1] + k1 * work[r0 + 1, 1] + k2 * work[r0 + 2, 1])
+        work[i, 2] = h2 - (k0 * work[r0, 2] + k1 * work[r0 + 1, 2] + k2 * work[r0 + 2, 2])
+    for i in range(nx):  # P' = B − G Kᵀ (upper triangle, mirrored)
+        g0, g1, g2 = work[i, 0], work[i, 1], work[i, 2]
+        for j in range(i, nx):
+            p = P[i, j] - (g0 * work[nx + j, 0] + g1 * work[nx + j, 1] + g2 * work[nx + j, 2])
+            P[i, j] = p
+            P[j, i] = p
+
+
+@jit_inline
 def _block_update(P: np.ndarray, nx: int, dx: np.ndarray, work: np.ndarray, r: tuple,
-                  gate: float, frozen: int = 0) -> float:
-    """Kalman update for one 3-row block given ``P Hᵀ`` (nx×3) and ``S`` in ``work`` (layout
-    above) and the innovation ``r`` (already corrected for earlier blocks): ``K = P Hᵀ S⁻¹``,
-    ``Δx += K r``, ``P −= K (P Hᵀ)ᵀ`` (symmetric: the upper triangle, mirrored).
+                  gate: float, hk: int, vb: tuple, frozen: int = 0) -> float:
+    """Kalman update for one 3-row block given ``P Hᵀ`` (nx×3), ``S`` and ``R`` in ``work``
+    (layout above), ``H`` of kind ``hk`` (``vb`` for a vector sensor) and the innovation ``r``
+    (already corrected for earlier blocks): ``K = P Hᵀ S⁻¹``, ``Δx += K r``,
+    ``P −= K (P Hᵀ)ᵀ`` (symmetric: the upper triangle, mirrored), or the Joseph form where that
+    could lose positive definiteness (:data:`JOSEPH_TAU`, :func:`_joseph`).
     Returns the normalised innovation squared ``rᵀ S⁻¹ r``; ``-1`` if ``S`` is not positive
     definite, and nothing changes when that value exceeds ``gate``.
 
@@ -152,6 +215,13 @@ def _block_update(P: np.ndarray, nx: int, dx: np.ndarray, work: np.ndarray, r: t
     ``P − K₀ (PHᵀ)ᵀ`` everywhere but that block (valid for any gain: PSD by construction)."""
     go, nis, Si = _innovation_test(work, nx, r, gate)
     if not go:
+        return nis
+    if _needs_joseph(P, nx, work):
+        for i in range(nx):
+            k0, k1, k2 = _gain_row(work, i, Si) if i >= frozen else (0.0, 0.0, 0.0)
+            work[nx + i, 0], work[nx + i, 1], work[nx + i, 2] = k0, k1, k2
+            dx[i] += k0 * r[0] + k1 * r[1] + k2 * r[2]
+        _joseph(P, nx, work, hk, vb)
         return nis
     for i in range(nx):  # row i of K, then of Δx and P (P Hᵀ is a copy: P may change)
         k0, k1, k2 = _gain_row(work, i, Si)
@@ -166,7 +236,7 @@ def _block_update(P: np.ndarray, nx: int, dx: np.ndarray, work: np.ndarray, r: t
 
 @jit_inline
 def _joseph_projected(P: np.ndarray, nx: int, dx: np.ndarray, work: np.ndarray, r: tuple,
-                      gate: float, u: tuple) -> float:
+                      gate: float, u: tuple, vb: tuple) -> float:
     """:func:`_block_update` with the gain of every 3-row group (attitude, rate, bias) projected
     off the direction ``u`` (the world vertical in body axes), so that this measurement cannot
     change heading, vertical rate or vertical bias: ``K = Π K₀``, ``K₀ = P Hᵀ S⁻¹``,
@@ -174,7 +244,9 @@ def _joseph_projected(P: np.ndarray, nx: int, dx: np.ndarray, work: np.ndarray, 
     ``(I − K H) P (I − K H)ᵀ + K R Kᵀ = P − K (PHᵀ)ᵀ − PHᵀ Kᵀ + K S Kᵀ``, which with
     ``M = K₀ (PHᵀ)ᵀ = PHᵀ S⁻¹ (PHᵀ)ᵀ`` is ``P − ΠM − MΠ + ΠMΠ = P − M + (I − Π) M (I − Π)``;
     its group block ``(g, h)`` is ``P_gh − M_gh + c_gh u uᵀ``, ``c_gh = ℓ_gᵀ S⁻¹ ℓ_h``,
-    ``ℓ_g = (PHᵀ)_gᵀ u``."""
+    ``ℓ_g = (PHᵀ)_gᵀ u``. That expansion assumes the exact ``K₀``; where ``S`` is too
+    ill-conditioned for that (:data:`JOSEPH_TAU`) the Joseph form is computed as the product
+    (:func:`_joseph`, ``H = [v̄]×``)."""
     go, nis, Si = _innovation_test(work, nx, r, gate)
     if not go:
         return nis
@@ -182,6 +254,17 @@ def _joseph_projected(P: np.ndarray, nx: int, dx: np.ndarray, work: np.ndarray, 
     ng = nx // 3
     for i in range(nx):  # K₀
         work[nx + i, 0], work[nx + i, 1], work[nx + i, 2] = _gain_row(work, i, Si)
+    if _needs_joseph(P, nx, work):  # K = Π K₀, then the Joseph form as a product
+        for g in range(ng):
+            k = nx + 3 * g
+            for c in range(3):
+                ku = u[0] * work[k, c] + u[1] * work[k + 1, c] + u[2] * work[k + 2, c]
+                for i in range(3):
+                    work[k + i, c] -= u[i] * ku
+        for i in range(nx):
+            dx[i] += work[nx + i, 0] * r[0] + work[nx + i, 1] * r[1] + work[nx + i, 2] * r[2]
+        _joseph(P, nx, work, H_VECTOR, vb)
+        return nis
     for g in range(ng):
         # Δx_g += (I − u uᵀ) K₀_g r
         k = nx + 3 * g
@@ -252,10 +335,12 @@ def mekf_vector_update_t(
                 for k in range(3):
                     for m in range(3):
                         qb += R[k][i] * Qv[k][m] * R[m][j]
-            work[s0 + i, j] += qb + Rv[i][j]
+            rn = qb + Rv[i][j]
+            work[s0 + i, j] += rn
+            work[s0 + 9 + i, j] = rn  # the block's R (for the Joseph form)
     if tilt_only:
-        return _joseph_projected(P, nx, dx, work, r, gate, R[2])  # u = R(q̄)ᵀ ẑ
-    return _block_update(P, nx, dx, work, r, gate)
+        return _joseph_projected(P, nx, dx, work, r, gate, R[2], vb)  # u = R(q̄)ᵀ ẑ
+    return _block_update(P, nx, dx, work, r, gate, H_VECTOR, vb)
 
 
 @jit
@@ -288,7 +373,9 @@ def mekf_rate_update_t(
     for i in range(3):  # S = H P Hᵀ + R_ω
         for j in range(3):
             work[s0 + i, j] = work[3 + i, j] + (work[6 + i, j] if bias else 0.0) + Rw[i][j]
-    return _block_update(P, nx, dx, work, (r0, r1, r2), gate, frozen)
+            work[s0 + 9 + i, j] = Rw[i][j]
+    return _block_update(P, nx, dx, work, (r0, r1, r2), gate,
+                         H_RATE_BIAS if bias else H_RATE, (0.0, 0.0, 0.0), frozen)
 
 
 @jit
@@ -368,6 +455,21 @@ def mekf_heading_update_t(
         k[o], k[o + 1], k[o + 2] = u[0] * ku, u[1] * ku, u[2] * ku
     for i in range(nx):
         dx[i] += k[i] * r
+    tr = S
+    for i in range(nx):
+        tr += P[i, i]
+    if not var >= JOSEPH_TAU * tr:  # the Joseph form as the product (see _joseph)
+        for i in range(nx):  # B = P − k vᵀ = (I − k H) P
+            for j in range(nx):
+                P[i, j] -= k[i] * v[j]
+        for i in range(nx):  # g = B Hᵀ − k var (over v: no longer needed)
+            v[i] = P[i, 0] * He[0] + P[i, 1] * He[1] + P[i, 2] * He[2] - k[i] * var
+        for i in range(nx):  # P' = B − g kᵀ
+            for j in range(i, nx):
+                p = P[i, j] - v[i] * k[j]
+                P[i, j] = p
+                P[j, i] = p
+        return nis
     # Joseph form for any gain: P − K vᵀ − v Kᵀ + S K Kᵀ
     for i in range(nx):
         for j in range(i, nx):

@@ -9,10 +9,13 @@ concern the ROS node.
 
 from __future__ import annotations
 
+import difflib
 import math
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
+
+import numpy as np
 
 
 @dataclass(frozen=True)
@@ -46,8 +49,8 @@ class Param:
         """Return ``value`` coerced to the parameter's type, or raise a one-line ValueError."""
         n = self.name
         if self.type is bool:
-            if isinstance(value, bool):
-                return value
+            if isinstance(value, (bool, np.bool_)):  # numpy's booleans too (issue 14)
+                return bool(value)
             if isinstance(value, str) and value.lower() in ("true", "false"):
                 return value.lower() == "true"
             raise ValueError(f"{n} must be true or false, got {value!r}")
@@ -59,7 +62,9 @@ class Param:
                 raise ValueError(f"{n} must be one of {', '.join(self.choices)}, got {value!r}")
             return v
         if self.type in (int, float):
-            if isinstance(value, bool) or not isinstance(value, (int, float)):
+            if isinstance(value, (bool, np.bool_)):  # float(True) is 1.0: not a number here
+                raise ValueError(f"{n} must be a number, got {value!r}")
+            if not isinstance(value, (int, float)):
                 try:
                     value = float(value) if self.type is float else int(value)
                 except (TypeError, ValueError):
@@ -74,6 +79,10 @@ class Param:
                 )
             return v
         if self.type is list:
+            # a string is iterable, but "123" is not [1, 2, 3]; nor is True a number
+            if isinstance(value, (str, bytes)) or any(
+                    isinstance(x, (bool, np.bool_, str, bytes)) for x in _iter(value)):
+                raise ValueError(f"{n} must be a list of numbers, got {value!r}")
             try:
                 v = [float(x) for x in value]
             except (TypeError, ValueError):
@@ -89,6 +98,14 @@ class Param:
                 )
             return v
         raise TypeError(f"unsupported parameter type {self.type}")  # pragma: no cover
+
+
+def _iter(value: Any) -> list:
+    """The elements of ``value`` if it is a sequence (else none: float() judges it)."""
+    try:
+        return list(value)
+    except TypeError:
+        return []
 
 
 def _fmt(x: float) -> str:
@@ -334,6 +351,15 @@ def filter_params() -> list[Param]:
     return [p for p in BY_NAME.values() if p.scope == "filter"]
 
 
+def unknown_parameter(name: str, known: Iterable[str]) -> str:
+    """One short line for an unknown parameter name: the closest known names, and where the
+    full list is (not all ~60 names in one line)."""
+    close = difflib.get_close_matches(str(name), list(known), n=3, cutoff=0.6)
+    hint = f" (did you mean {' or '.join(map(repr, close))}?)" if close else ""
+    return (f"unknown filter parameter {name!r}{hint}; the parameters are listed in "
+            f"docs/estimator.md and mkf_ros.core.params.PARAMS")
+
+
 @dataclass
 class FilterParams(Mapping[str, Any]):
     """Validated values of the filter parameters; attribute and mapping access."""
@@ -345,7 +371,7 @@ class FilterParams(Mapping[str, Any]):
         vals = {p.name: p.validate(p.default) for p in filter_params()}
         for k, v in merged.items():
             if k not in vals:
-                raise ValueError(f"unknown filter parameter {k!r}; known: {', '.join(vals)}")
+                raise ValueError(unknown_parameter(k, vals))
             vals[k] = BY_NAME[k].validate(v)
         object.__setattr__(self, "values", vals)
 

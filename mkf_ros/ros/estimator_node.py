@@ -62,7 +62,7 @@ from mkf_ros.core.params import BY_NAME
 from mkf_ros.core.quaternion import qconj_np
 from mkf_ros.ros import convert, rawmsg
 from mkf_ros.ros.diagnostics import DiagnosticsTracker, Snapshot
-from mkf_ros.ros.parameters import declare_all, to_double, unknown_overrides
+from mkf_ros.ros.parameters import UnknownParameter, declare_all, to_double, unknown_overrides
 from mkf_ros.stream import StreamAdapter
 
 
@@ -161,7 +161,11 @@ class EstimatorNode(Node):
 
     # --- parameters ----------------------------------------------------------------------------
     def _pre_set(self, params: list[Parameter]) -> list[Parameter]:
-        """Accept integers for floating-point parameters (``ros2 param set x max_dt 1``)."""
+        """Accept integers for floating-point parameters (``ros2 param set x max_dt 1``);
+        refuse an unknown name with a reason naming it (:class:`UnknownParameter`)."""
+        for p in params:
+            if not self.has_parameter(p.name):
+                raise UnknownParameter(p.name)
         return [to_double(p) for p in params]
 
     def _on_set(self, params: list[Parameter]) -> SetParametersResult:

@@ -9,9 +9,11 @@ command line, ``max_dt: 1`` in YAML) are accepted as doubles.
 
 from __future__ import annotations
 
+import difflib
 from typing import Any
 
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+from rclpy.exceptions import ParameterNotDeclaredException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
@@ -31,6 +33,28 @@ FOREIGN_HINTS: dict[str, str] = {
     "do_adaptive_gain": "accelerometer disturbances are modelled by acc_disturbance and "
                         "acc_magnitude_tolerance",
 }
+
+
+def unknown_hint(name: str) -> str:
+    """Why ``name`` is not a parameter here: a foreign filter's parameter and what replaces
+    it, or a typo and the closest names."""
+    hint = FOREIGN_HINTS.get(name)
+    if hint is None:
+        close = difflib.get_close_matches(name, list(BY_NAME), n=3, cutoff=0.6)
+        hint = "not a parameter of this node" + (
+            f" (did you mean {' or '.join(map(repr, close))}?)" if close else " (typo?)")
+    elif name == "gain" and "madgwick_beta" in BY_NAME:
+        hint += " (with algorithm madgwick: madgwick_beta)"
+    return hint
+
+
+class UnknownParameter(ParameterNotDeclaredException):
+    """SetParameters with a name the node does not have: rclpy's own exception (its parameter
+    service turns it into the refusal's reason) with a message that names the parameter and
+    says why (rclpy's says "Invalid access to undeclared parameter(s): []")."""
+
+    def __init__(self, name: str) -> None:
+        Exception.__init__(self, f"unknown parameter {name!r}: {unknown_hint(name)}")
 
 
 def descriptor(p: Param) -> ParameterDescriptor:
@@ -100,8 +124,5 @@ def unknown_overrides(node: Node) -> dict[str, str]:
     for name in overrides:
         if node.has_parameter(name):
             continue
-        hint = FOREIGN_HINTS.get(name, "not a parameter of this node (typo?)")
-        if name == "gain" and "madgwick_beta" in BY_NAME:
-            hint += " (with algorithm madgwick: madgwick_beta)"
-        out[name] = hint
+        out[name] = unknown_hint(name)
     return out

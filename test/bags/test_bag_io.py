@@ -3,8 +3,10 @@ with rosbags, writes are atomic, and every broken input gives one BagError line.
 
 from __future__ import annotations
 
+import re
 import sqlite3
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -246,3 +248,22 @@ def test_mcap_fast_path_variants(tmp_path: Path, monkeypatch: pytest.MonkeyPatch
         assert got["/imu"].log_ns.tolist() == [t for t, _ in ref]
         assert got["/other"].raws == [bytes(rows[5])]
 
+
+
+@pytest.mark.parametrize(("edit", "meaning"), [
+    (lambda t: re.sub(r"\n(\s*)version: \d+", "\n", t, count=1),
+     "metadata.yaml is incomplete or not rosbag2 metadata"),
+    (lambda t: "5\n", "metadata.yaml is not rosbag2 metadata"),
+    (lambda t: "- 1\n- 2\n", "metadata.yaml is not rosbag2 metadata"),
+])
+def test_corrupt_metadata_says_what_is_wrong_with_the_file(tmp_path: Path, edit: Any,
+                                                           meaning: str) -> None:
+    """Issue 14 item 6: these answered with the backend's internals only
+    ("KeyError('version')", "'int' object is not subscriptable")."""
+    bag = _good_bag(tmp_path, "sqlite3")
+    meta = bag / "metadata.yaml"
+    meta.write_text(edit(meta.read_text()))
+    with pytest.raises(BagError) as e:
+        _read_all(bag)
+    assert str(e.value).startswith(f"cannot read bag {bag}: {meaning} (")
+    assert "\n" not in str(e.value)

@@ -62,3 +62,34 @@ def test_cli_flags_are_generated() -> None:
                                       "gyro_noise": 0.02, "mag_reference": [0.0, 1.0, -1.0]}
     with pytest.raises(SystemExit):
         parser.parse_args(["--chart", "euler"])
+
+
+# --- issue 14 item 6: coercion and the unknown-keyword message ---------------------------------
+
+def test_numpy_booleans_are_booleans() -> None:
+    import numpy as np
+
+    assert FilterParams(use_mag=np.True_).use_mag is True
+    assert FilterParams(chart_update=np.False_).chart_update is False
+
+
+@pytest.mark.parametrize(("kw", "message"), [
+    ({"gravity": True}, "gravity must be a number, got True"),
+    ({"acc_noise": False}, "acc_noise must be a number, got False"),
+    ({"mag_reference": "123"}, "mag_reference must be a list of numbers, got '123'"),
+    ({"mag_reference": [True, 0.0, 0.0]}, "mag_reference must be a list of numbers"),
+])
+def test_a_boolean_or_a_string_is_not_a_number(kw: dict, message: str) -> None:
+    with pytest.raises(ValueError, match=f"^{message}"):
+        FilterParams(**kw)
+
+
+def test_unknown_keyword_is_one_short_line_with_a_suggestion() -> None:
+    with pytest.raises(ValueError) as e:
+        FilterParams(gyro_nosie=0.1)
+    msg = str(e.value)
+    assert "\n" not in msg and len(msg) <= 200
+    assert msg.startswith("unknown filter parameter 'gyro_nosie' (did you mean 'gyro_noise'")
+    with pytest.raises(ValueError, match=r"^unknown filter parameter 'turbo'; ") as e:
+        FilterParams(turbo=1)
+    assert len(str(e.value)) <= 200

@@ -141,6 +141,26 @@ def test_invalid_values_rejected_with_reason(running) -> None:
     assert "mag_reference must have 3 elements" in r.reason
 
 
+def test_unknown_name_rejected_naming_it(running) -> None:
+    """Issue 14 item 6: rclpy's own answer was "Invalid access to undeclared parameter(s): []"."""
+    h = running
+    before = dict(h.est.stream.params)
+    r = h.set(gain=0.1)[0]
+    assert not r.successful
+    assert r.reason.startswith("unknown parameter 'gain': imu_filter_madgwick's gain has no "
+                               "equivalent")
+    assert "madgwick_beta" in r.reason
+    r = h.set(zeta=0.1)[0]
+    assert not r.successful and "unknown parameter 'zeta'" in r.reason
+    assert "estimate_gyro_bias" in r.reason
+    r = h.set(gyro_nosie=0.1)[0]
+    assert not r.successful
+    assert r.reason == ("unknown parameter 'gyro_nosie': not a parameter of this node (did you "
+                        "mean 'gyro_noise' or 'gyro_bias_noise' or 'mag_noise'?)")
+    assert h.est.stream.params == before
+    assert publishes(h, T0 + 1.0)
+
+
 def test_integers_accepted_for_floats(running) -> None:
     h = running
     assert h.set(max_dt=1)[0].successful

@@ -156,3 +156,24 @@ def test_never_dies_on_a_message(harness) -> None:
     assert h.spin_until(lambda: any(s.level == b"\x02" for d in h.diag for s in d.status), 3.0)
     st = next(s for d in h.diag for s in d.status if s.level == b"\x02")
     assert "RuntimeError: boom" in st.message
+
+
+def test_never_nan_at_valid_range_ends_or_with_huge_finite_readings(harness) -> None:
+    """Issue 14: at these valid settings the bias variance went negative at the first rest
+    update and every angular_velocity_covariance was NaN; a gyro of 1e150 or a field of 1e155
+    was a reading."""
+    from mkf_ros.sim import simulate
+
+    h = harness({"use_mag": True, "gyro_noise": 1e-6, "rate_process_noise": 1e9,
+                 "rest_rate_stddev": 1e-6, "angular_velocity_source": "bias_corrected"})
+    rec = simulate("static", duration=3, rate=100, seed=1)
+    h.send_recording(rec)
+    assert len(h.out) == rec.t.size
+    t = T0 + 3.01
+    h.send([imu_msg(t, (1e150, 0.0, 0.0), G), imu_msg(t + 0.01, (0.0, 0.0, 0.0), (1e200, 0, 0)),
+            mag_msg(t + 0.01, (1e155, 0.0, 1e155)), imu_msg(t + 0.02, (0.0, 0.0, 0.0), G)])
+    assert len(h.out) == rec.t.size + 3
+    assert all(finite(m) for m in h.out)
+    c = h.est.stream.counters
+    assert (c["gyr_invalid"], c["acc_invalid"], c["mag_invalid"]) == (1, 1, 1)
+    assert h.est._exceptions == 0

@@ -1,0 +1,229 @@
+"""Property-based contracts of mkf_ros.core.filter (issue 14), for every algorithm × chart ×
+chart update × sensor set × world frame: finite, unit-norm outputs; a symmetric PSD covariance;
+a refused call leaves the state bit-identical; recovery after a burst of garbage; every accepted
+parameter set, range ends included, runs without a non-finite or indefinite output.
+
+Deterministic (``derandomize``): CI cannot flake. Run time is bounded by the profile:
+``MKF_PROPERTY_PROFILE=ci`` (default, a few examples per test) or ``long`` (×20, for a soak
+run: ``MKF_PROPERTY_PROFILE=long ./run test test/core/test_filter_properties.py``)."""
+
+from __future__ import annotations
+
+import os
+from typing import Any
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, assume, given, settings
+from hypothesis import strategies as st
+
+import mkf_ros
+from mkf_ros.core.filter import AttitudeFilter
+from mkf_ros.core.params import ALGORITHMS, BY_NAME, WORLD_FRAMES
+from mkf_ros.metrics import orientation_errors
+from mkf_ros.sim import simulate
+
+PROFILE = os.environ.get("MKF_PROPERTY_PROFILE", "ci")
+if PROFILE not in ("ci", "long"):
+    raise ValueError(f"MKF_PROPERTY_PROFILE must be ci or long, got {PROFILE!r}")
+SCALE = 20 if PROFILE == "long" else 1
+
+
+def examples(n: int) -> Any:
+    """Settings of one property: ``n`` examples in CI, 20 n in the long profile."""
+    return settings(max_examples=n * SCALE, derandomize=True, deadline=None, database=None,
+                    suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
+
+
+G = 9.80665
+SIM = simulate("slow_rotation", duration=12, rate=100, seed=3)
+STATIC = simulate("static", duration=12, rate=100, seed=4)
+
+configs = st.fixed_dictionaries({
+    "algorithm": st.sampled_from(ALGORITHMS),
+    "chart": st.sampled_from(BY_NAME["chart"].choices),
+    "chart_update": st.booleans(),
+    "use_mag": st.booleans(),
+    "world_frame": st.sampled_from(WORLD_FRAMES),
+})
+
+#: what a hostile caller may put in a reading (each row: 3 components); estimate() refuses an
+#: infinite value as a whole (ValueError naming the sample), the stateful API skips it
+_BAD = [np.nan, 1e150, -1e200, 1e308, 0.0, 1e-200, 5e3]
+garbage = st.lists(st.sampled_from([*_BAD, np.inf, -np.inf]), min_size=3,
+                   max_size=3).map(np.array)
+#: readings that are invalid for every sensor (NaN, beyond any sensor, no direction)
+_INVALID = [np.nan, 1e150, -1e200, 1e308, 1e-200]
+invalid_rows = st.lists(st.sampled_from(_INVALID), min_size=3, max_size=3).map(np.array)
+bad_dts = st.sampled_from([np.nan, np.inf, -np.inf, -1e-3, -100.0])
+
+
+def check_outputs(f: AttitudeFilter, where: str) -> None:
+    """The published contract after every accepted step."""
+    q, C = f.quaternion, f.covariance
+    assert np.all(np.isfinite(q)), where
+    assert abs(np.linalg.norm(q) - 1.0) < 1e-9, where
+    assert np.all(np.isfinite(C)), where
+    np.testing.assert_array_equal(C, C.T, err_msg=where)
+    # PSD up to eigvalsh's own rounding (~n eps |C|: at the range ends |C| reaches 1e8 rad²)
+    assert np.linalg.eigvalsh(C).min() >= -1e-15 * np.abs(C).max(), where
+    P = f.state_covariance
+    assert np.all(np.isfinite(P)), where
+    d = max(float(np.abs(np.diag(P)).max()), 1e-300)
+    assert np.abs(P - P.T).max() <= 1e-12 * d, where
+    assert np.linalg.eigvalsh(0.5 * (P + P.T)).min() >= -1e-9 * d, where
+    assert np.all(np.isfinite(f.bias)), where
+
+
+def snapshot(f: AttitudeFilter) -> tuple[bytes, ...]:
+    return (f._cfg.tobytes(), f._nz.tobytes(), f._st.tobytes(), f._P.tobytes(),
+            f._fl.tobytes(), f.counters.tobytes())
+
+
+@st.composite
+def hostile_streams(draw: st.DrawFn) -> list[tuple]:
+    """60 steps of the simulated rotation, each one clean, missing a sensor, garbage in one
+    sensor, a repeated instant (Δt = 0), a long gap, or a refused Δt."""
+    n = 60
+    k0 = draw(st.integers(0, SIM.t.size - n - 1))
+    steps = []
+    for k in range(k0, k0 + n):
+        g, a, m = SIM.gyr[k], SIM.acc[k], SIM.mag[k]
+        dt = 0.01
+        kind = draw(st.sampled_from(["clean", "clean", "clean", "missing", "garbage", "dt0",
+                                     "gap", "bad_dt"]))
+        if kind == "missing":
+            which = draw(st.sampled_from("gam"))
+            g, a, m = (None if which == "g" else g, None if which == "a" else a,
+                       None if which == "m" else m)
+        elif kind == "garbage":
+            which = draw(st.sampled_from("gam"))
+            bad = draw(garbage)
+            g, a, m = (bad if which == "g" else g, bad if which == "a" else a,
+                       bad if which == "m" else m)
+        elif kind == "dt0":
+            dt = 0.0
+        elif kind == "gap":
+            dt = draw(st.sampled_from([0.2, 2.0, 3600.0]))
+        elif kind == "bad_dt":
+            dt = draw(bad_dts)
+        steps.append((kind, dt, g, a, m))
+    return steps
+
+
+@examples(100)
+@given(cfg=configs, stream=hostile_streams())
+def test_step_keeps_its_contract_on_hostile_streams(cfg: dict, stream: list[tuple]) -> None:
+    f = AttitudeFilter(**cfg)
+    for i, (kind, dt, g, a, m) in enumerate(stream):
+        m = m if cfg["use_mag"] else None
+        if kind == "bad_dt":
+            before = snapshot(f)
+            with pytest.raises(ValueError, match=r"^dt must be"):
+                f.step(dt, g, a, m)
+            assert snapshot(f) == before
+            continue
+        f.step(dt if i else 0.0, g, a, m)
+        check_outputs(f, f"step {i} ({kind})")
+
+
+@examples(60)
+@given(cfg=configs, burst=st.lists(st.tuples(st.sampled_from("gam"), invalid_rows), min_size=1,
+                                   max_size=50),
+       start=st.integers(100, 400))
+def test_estimate_recovers_after_a_burst_of_garbage(cfg: dict, burst: list, start: int) -> None:
+    """Invalid readings are skipped and counted, whatever their size: the outputs stay finite and
+    2 s after the burst the estimate is as good as without it."""
+    data = {"g": STATIC.gyr.copy(), "a": STATIC.acc.copy(), "m": STATIC.mag.copy()}
+    for i, (which, bad) in enumerate(burst):
+        data[which][start + i] = bad
+    mag = data["m"] if cfg["use_mag"] else None
+    kw = {k: v for k, v in cfg.items() if k != "use_mag"}
+    r = mkf_ros.estimate(data["g"], data["a"], mag, dt=0.01, **kw)
+    for name in ("quat", "cov", "omega", "bias", "bias_std"):
+        assert np.all(np.isfinite(getattr(r, name))), name
+    # at least every row with a NaN or a value no sensor reads (≥ 1e150) is skipped and counted
+    # (a zero gyro, say, is a reading; a magnetometer row is ignored without use_mag)
+    must = sum(1 for w, bad in burst if (cfg["use_mag"] or w != "m")
+               and (np.isnan(bad).any() or np.abs(bad).max() >= 1e150))
+    counted = sum(r.counters[f"{s}_{c}"] for s in ("gyr", "acc", "mag")
+                  for c in ("missing", "invalid"))
+    assert counted >= must
+    clean = mkf_ros.estimate(STATIC.gyr, STATIC.acc, STATIC.mag if cfg["use_mag"] else None,
+                             dt=0.01, **kw)
+    q_true = mkf_ros.core.frames.FROM_ENU[cfg["world_frame"]]
+    q_ref = np.array([mkf_ros.core.quaternion.qmul(q_true, q) for q in STATIC.quat])
+    after = slice(start + len(burst) + 200, None)
+    e = np.degrees(orientation_errors(r.quat[after], q_ref[after])["inclination"])
+    e0 = np.degrees(orientation_errors(clean.quat[after], q_ref[after])["inclination"])
+    assert e.max() <= e0.max() + 1.0
+
+
+def _range_value(draw: st.DrawFn, name: str) -> Any:
+    p = BY_NAME[name]
+    lo, hi = p.range  # type: ignore[misc]
+    pick = draw(st.sampled_from(["lo", "hi", "default", "between"]))
+    if pick == "lo":
+        v = lo
+    elif pick == "hi":
+        v = hi
+    elif pick == "default":
+        return p.default
+    elif lo > 0:
+        v = float(np.exp(draw(st.floats(np.log(lo), np.log(hi)))))
+    else:
+        v = draw(st.floats(lo, hi))
+    if p.type is list:
+        return [float(v)] * p.length  # type: ignore[operator]
+    return float(v)
+
+
+#: the numeric filter parameters and the node's constant_dt (the time step of the stream)
+RANGED = sorted(p.name for p in BY_NAME.values()
+                if p.range is not None and p.scope == "filter"
+                and p.name not in ("mag_soft_iron",))
+
+
+@st.composite
+def parameter_sets(draw: st.DrawFn) -> dict:
+    """A parameter set where a few numeric parameters sit at a range end or anywhere inside."""
+    names = draw(st.lists(st.sampled_from(RANGED), min_size=1, max_size=6, unique=True))
+    ps: dict[str, Any] = {n: _range_value(draw, n) for n in names}
+    ps.update(draw(configs))
+    ps["init_mode"] = draw(st.sampled_from(["align", "paper"]))
+    ps["estimate_gyro_bias"] = draw(st.booleans())
+    return ps
+
+
+@examples(200)
+@given(ps=parameter_sets(), data=st.sampled_from(["rotation", "static"]),
+       dt=st.sampled_from([0.01, 0.01, 1.0, 10.0]))
+def test_every_accepted_parameter_set_keeps_the_contract(ps: dict, data: str,
+                                                         dt: float) -> None:
+    """10 s of data (or 40 steps of a long Δt) through the stateful filter, checked at every
+    step."""
+    sim = SIM if data == "rotation" else STATIC
+    try:
+        f = AttitudeFilter(**ps)
+    except ValueError as e:  # a combination the parameters refuse: not an accepted set
+        assert "init_mode 'paper' with use_mag needs mag_reference" in str(e)
+        assume(False)
+    n = 1000 if dt < 0.1 else 40
+    for k in range(n):
+        f.step(dt if k else 0.0, sim.gyr[k], sim.acc[k], sim.mag[k] if ps["use_mag"] else None)
+        if k % 10 == 0 or k < 5:
+            check_outputs(f, f"sample {k}")
+    check_outputs(f, "end")
+
+
+@pytest.mark.xfail(strict=True, reason="a plausible-range but absurd accelerometer sample "
+                   "contaminates the accelerometer low-pass: gating/recovery logic, the "
+                   "real-world robustness issue (issue 14 defers it there)")
+def test_one_absurd_accelerometer_sample_is_recovered_within_seconds() -> None:
+    """Found by the property above with a 510 g sample (below the 10,000 g invalid limit):
+    the MEKF tilts by 74° and is still 6° off 28 s later."""
+    acc = STATIC.acc.copy()
+    acc[100] = [0.0, 0.0, 5000.0]
+    r = mkf_ros.estimate(STATIC.gyr, acc, dt=0.01)
+    e = np.degrees(orientation_errors(r.quat[400:], STATIC.quat[400:])["inclination"])
+    assert e.max() < 2.0
