@@ -12,6 +12,9 @@ read from its log.
     ./run bench startup --installed               # the same from a wheel of this checkout,
                                                   # installed into a throw-away venv (the
                                                   # `pip install` / `colcon build` path)
+    ./run bench startup --installed --no-precompile --runs 1 --cache cold
+                                                  # a wheel built without the install-time
+                                                  # compile: the node compiles on first start
     .venv/bin/python bench/startup.py --runs 1 --cache cold
 
 ``--installed`` builds the wheel (that runs the install-time kernel compile, which it times),
@@ -63,7 +66,9 @@ def first_output(estimator: list[str], cache: Path, timeout: float) -> tuple[flo
     msg.header.frame_id = "imu_link"
     msg.linear_acceleration.z = 9.81
     t0 = time.monotonic()
-    proc = subprocess.Popen(estimator, env=env, stdout=log, stderr=subprocess.STDOUT)
+    # started outside the checkout, so that `-m` cannot import the source tree by accident
+    proc = subprocess.Popen(estimator, env=env, stdout=log, stderr=subprocess.STDOUT,
+                            cwd=cache.parent)
     try:
         k = 0
         while not got:
@@ -94,14 +99,20 @@ def first_output(estimator: list[str], cache: Path, timeout: float) -> tuple[flo
     return first, float(m.group(1)) if m else float("nan"), text
 
 
-def installed_estimator(work: Path) -> tuple[list[str], float]:
-    """Build a wheel of this checkout (timing it: it runs the install-time kernel compile),
-    install it into a venv layered on the current environment, return its estimator command."""
-    wheels = work / "wheels"
+def installed_estimator(work: Path, precompile: bool) -> tuple[list[str], float]:
+    """Build a wheel of this checkout (timing it: it runs the install-time kernel compile
+    unless ``precompile`` is False), install it into a venv layered on the current environment,
+    return its estimator command."""
+    wheels, src = work / "wheels", work / "src"
+    # a clean copy: no build/ left over from an earlier build, no kernels compiled before
+    shutil.copytree(ROOT, src, ignore=shutil.ignore_patterns(
+        ".git", ".venv", "build", "_kernels", "*.egg-info", "__pycache__", ".*_cache"))
+    env = dict(os.environ, MKF_ROS_CACHE_DIR=str(work / "build-cache"))
+    if not precompile:
+        env["MKF_ROS_NO_PRECOMPILE"] = "1"
     t = time.monotonic()
     subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation",
-                    "-q", "-w", str(wheels), str(ROOT)], check=True,
-                   env=dict(os.environ, MKF_ROS_CACHE_DIR=str(work / "build-cache")))
+                    "-q", "-w", str(wheels), str(src)], check=True, env=env)
     build = time.monotonic() - t
     venv = work / "venv"
     subprocess.run([sys.executable, "-m", "venv", "--without-pip", str(venv)], check=True)
@@ -113,6 +124,10 @@ def installed_estimator(work: Path) -> tuple[list[str], float]:
     wheel = next(wheels.glob("mkf_ros-*.whl"))
     subprocess.run([sys.executable, "-m", "pip", "install", "--no-deps", "-q", "--prefix",
                     str(venv), str(wheel)], check=True)
+    where = subprocess.run([str(vpy), "-c", "import mkf_ros; print(mkf_ros.__file__)"],
+                           check=True, capture_output=True, text=True, cwd=work).stdout.strip()
+    assert Path(where).is_relative_to(venv), f"the layered venv imports mkf_ros from {where}"
+    print(f"installed mkf_ros: {Path(where).parent}")
     return [str(vpy), "-m", "mkf_ros.ros.estimator_node"], build
 
 
@@ -124,6 +139,9 @@ def main(argv: list[str] | None = None) -> int:
                     help="kernel cache state(s) to measure (default both)")
     ap.add_argument("--installed", action="store_true",
                     help="measure a wheel of this checkout installed into a throw-away venv")
+    ap.add_argument("--no-precompile", action="store_true",
+                    help="with --installed: build the wheel without the install-time kernel "
+                         "compile (MKF_ROS_NO_PRECOMPILE=1), so a cold start compiles")
     ap.add_argument("--timeout", type=float, default=600.0,
                     help="give up on a run after this many seconds (default 600)")
     args = ap.parse_args(argv)
@@ -134,7 +152,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         build = None
         if args.installed:
-            cmd, build = installed_estimator(work)
+            cmd, build = installed_estimator(work, not args.no_precompile)
         else:
             exe = Path(sys.executable).parent / "estimator"
             cmd = [str(exe)] if exe.is_file() else [sys.executable, "-m", "mkf_ros.ros.estimator_node"]
