@@ -5,11 +5,49 @@ ros-* PyPI wheels are for development and CI only (requirements/ros-jazzy.txt)
 and must never appear in install_requires.
 """
 
+import os
+import shutil
+import subprocess
+import sys
 from glob import glob
 
 from setuptools import find_packages, setup
+from setuptools.command.build_py import build_py
 
 package_name = "mkf_ros"
+
+
+class BuildPyWithKernels(build_py):
+    """``build_py`` plus the install-time kernel compile (``mkf_ros.core._jit.precompile``):
+    the numba kernels are compiled into the built package (``mkf_ros/_kernels/``) so that the
+    first start of the installed node loads them instead of compiling for minutes. Skipped,
+    with a note, when numba cannot be imported by the build (e.g. pip's isolated build env;
+    use ``pip install --no-build-isolation`` or ``colcon build``) or when
+    ``MKF_ROS_NO_PRECOMPILE=1``; the kernels are then compiled on first use."""
+
+    def run(self) -> None:
+        super().run()
+        if (self.dry_run or getattr(self, "editable_mode", False)
+                or os.environ.get("MKF_ROS_NO_PRECOMPILE") == "1"):
+            return  # (an editable checkout precompiles into its own tree: ./run setup)
+        lib = os.path.abspath(self.build_lib)
+        code = "import mkf_ros.core._jit as j; j.precompile(j.PACKAGED_CACHE_ROOT)"
+        path = os.pathsep.join(filter(None, [lib, os.environ.get("PYTHONPATH")]))
+        env = dict(os.environ, PYTHONPATH=path,
+                   MKF_ROS_CACHE_DIR=os.path.join(lib, package_name, "_kernels"))
+        try:
+            import numba  # noqa: F401
+        except ImportError:
+            print("mkf_ros: numba not importable at build time; kernels will compile on first use",
+                  file=sys.stderr)
+            return
+        here = os.path.join(os.path.dirname(os.path.abspath(__file__)), package_name, "_kernels")
+        if os.path.isdir(here):  # a checkout that compiled them already (./run setup): reuse
+            shutil.copytree(here, os.path.join(lib, package_name, "_kernels"), dirs_exist_ok=True)
+        print("mkf_ros: compiling the filter kernels into the package (minutes; once per "
+              "kernel version) ...", file=sys.stderr)
+        subprocess.run([sys.executable, "-c", code], env=env, cwd=lib, check=True)
+
 
 setup(
     name=package_name,
@@ -40,6 +78,7 @@ setup(
         "cluster": ["dask[distributed]>=2024.1"],
     },
     python_requires=">=3.10",
+    cmdclass={"build_py": BuildPyWithKernels},
     zip_safe=True,
     entry_points={
         "console_scripts": [

@@ -151,24 +151,37 @@ def estimate(
 FIRST_COMPILE_TIME = "about two minutes"
 
 
-def warmup() -> None:
-    """Compile (or load from numba's on-disk cache) every kernel the filters use, so that the
-    first real sample is not delayed. The first call on a new installation takes
-    :data:`FIRST_COMPILE_TIME`; later calls load the cache in well under a second."""
+#: The kernel families :func:`warmup` can prepare: :func:`estimate`'s batch loop,
+#: :class:`~mkf_ros.core.filter.AttitudeFilter`'s step, and the streaming front end of the node
+#: and of ``mkf process``. Each compiles the whole filter once (numba inlines it into the loop).
+WARMUP_PARTS = ("estimate", "filter", "stream")
+
+
+def warmup(parts: tuple[str, ...] | list[str] = WARMUP_PARTS) -> None:
+    """Compile (or load from the kernel cache) the kernels of ``parts`` (default: all, see
+    :data:`WARMUP_PARTS`), so that the first real sample is not delayed. Loading takes well under
+    a second; compiling (no cache of this version, e.g. an install without the install-time
+    compile of :mod:`mkf_ros.core._jit`) takes :data:`FIRST_COMPILE_TIME` for all parts."""
     from mkf_ros.core.filter import AttitudeFilter
     from mkf_ros.stream import StreamAdapter
 
+    unknown = [p for p in parts if p not in WARMUP_PARTS]
+    if unknown:
+        raise ValueError(f"warmup: unknown part(s) {unknown}; expected some of {WARMUP_PARTS}")
     n = 4
     gyr = np.zeros((n, 3))
     acc = np.tile([0.0, 0.0, 9.81], (n, 1))
     mag = np.tile([0.0, 20.0, -40.0], (n, 1))
     for algo in ("mekf", "mukf"):
-        estimate(gyr, acc, mag, dt=0.01, algorithm=algo, estimate_gyro_bias=True)
-        f = AttitudeFilter(algorithm=algo, use_mag=True)
-        for k in range(n):
-            f.step(0.01, gyr[k], acc[k], mag[k])
-        _ = f.quaternion
-        s = StreamAdapter(algorithm=algo, use_mag=True)  # the node's and mkf process' kernels
-        for k in range(n):
-            s.on_mag(1.0 + 0.01 * k, mag[k])
-            s.on_imu(1.0 + 0.01 * k, gyr[k], acc[k])
+        if "estimate" in parts:
+            estimate(gyr, acc, mag, dt=0.01, algorithm=algo, estimate_gyro_bias=True)
+        if "filter" in parts:
+            f = AttitudeFilter(algorithm=algo, use_mag=True)
+            for k in range(n):
+                f.step(0.01, gyr[k], acc[k], mag[k])
+            _ = f.quaternion
+        if "stream" in parts:
+            s = StreamAdapter(algorithm=algo, use_mag=True)
+            for k in range(n):
+                s.on_mag(1.0 + 0.01 * k, mag[k])
+                s.on_imu(1.0 + 0.01 * k, gyr[k], acc[k])

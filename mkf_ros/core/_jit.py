@@ -6,18 +6,30 @@ Python, which is how a researcher can step through the equations in a debugger.
 
 Caching: numba's own cache is keyed per source file, so a kernel is not recompiled when a kernel
 it calls (in another file) changes — stale machine code. :class:`KernelCacheLocator` keys every
-kernel on a hash of *all* kernel sources of the package instead, and keeps the cache in a per-user
-directory (``$MKF_ROS_CACHE_DIR``, else ``$XDG_CACHE_HOME/mkf_ros``, else ``~/.cache/mkf_ros``),
-so an editable install, a colcon install tree and every process share one cache, and any change
-to any kernel invalidates all of them. If that directory is not writable numba's usual locations
-are used.
+kernel on a hash of *all* kernel sources of the package instead (plus the numba and Python
+versions; numba itself keys each entry on the CPU, so a foreign-CPU entry is never loaded), and
+keeps the cache in a per-user directory (``$MKF_ROS_CACHE_DIR``, else
+``$XDG_CACHE_HOME/mkf_ros``, else ``~/.cache/mkf_ros``), so an editable install, a colcon install
+tree and every process share one cache, and any change to any kernel invalidates all of them.
+
+Compiling takes minutes, so the kernels are also compiled at *install* time (``setup.py``'s
+``build_py`` step, which ``pip install``, ``pip wheel`` and ``colcon build`` run, and
+``./run setup`` for the editable checkout: :func:`precompile`) into the package itself
+(``mkf_ros/_kernels/numba-<hash>/``). A user cache that lacks a kernel is seeded from there (a
+file copy, well under a second), so a new user, container or cache directory starts in seconds.
+
+A cache directory that cannot be written is not an error: the kernels go to a private temporary
+directory instead (seeded the same way) and one warning says where it looked.
 """
 
 from __future__ import annotations
 
 import hashlib
 import os
+import shutil
 import sys
+import tempfile
+import warnings
 from pathlib import Path
 
 import numba
@@ -25,6 +37,8 @@ from numba.core import caching
 
 _PACKAGE_DIR = Path(__file__).resolve().parents[1]
 _MARKER = "core._jit import jit"
+#: Where the install-time compile puts its cache, inside the package.
+PACKAGED_CACHE_ROOT = _PACKAGE_DIR / "_kernels"
 
 
 def _kernel_files() -> list[Path]:
@@ -45,6 +59,10 @@ def _kernel_hash() -> str:
     return h.hexdigest()[:16]
 
 
+KERNEL_HASH = _kernel_hash()
+_VERSION_DIR = f"numba-{KERNEL_HASH}"
+
+
 def _cache_root() -> Path:
     env = os.environ.get("MKF_ROS_CACHE_DIR")
     if env:
@@ -53,12 +71,69 @@ def _cache_root() -> Path:
     return (Path(xdg) if xdg else Path.home() / ".cache") / "mkf_ros"
 
 
-KERNEL_HASH = _kernel_hash()
+def _writable_dir(path: Path) -> bool:
+    """Create ``path`` if needed; True when a file can be written in it."""
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=path):
+            pass
+    except OSError:
+        return False
+    return True
+
+
+def _seed(cache: Path) -> None:
+    """Copy each install-time kernel whose index ``cache`` lacks (best effort). A kernel is an
+    index ``NAME.nbi`` and its machine code ``NAME.<k>.nbc``; a kernel the cache already has is
+    left alone, the code is copied before the index, and every file is written under a
+    temporary name and renamed, so a concurrent process never loads half a kernel."""
+    src = PACKAGED_CACHE_ROOT / _VERSION_DIR
+    if not src.is_dir() or src.resolve() == cache.resolve():
+        return
+    try:
+        for index in src.rglob("*.nbi"):
+            dst = cache / index.relative_to(src)
+            if dst.exists():
+                continue
+            dst.parent.mkdir(parents=True, exist_ok=True)
+            for f in [*index.parent.glob(f"{index.stem}.*.nbc"), index]:
+                tmp = dst.parent / f".{f.name}.{os.getpid()}.tmp"
+                shutil.copyfile(f, tmp)
+                os.replace(tmp, dst.parent / f.name)
+    except OSError:
+        return
+
+
+def configured_cache_dir() -> Path:
+    """Where the environment says this kernel version is cached (see the module docstring);
+    :func:`kernel_cache_dir` is where it actually is."""
+    return _cache_root() / _VERSION_DIR
+
+
+def _choose_cache_dir() -> Path:
+    """The cache directory of this kernel version, seeded from the install-time kernels; a
+    private temporary directory (one warning) when the configured one cannot be written."""
+    root = _cache_root()
+    cache = configured_cache_dir()
+    if not _writable_dir(cache):
+        fallback = Path(tempfile.gettempdir()) / f"mkf_ros-{os.getuid()}" / _VERSION_DIR
+        if not _writable_dir(fallback):
+            fallback = Path(tempfile.mkdtemp(prefix="mkf_ros-kernels-")) / _VERSION_DIR
+            fallback.mkdir()
+        warnings.warn(f"mkf_ros: kernel cache directory {root} is not writable; using {fallback} "
+                      "(set MKF_ROS_CACHE_DIR to a writable directory to keep compiled kernels)",
+                      RuntimeWarning, stacklevel=2)
+        cache = fallback
+    _seed(cache)
+    return cache
+
+
+_CACHE_DIR = _choose_cache_dir()
 
 
 def kernel_cache_dir() -> Path:
     """Where this version of the kernels is cached (exists once something was compiled)."""
-    return _cache_root() / f"numba-{KERNEL_HASH}"
+    return _CACHE_DIR
 
 
 class KernelCacheLocator(caching._SourceFileBackedLocatorMixin, caching._CacheLocator):
@@ -89,22 +164,34 @@ class KernelCacheLocator(caching._SourceFileBackedLocatorMixin, caching._CacheLo
         return self
 
 
-def _prune_old_caches(keep_days: float = 7.0) -> None:
+def _prune_old_caches(root: Path, keep_days: float = 7.0) -> None:
     """Best effort: remove caches of other kernel versions unused for ``keep_days``."""
-    import shutil
     import time
 
-    root = _cache_root()
     try:
         for d in root.glob("numba-*"):
             old = time.time() - d.stat().st_mtime > keep_days * 86400
-            if d.name != f"numba-{KERNEL_HASH}" and old:
+            if d.name != _VERSION_DIR and old:
                 shutil.rmtree(d, ignore_errors=True)
     except OSError:
         pass
 
 
-_prune_old_caches()
+def precompile(root: Path) -> None:
+    """Compile every kernel into ``root/numba-<hash>/`` (the install-time step; see the module
+    docstring), dropping other versions there. Runs :func:`mkf_ros.api.warmup` in a child
+    process whose cache is ``root``."""
+    import subprocess
+
+    env = dict(os.environ, MKF_ROS_CACHE_DIR=str(root), PYTHONWARNINGS="ignore")
+    env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(_PACKAGE_DIR.parent),
+                                                      env.get("PYTHONPATH")]))
+    subprocess.run([sys.executable, "-c", "import mkf_ros.api as a; a.warmup()"], env=env,
+                   check=True)
+    _prune_old_caches(root, keep_days=0.0)
+
+
+_prune_old_caches(_cache_root())
 
 if KernelCacheLocator not in caching.CacheImpl._locator_classes:
     caching.CacheImpl._locator_classes.insert(0, KernelCacheLocator)

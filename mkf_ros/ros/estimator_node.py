@@ -114,7 +114,7 @@ class EstimatorNode(Node):
                      f"or update compiles them: {FIRST_COMPILE_TIME})...")
             t0 = time.monotonic()
 
-            warmup()
+            warmup(("stream",))  # the node runs the streaming kernels only
             log.info(f"filter kernels ready in {time.monotonic() - t0:.1f} s")
 
         # counters and state owned by the node (the adapter has the rest)
