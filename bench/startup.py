@@ -55,7 +55,7 @@ def first_output(estimator: list[str], cache: Path, timeout: float) -> tuple[flo
     from sensor_msgs.msg import Imu
 
     env = dict(os.environ, MKF_ROS_CACHE_DIR=str(cache))
-    log = tempfile.TemporaryFile(mode="w+")
+    log = tempfile.TemporaryFile(mode="w+")  # noqa: SIM115 (read back after the process ends)
     got: list[float] = []
     rclpy.init()
     node = Node("startup_bench")
@@ -74,7 +74,8 @@ def first_output(estimator: list[str], cache: Path, timeout: float) -> tuple[flo
         while not got:
             if proc.poll() is not None:
                 log.seek(0)
-                raise SystemExit(f"startup: the estimator exited ({proc.returncode}):\n{log.read()}")
+                raise SystemExit(f"startup: the estimator exited ({proc.returncode}):\n"
+                                 f"{log.read()}")
             if time.monotonic() - t0 > timeout:
                 raise SystemExit(f"startup: no imu/data within {timeout:.0f} s")
             now = time.time()
@@ -117,7 +118,8 @@ def installed_estimator(work: Path, precompile: bool) -> tuple[list[str], float]
     venv = work / "venv"
     subprocess.run([sys.executable, "-m", "venv", "--without-pip", str(venv)], check=True)
     vpy = venv / "bin" / "python"
-    site = subprocess.run([str(vpy), "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"],
+    code = "import sysconfig; print(sysconfig.get_paths()['purelib'])"
+    site = subprocess.run([str(vpy), "-c", code],
                           check=True, capture_output=True, text=True).stdout.strip()
     # the layered venv sees this environment's packages (rclpy, numba, ...) after its own
     Path(site, "_parent_env.pth").write_text(sysconfig.get_paths()["purelib"] + "\n")
@@ -155,12 +157,14 @@ def main(argv: list[str] | None = None) -> int:
             cmd, build = installed_estimator(work, not args.no_precompile)
         else:
             exe = Path(sys.executable).parent / "estimator"
-            cmd = [str(exe)] if exe.is_file() else [sys.executable, "-m", "mkf_ros.ros.estimator_node"]
+            cmd = ([str(exe)] if exe.is_file()
+                   else [sys.executable, "-m", "mkf_ros.ros.estimator_node"])
         print(f"estimator: {' '.join(cmd)}  (ROS_DOMAIN_ID={os.environ['ROS_DOMAIN_ID']}, "
               f"LOCALHOST discovery; {os.cpu_count()} cores)")
         if build is not None:
             print(f"wheel build incl. install-time kernel compile: {build:.1f} s")
-        print("\n| run | kernel cache | first imu/data after start (s) | kernels ready, node log (s) |")
+        print("\n| run | kernel cache | first imu/data after start (s) "
+              "| kernels ready, node log (s) |")
         print("|---|---|---|---|")
         states = ["cold", "warm"] if args.cache == "both" else [args.cache]
         warm_dir = None
