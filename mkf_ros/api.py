@@ -146,9 +146,11 @@ def estimate(
     )
 
 
-#: How long the first :func:`warmup` on a new installation takes (measured 2 min 22 s cold on
-#: the 2-core reference machine); the messages of the demo and the node quote it.
-FIRST_COMPILE_TIME = "about two minutes"
+#: How long compiling the kernels takes where the install-time compile did not run (see
+#: :mod:`mkf_ros.core._jit`; ``pip install`` from an isolated build env, ``colcon build
+#: --symlink-install``): the node's streaming kernels alone took 157 s on the 2-core reference
+#: machine (``./run bench startup --installed --no-precompile``); the messages quote it.
+FIRST_COMPILE_TIME = "about three minutes"
 
 
 #: The kernel families :func:`warmup` can prepare: :func:`estimate`'s batch loop,

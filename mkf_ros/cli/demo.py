@@ -181,8 +181,8 @@ class _Demo:
         from mkf_ros.api import FIRST_COMPILE_TIME, warmup
 
         t0 = time.monotonic()
-        self.say("  loading the compiled filter kernels (the first run after an install "
-                 f"compiles them, {FIRST_COMPILE_TIME})...")
+        self.say("  loading the filter kernels (compiled at install time; where that step did "
+                 f"not run, the first run compiles them, {FIRST_COMPILE_TIME})...")
         warmup()
         dt = time.monotonic() - t0
         self.say(f"  kernels ready in {dt:.1f} s{' (compiled and cached)' if dt > 5 else ''}\n")

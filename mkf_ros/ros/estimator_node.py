@@ -110,8 +110,8 @@ class EstimatorNode(Node):
         if warm:
             from mkf_ros.api import FIRST_COMPILE_TIME, warmup
 
-            log.info("loading the compiled filter kernels (the first start after an install "
-                     f"or update compiles them: {FIRST_COMPILE_TIME})...")
+            log.info("loading the filter kernels (compiled at install time; where that step "
+                     f"did not run, the first start compiles them: {FIRST_COMPILE_TIME})...")
             t0 = time.monotonic()
 
             warmup(("stream",))  # the node runs the streaming kernels only
