@@ -17,22 +17,10 @@ PROGRESS_MIN = 100_000
 
 def add_param_options(parser: argparse.ArgumentParser, names: list[str], title: str) -> None:
     """One ``--name`` flag per parameter in ``names`` (generated from PARAMS)."""
-    from mkf_ros.cli.options import flag
+    from mkf_ros.cli.options import add_param_flags
     from mkf_ros.core.params import BY_NAME
 
-    g = parser.add_argument_group(title)
-    for name in names:
-        p = BY_NAME[name]
-        kw: dict[str, Any] = dict(default=None, dest=p.name,
-                                  help=f"{p.doc()} (default: {p.default})")
-        if p.type is bool:
-            g.add_argument(flag(p), action=argparse.BooleanOptionalAction, **kw)
-        elif p.type is list:
-            g.add_argument(flag(p), type=float, nargs=p.length or "+", metavar="X", **kw)
-        elif p.choices:
-            g.add_argument(flag(p), choices=p.choices, **kw)
-        else:
-            g.add_argument(flag(p), type=p.type, metavar=p.unit.upper() or "X", **kw)
+    add_param_flags(parser, [BY_NAME[n] for n in names], title)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -58,7 +58,7 @@ from sensor_msgs.msg import Imu, MagneticField
 from std_msgs.msg import Header
 from std_srvs.srv import Trigger
 
-from mkf_ros.core.params import BY_NAME
+from mkf_ros.core.params import BY_NAME, PARAMS
 from mkf_ros.core.quaternion import qconj_np
 from mkf_ros.ros import convert, rawmsg
 from mkf_ros.ros.diagnostics import DiagnosticsTracker, Snapshot
@@ -421,12 +421,25 @@ parameters (units, ranges, defaults): mkf params --format markdown
 (rclpy's SingleThreadedExecutor)"""
 
 
+def parameter_help() -> str:
+    """The ROS parameters with their defaults and units, generated from PARAMS (descriptions,
+    ranges and choices: ``mkf params``)."""
+    lines = ["parameters (-p NAME:=VALUE; descriptions and ranges: mkf params):"]
+    for p in PARAMS:
+        unit = f" [{p.unit}]" if p.unit else ""
+        choices = f" ({'|'.join(p.choices)})" if p.choices else ""
+        ro = " (read-only: start-up only)" if p.read_only else ""
+        lines.append(f"  {p.name:<26} {p.default!r}{unit}{choices}{ro}")
+    return "\n".join(lines)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Console script ``estimator`` (``ros2 run mkf_ros estimator [--ros-args ...]``)."""
     args = list(sys.argv if argv is None else argv)
     plain = remove_ros_args(args)[1:]
     if any(a in ("-h", "--help") for a in plain):
         print(USAGE)
+        print(parameter_help())
         return 0
     kind = os.environ.get("MKF_ROS_EXECUTOR", DEFAULT_EXECUTOR)
     for a in plain:
