@@ -179,9 +179,40 @@ class BagReader:
                     raise BagError(f"{what} {name} in {self.path} is {info.msgtype}, expected "
                                    f"{msgtype}")
                 return name
-        have = ", ".join(f"{t} ({i.msgtype})" for t, i in sorted(self.topics.items())) or "none"
         what = f"{role} topic" if role else "topic"
-        raise BagError(f"{what} {normalize_topic(topic)} not in {self.path} (topics: {have})")
+        if msgtype:
+            have = self.listing(msgtype)
+        else:
+            have = "topics: " + (", ".join(sorted(self.topics)) or "none")
+        raise BagError(f"{what} {normalize_topic(topic)} not in {self.path} ({have})")
+
+    def of_type(self, msgtype: str) -> list[str]:
+        """The topics of type ``msgtype``, sorted."""
+        return sorted(t for t, i in self.topics.items() if i.msgtype == msgtype)
+
+    def listing(self, msgtype: str) -> str:
+        """``msgtype`` topics: each with its message count (for error messages)."""
+        names = self.of_type(msgtype)
+        short = msgtype.replace("/msg/", "/")
+        if not names:
+            return f"no {short} topic in the bag"
+        return f"{short} topics: " + ", ".join(
+            f"{t} ({self.topics[t].count:,} messages)" for t in names)
+
+    def discover(self, msgtype: str, *, role: str, flag: str,
+                 preferred: str | None = None) -> str:
+        """The bag's only ``msgtype`` topic, or ``preferred`` if it is one of several; BagError
+        naming the candidates (with message counts) and ``flag`` to choose otherwise."""
+        names = self.of_type(msgtype)
+        if len(names) == 1:
+            return names[0]
+        if preferred and normalize_topic(preferred) in names:
+            return normalize_topic(preferred)
+        if not names:
+            raise BagError(f"no {role} topic in {self.path}: "
+                           f"{self.listing(msgtype)}")
+        raise BagError(f"{len(names)} {role} topics in {self.path}, choose one with {flag}: "
+                       f"{self.listing(msgtype)}")
 
     # -- messages --------------------------------------------------------------------------
     def _converter(self, conn: Any) -> Callable[[bytes], bytes] | None:
