@@ -132,8 +132,18 @@ class EstimatorNode(Node):
         qos_opts = QoSOverridingOptions.with_default_policies
         self._pub = self.create_publisher(Imu, "imu/data", output_qos(),
                                           qos_overriding_options=qos_opts())
-        self._sub_imu = self.create_subscription(Imu, "imu/data_raw", self._on_imu, input_qos(),
+        # input_mode split: the gyro drives the stream (and the output), the accelerometer is
+        # fused at its own stamps (RealSense: -r imu/gyro:=camera/gyro/sample
+        # -r imu/accel:=camera/accel/sample)
+        split = self.stream.split
+        self._sub_imu = self.create_subscription(Imu, "imu/gyro" if split else "imu/data_raw",
+                                                 self._on_imu, input_qos(),
                                                  qos_overriding_options=qos_opts(), raw=True)
+        self.received_acc = 0  #: split input: messages taken from imu/accel
+        self._sub_acc = (self.create_subscription(Imu, "imu/accel", self._on_accel,
+                                                  input_qos(), raw=True,
+                                                  qos_overriding_options=qos_opts())
+                         if split else None)
         self._sub_mag = self.create_subscription(MagneticField, "imu/mag", self._on_mag,
                                                  input_qos(), qos_overriding_options=qos_opts(),
                                                  raw=True)
@@ -255,6 +265,20 @@ class EstimatorNode(Node):
         self._pub.publish(self._out)
         self._published += 1
         self._extras(msg.header, out, p)
+
+    def _on_accel(self, data: bytes) -> None:
+        """Split input: one accelerometer message (its angular velocity ignored)."""
+        self.received_acc += 1
+        try:
+            h = rawmsg.parse(data, rawmsg.IMU_DOUBLES)
+            if h is None:
+                stamp, _, acc = convert.imu_to_arrays(deserialize_message(data, Imu))
+            else:
+                stamp, acc = h.stamp, rawmsg.imu_arrays(h)[1]
+            with self._lock:
+                self.stream.on_accel(stamp, acc)
+        except Exception as e:
+            self._count_exception(e, "accelerometer callback")
 
     def _on_mag(self, data: bytes) -> None:
         self.received_mag += 1
