@@ -553,8 +553,9 @@ class StreamAdapter:
             order = np.argsort(imu_arrival, kind="stable")
             ev_f, ev_i = ev_f[order], ev_i[order]
         out = np.zeros((n, sk.O_SIZE))
-        for k0 in range(0, n + k, chunk):
-            k1 = min(k0 + chunk, n + k)
+        total = n + k + j
+        for k0 in range(0, total, chunk):
+            k1 = min(k0 + chunk, total)
             self._run(ev_f, ev_i, out, k0, k1)
             if progress is not None:
                 progress(k1 - k0)
