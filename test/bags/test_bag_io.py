@@ -191,7 +191,8 @@ def test_resolve_names_topics_and_types(tmp_path: Path) -> None:
     bag = _good_bag(tmp_path, "mcap")
     with BagReader(bag) as br:
         assert br.resolve("imu/data_raw", IMU) == "/imu/data_raw"
-        with pytest.raises(BagError, match=r"IMU topic /imu/nope not in .* \(topics: "):
+        with pytest.raises(BagError, match=r"IMU topic /imu/nope not in .* \(sensor_msgs/Imu "
+                           r"topics: /imu/data_raw \([\d,]+ messages\)\)$"):
             br.resolve("imu/nope", IMU, role="IMU")
         with pytest.raises(BagError, match="is sensor_msgs/msg/MagneticField, expected"):
             br.resolve("/imu/mag", IMU)
