@@ -60,7 +60,7 @@ import numpy as np
 
 from mkf_ros import stream_kernel as sk
 from mkf_ros.core.filter import COUNTER_NAMES as FILTER_COUNTERS
-from mkf_ros.core.filter import AttitudeFilter, build_cfg
+from mkf_ros.core.filter import C_REST_SPLIT, AttitudeFilter, build_cfg
 from mkf_ros.core.frames import FROM_ENU
 from mkf_ros.core.params import BY_NAME, PARAMS, FilterParams, Param
 from mkf_ros.core.quaternion import qconj_np, qmul_np, rotmat_np
@@ -350,6 +350,9 @@ class StreamAdapter:
         p[sk.P_SPLIT] = n["input_mode"] == "split"
         p[sk.P_ACC_DELAY] = n["acc_max_delay"]
         self._npar = p
+        # the filter's rest test: gyro and accelerometer come in separate samples (the filter
+        # rebuilds its configuration on set_params, which is followed by this)
+        self.filter._cfg[C_REST_SPLIT] = float(p[sk.P_SPLIT])
 
     # --- state -----------------------------------------------------------------------------
     def reset(self, reason: str = "requested") -> None:
