@@ -42,7 +42,8 @@ only that sensor's part of the sample is skipped, and every case is counted with
 Output is never produced before initialisation and never contains NaN.
 
 Input that cannot give an orientation is named by :meth:`StreamAdapter.input_problems` (the
-node logs it and puts it in ``/diagnostics``, ``mkf process`` stops with it): after
+node logs it once and puts it in ``/diagnostics``; ``mkf process`` stops with one line and no
+output when there is no accelerometer, and notes the rest): after
 :data:`INPUT_CHECK_MESSAGES` messages, no angular velocity other than exactly zero (an
 accelerometer-only topic?) or no usable accelerometer sample (a gyro-only topic?);
 :func:`carries_orientation` names an input that carries an orientation already (an
@@ -59,8 +60,8 @@ from typing import Any
 import numpy as np
 
 from mkf_ros import stream_kernel as sk
-from mkf_ros.core.filter import COUNTER_NAMES as FILTER_COUNTERS
 from mkf_ros.core.filter import C_REST_SPLIT, AttitudeFilter, build_cfg
+from mkf_ros.core.filter import COUNTER_NAMES as FILTER_COUNTERS
 from mkf_ros.core.frames import FROM_ENU
 from mkf_ros.core.params import BY_NAME, PARAMS, FilterParams, Param
 from mkf_ros.core.quaternion import qconj_np, qmul_np, rotmat_np
@@ -419,22 +420,22 @@ class StreamAdapter:
         """Adapter counters plus the filter's own sample/gap/update counters."""
         return self.counters
 
-    def input_problems(self, imu_topic: str = "", accel_topic: str = "") -> list[str]:
-        """Why the input cannot give an orientation, one line each (empty: nothing wrong),
-        judged once :data:`INPUT_CHECK_MESSAGES` messages have arrived: no angular velocity
-        but exactly zero (or none at all), and no usable accelerometer sample. The topic
-        names, if given, go into the text (``imu_topic``: the IMU, or with split input the
-        gyro topic)."""
+    def input_problems(self, imu_topic: str = "", accel_topic: str = "") -> dict[str, str]:
+        """Why the input cannot give an orientation, one line each by kind (``"gyro"``: no
+        angular velocity but exactly zero, or none at all; ``"accel"``: no usable
+        accelerometer sample), judged once :data:`INPUT_CHECK_MESSAGES` messages have
+        arrived; empty: nothing wrong. The topic names, if given, go into the text
+        (``imu_topic``: the IMU, or with split input the gyro topic)."""
         a, ts = self._acnt, self._ts
-        out = []
+        out = {}
         n_imu = int(a[sk.A_IMU_RECEIVED])
         imu = f" on {imu_topic}" if imu_topic else ""
         if n_imu >= INPUT_CHECK_MESSAGES and not ts[sk.T_GYR_SEEN]:
             hint = ("is it the accelerometer topic? (split input: check the gyro topic)"
                     if self.split else "is this an accelerometer-only topic? (separate "
                     "accelerometer and gyro topics: input_mode split)")
-            out.append(f"angular velocity zero or not reported in all {n_imu} IMU messages"
-                       f"{imu}: {hint}")
+            out["gyro"] = (f"angular velocity zero or not reported in all {n_imu} IMU messages"
+                           f"{imu}: {hint}")
         n_acc = int(a[sk.A_ACC_RECEIVED]) if self.split else n_imu
         acc = f" on {accel_topic or imu_topic}" if (accel_topic or imu_topic) else ""
         if n_acc >= INPUT_CHECK_MESSAGES and not ts[sk.T_ACC_SEEN]:
@@ -442,8 +443,8 @@ class StreamAdapter:
                     if self.split else "is this a gyro-only topic? (separate accelerometer "
                     "and gyro topics: input_mode split)")
             what = "accelerometer samples" if self.split else "IMU messages"
-            out.append(f"no usable accelerometer reading (zero, invalid, not reported or far "
-                       f"from gravity) in all {n_acc} {what}{acc}: {hint}")
+            out["accel"] = (f"no usable accelerometer reading (zero, invalid, not reported or "
+                            f"far from gravity) in all {n_acc} {what}{acc}: {hint}")
         return out
 
     # --- input -----------------------------------------------------------------------------

@@ -247,7 +247,7 @@ def process_bag(bag: str | Path, out: str | Path, params: Mapping[str, Any] | No
     one message per gyro message.
     """
     from mkf_ros.bags.synth import read_description
-    from mkf_ros.stream import StreamAdapter
+    from mkf_ros.stream import REJECTIONS, StreamAdapter, carries_orientation, orientation_note
 
     bag, out = Path(bag), Path(out)
     notes: list[str] = []
@@ -330,6 +330,19 @@ def process_bag(bag: str | Path, out: str | Path, params: Mapping[str, Any] | No
     outs = run_stream(adapter, imu, imu_b.log_ns, mag, mag_b.log_ns if mag_b else None, p, tick,
                       acc, acc_b.log_ns if acc_b else None)
     tm["filter"] = time.perf_counter() - t0
+    found = adapter.input_problems(imu_name, acc_name or "")
+    if "gyro" in found:  # an estimate of the tilt alone; said, not refused
+        notes.append(found.pop("gyro"))
+    problems = list(found.values())
+    if not problems and len(outs.index) == 0:
+        why = ", ".join(f"{v} {k}" for k, v in adapter.counters.items()
+                        if v and k in (*REJECTIONS, "acc_missing", "acc_implausible"))
+        problems = [f"no estimate from the {len(imu_b)} messages of {imu_name}"
+                    + (f" ({why})" if why else "")]
+    if problems:  # nothing to write: stop before the output bag exists
+        raise BagError("; ".join(problems) + "; no output written")
+    if carries_orientation(imu.fields["orientation"], imu.fields["orientation_covariance"][:, 0]):
+        notes.append(orientation_note(imu_name))
 
     t0 = time.perf_counter()
     data = encode_outputs(imu, imu_b, outs)

@@ -63,7 +63,12 @@ from mkf_ros.core.quaternion import qconj_np
 from mkf_ros.ros import convert, rawmsg
 from mkf_ros.ros.diagnostics import DiagnosticsTracker, Snapshot
 from mkf_ros.ros.parameters import declare_all, to_double, unknown_overrides
-from mkf_ros.stream import StreamAdapter
+from mkf_ros.stream import (
+    INPUT_CHECK_MESSAGES,
+    StreamAdapter,
+    carries_orientation,
+    orientation_note,
+)
 
 
 def input_qos() -> QoSProfile:
@@ -126,6 +131,8 @@ class EstimatorNode(Node):
         self._last_mag_wall: float | None = None
         self._frame_id = ""
         self._warned: set[str] = set()
+        self._ori_checks = INPUT_CHECK_MESSAGES  # IMU messages left to check for an orientation
+        self._carries_orientation = False
         self._out = Imu()
         self._encoder = rawmsg.ImuEncoder()
 
@@ -233,6 +240,8 @@ class EstimatorNode(Node):
             if h is None:  # not little-endian CDR: message objects
                 self._on_imu_msg(deserialize_message(data, Imu))
                 return
+            if self._ori_checks:
+                self._check_orientation(h.d[rawmsg.Q:rawmsg.Q + 4], h.d[rawmsg.QC])
             gyr, acc = rawmsg.imu_arrays(h)
             p = self._p
             with self._lock:
@@ -254,6 +263,9 @@ class EstimatorNode(Node):
     def _on_imu_msg(self, msg: Imu) -> None:
         """The same with message objects (inputs that are not little-endian CDR)."""
         stamp, gyr, acc = convert.imu_to_arrays(msg)
+        if self._ori_checks:
+            o = msg.orientation
+            self._check_orientation((o.x, o.y, o.z, o.w), msg.orientation_covariance[0])
         p = self._p
         with self._lock:
             out = self.stream.on_imu(stamp, gyr, acc)
@@ -265,6 +277,23 @@ class EstimatorNode(Node):
         self._pub.publish(self._out)
         self._published += 1
         self._extras(msg.header, out, p)
+
+    def _check_orientation(self, quat_xyzw: Any, cov0: float) -> None:
+        """One of the first IMU messages: does it carry an orientation (an estimator's output
+        subscribed as raw data)? Logged once, and in /diagnostics from then on."""
+        self._ori_checks -= 1
+        if not self._carries_orientation and carries_orientation(quat_xyzw, cov0):
+            self._carries_orientation = True
+            self._warn_once("input-orientation", orientation_note(self._sub_imu.topic_name))
+
+    def _input_problems(self) -> dict[str, str]:
+        """Input that cannot give an orientation (see :meth:`StreamAdapter.input_problems`),
+        by kind; call with the lock held."""
+        acc = self._sub_acc.topic_name if self._sub_acc is not None else ""
+        out = self.stream.input_problems(self._sub_imu.topic_name, acc)
+        if self._carries_orientation:
+            out["orientation"] = orientation_note(self._sub_imu.topic_name)
+        return out
 
     def _on_accel(self, data: bytes) -> None:
         """Split input: one accelerometer message (its angular velocity ignored)."""
@@ -349,6 +378,10 @@ class EstimatorNode(Node):
         try:
             now = time.monotonic()
             self._check_silence(now)
+            with self._lock:
+                problems = self._input_problems()
+            for kind, text in problems.items():  # in the log once, in /diagnostics always
+                self._warn_once(f"input-{kind}", text)
             if self.stream.params["diagnostics_period"] > 0:
                 arr = DiagnosticArray()
                 arr.header.stamp = self.get_clock().now().to_msg()
@@ -372,7 +405,8 @@ class EstimatorNode(Node):
                 cov=f.covariance if f.initialized else None, bias=f.bias,
                 bias_stddev=f.bias_stddev, acc_norm=s.acc_norm, mag_norm=s.mag_norm,
                 mag_offset=s.mag_offset, dt_stats=s.pop_dt_stats(),
-                last_reset_reason=s.last_reset_reason, frame_id=self._frame_id)
+                last_reset_reason=s.last_reset_reason, frame_id=self._frame_id,
+                input_problems=self._input_problems())
 
     def _check_silence(self, now: float) -> None:
         """Log (not only diagnose) a silent input, once per silence."""

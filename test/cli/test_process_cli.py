@@ -362,3 +362,55 @@ def test_imu_topic_is_discovered(tmp_path: Path, capsys: pytest.CaptureFixture) 
                   rf"\({len(sim.t)} messages\)$")
     assert "ground_truth" not in line and "/imu/mag" not in line
     _no_output(tmp_path, out)
+
+
+def test_a_topic_without_accelerometer_stops_with_one_line(tmp_path: Path,
+                                                           capsys: pytest.CaptureFixture) -> None:
+    """The gyro topic of a RealSense-like bag (accelerometer zeroed) taken as the IMU cannot
+    give any orientation: one line naming it and the way out, exit 2, no output bag (not an
+    empty one). The same for split input with the topics swapped, and for a recording too
+    short to judge (no estimate at all)."""
+    sim = simulate("slow_rotation", duration=3.0, rate=100.0, seed=2)
+    split = tmp_path / "split"
+    write_bag(sim, split, split_accel=4)
+    n = len(sim.t)
+    out = tmp_path / "out"
+    _fails(capsys, ["process", str(split), "--out", str(out), "--imu-topic", "imu/gyro"],
+           rf"^mkf process: error: no usable accelerometer reading .* in all {n} IMU messages "
+           r"on /imu/gyro: is this a gyro-only topic\? .*input_mode split.*; no output written$")
+    _no_output(tmp_path, out)
+    _fails(capsys, ["process", str(split), "--out", str(out), "--accel-topic", "imu/gyro",
+                    "--gyro-topic", "imu/accel"],
+           rf"in all {n} accelerometer samples on /imu/gyro: is it the gyro topic\?")
+    _no_output(tmp_path, out)
+    short = tmp_path / "short"
+    write_bag(simulate("static", duration=0.2, rate=100.0, seed=2), short, split_accel=4)
+    _fails(capsys, ["process", str(short), "--out", str(out), "--imu-topic", "imu/gyro"],
+           r"no estimate from the 21 messages of /imu/gyro \(.*21 acc_invalid.*\); no output "
+           "written$")
+    _no_output(tmp_path, out)
+
+
+def test_accelerometer_only_and_estimator_output_topics_are_named(
+        tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    """An accelerometer-only topic gives a tilt, and a note saying why the heading never
+    moves; an estimator's output (orientation set) taken as input is named too. A raw IMU
+    topic gets neither note."""
+    sim = simulate("slow_rotation", duration=3.0, rate=100.0, seed=2)
+    split, comb = tmp_path / "split", tmp_path / "comb"
+    write_bag(sim, split, split_accel=2)
+    write_bag(sim, comb)
+    n_acc = len(range(0, len(sim.t), 2))
+    assert main(["process", str(split), "--out", str(tmp_path / "o1"), "--imu-topic",
+                 "imu/accel", "--no-plot"]) == 0
+    text = capsys.readouterr().out
+    assert (f"  note    angular velocity zero or not reported in all {n_acc} IMU messages on "
+            "/imu/accel: is this an accelerometer-only topic?") in text
+    assert main(["process", str(comb), "--out", str(tmp_path / "o2"), "--no-plot"]) == 0
+    text = capsys.readouterr().out
+    assert "accelerometer-only" not in text and "carries an orientation" not in text
+    assert main(["process", str(tmp_path / "o2"), "--out", str(tmp_path / "o3"),
+                 "--imu-topic", "imu/data", "--no-plot"]) == 0
+    text = capsys.readouterr().out
+    assert ("  note    /imu/data already carries an orientation (orientation_covariance[0] is "
+            "not -1): an estimator's output (imu/data) rather than raw data") in text
