@@ -110,6 +110,8 @@ class BagReader:
                            ".mcap or .db3 file, or a ROS 1 .bag file")
         if p.is_file() and p.stat().st_size == 0:
             raise BagError(f"cannot read bag {self.path}: the file is empty")
+        if p.is_file():
+            _check_content(p)
         if p.suffix == ".bag":
             from rosbags.rosbag1 import Reader as Reader1
 
@@ -345,6 +347,38 @@ def _merge(parts: list[tuple[np.ndarray, list[bytes]]]) -> Batch:
     d = [x for p in parts for x in p[1]]
     order = np.argsort(t, kind="stable")
     return Batch(t[order], [d[i] for i in order.tolist()])
+
+
+#: the first bytes of each storage format → (its suffix, what it is)
+_MAGIC = {
+    ".mcap": (b"\x89MCAP", "an MCAP file (rosbag2 .mcap)"),
+    ".db3": (b"SQLite format 3\x00", "an sqlite3 database (rosbag2 .db3)"),
+    ".bag": (b"#ROSBAG V2.0", "a ROS 1 bag (.bag)"),
+}
+
+
+def _check_content(p: Path) -> None:
+    """BagError unless the file's first bytes are those of the format its suffix names,
+    saying what the file is instead (a .db3 renamed .bag, a text file, ...)."""
+    with p.open("rb") as f:
+        head = f.read(512)
+    magic, what = _MAGIC[p.suffix]
+    if head.startswith(magic):
+        return
+    for suffix, (m, other) in _MAGIC.items():
+        if head.startswith(m):
+            raise BagError(f"cannot read bag {p}: it is {other}, not {what} as its name "
+                           f"says (rename it to {p.stem}{suffix})")
+    try:
+        text = head.decode("utf-8")
+    except UnicodeDecodeError:
+        text = ""
+    if text and "\x00" not in text:
+        first = text.strip().splitlines()[0][:40] if text.strip() else ""
+        raise BagError(f"cannot read bag {p}: it is a text file (starting {first!r}), not "
+                       f"{what}")
+    raise BagError(f"cannot read bag {p}: it is not {what} (its first bytes {head[:16]!r} are "
+                   "those of no bag format: MCAP, sqlite3, ROS 1)")
 
 
 #: storage backend messages → what they mean for the user
