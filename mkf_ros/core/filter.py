@@ -599,11 +599,12 @@ def _rest_test(cfg: np.ndarray, st: np.ndarray, P: np.ndarray, nx: int, dt: floa
             st[S_RDT + 1] = 0.0
     else:
         al = ala = _alpha(st, 2, dt, REST_LP_TAU)
+    # mean squared deviations: a single noisy sample does not end a rest
     if has_g:
         _lowpass_state(st, S_GLP, g, al)
         dg = (g[0] - st[S_GLP]) ** 2 + (g[1] - st[S_GLP + 1]) ** 2 + (g[2] - st[S_GLP + 2]) ** 2
-        st[S_RDEV] += al * (dg - st[S_RDEV])  # mean squared deviations: a single noisy
-    if has_a:  # sample does not end a rest
+        st[S_RDEV] += al * (dg - st[S_RDEV])
+    if has_a:
         _lowpass_state(st, S_ALR, a, ala)
         da = (a[0] - st[S_ALR]) ** 2 + (a[1] - st[S_ALR + 1]) ** 2 + (a[2] - st[S_ALR + 2]) ** 2
         if split:  # unbiased at any rate (see above)
