@@ -26,12 +26,28 @@ Time rules (stamps in seconds, the IMU stream sets the filter's clock):
   fused at once, rotated forward by the estimated rate over its age; older ones are dropped.
   The filter runs on gyro + accelerometer until the first magnetometer sample and keeps running
   when they stop.
+* Split input (``input_mode`` split: separate accelerometer and gyroscope streams, as the Intel
+  RealSense drivers publish them): the gyro stream sets the filter's clock and is published
+  (one output per gyro message, at its stamp; its accelerometer field is ignored), and each
+  accelerometer sample is fused at its own stamp like a magnetometer sample: held until the
+  gyro stream reaches it (with the gyro sample of the same stamp, or predicted to it with the
+  rate estimate, updated, and on), fused at once when up to ``acc_max_delay`` late (rotated
+  forward), dropped when older. No resampling, no unite step. The output's linear
+  acceleration is "not reported" (the accelerometer is on its own topic).
 
 Input rules: a gyro/accelerometer/magnetometer vector that is all NaN is *missing*, one that
 is partly non-finite (or a zero accelerometer/magnetometer vector) is *invalid*, an
 accelerometer whose magnitude is implausible (``acc_magnitude_tolerance``) is *rejected*;
 only that sensor's part of the sample is skipped, and every case is counted with its reason.
 Output is never produced before initialisation and never contains NaN.
+
+Input that cannot give an orientation is named by :meth:`StreamAdapter.input_problems` (the
+node logs it once and puts it in ``/diagnostics``; ``mkf process`` stops with one line and no
+output when there is no accelerometer, and notes the rest): after
+:data:`INPUT_CHECK_MESSAGES` messages, no angular velocity other than exactly zero (an
+accelerometer-only topic?) or no usable accelerometer sample (a gyro-only topic?);
+:func:`carries_orientation` names an input that carries an orientation already (an
+estimator's output rather than raw data?).
 """
 
 from __future__ import annotations
@@ -44,8 +60,15 @@ from typing import Any
 import numpy as np
 
 from mkf_ros import stream_kernel as sk
+from mkf_ros.core.filter import (
+    C_REST_SPLIT,
+    MAX_ACC_G,
+    MAX_GYRO_RATE,
+    MAX_MAG,
+    AttitudeFilter,
+    build_cfg,
+)
 from mkf_ros.core.filter import COUNTER_NAMES as FILTER_COUNTERS
-from mkf_ros.core.filter import MAX_ACC_G, MAX_GYRO_RATE, MAX_MAG, AttitudeFilter, build_cfg
 from mkf_ros.core.frames import FROM_ENU
 from mkf_ros.core.params import BY_NAME, PARAMS, FilterParams, Param
 from mkf_ros.core.quaternion import qconj_np, qmul_np, rotmat_np
@@ -67,6 +90,11 @@ COUNTER_REASONS: dict[str, str] = {
     "acc_invalid": "accelerometer readings skipped: NaN/Inf, zero vector, or beyond "
                    f"{MAX_ACC_G:g} g",
     "acc_implausible": "accelerometer readings skipped: magnitude far from gravity",
+    "acc_received": "accelerometer samples received (split input)",
+    "acc_too_old": "accelerometer samples dropped: older than acc_max_delay (split input)",
+    "acc_ahead": "accelerometer samples dropped: stamp ahead of the gyro stream by > max_dt",
+    "acc_overflow": "accelerometer samples dropped: too many waiting for the gyro stream",
+    "acc_fused": "accelerometer samples fused (split input)",
     "mag_received": "magnetometer samples received",
     "mag_unused": "magnetometer samples ignored: use_mag is false",
     "mag_missing": "magnetometer samples missing (all NaN)",
@@ -106,8 +134,10 @@ _COUNTER_SOURCE = {n: (True, sk.ADAPTER_COUNTERS.index(n)) if n in sk.ADAPTER_CO
 REJECTIONS = (
     "imu_duplicate", "imu_out_of_order", "imu_bad_stamp", "gyr_invalid", "acc_invalid",
     "mag_invalid", "mag_too_old", "mag_ahead", "mag_overflow", "update_failed",
-    "output_nonfinite",
+    "output_nonfinite", "acc_too_old", "acc_ahead", "acc_overflow",
 )
+#: Messages after which :meth:`StreamAdapter.input_problems` judges the input.
+INPUT_CHECK_MESSAGES = 50
 #: Rejections that are normal in moderation (motion, magnetic disturbances): diagnostics warn
 #: when they hit most samples of a period. Counter → the counter of the samples it refers to.
 GATED = {"acc_implausible": "imu_received",
@@ -181,6 +211,25 @@ def validate_changes(changes: Mapping[str, Any], base: FilterParams) -> dict[str
     return out
 
 
+def carries_orientation(quat_xyzw: Any, cov0: Any) -> bool:
+    """True if any of these ``sensor_msgs/Imu`` messages (orientation x, y, z, w and
+    ``orientation_covariance[0]``, one row each) carries an orientation: a unit quaternion
+    other than the identity, its covariance not marked "not reported" (−1, REP-145). Raw IMU
+    data (``imu/data_raw``) has none; an estimator's output (``imu/data``) has one."""
+    q = np.asarray(quat_xyzw, dtype=float).reshape(-1, 4)
+    c = np.asarray(cov0, dtype=float).reshape(-1)
+    unit = np.abs(np.linalg.norm(q, axis=1) - 1.0) < 1e-3
+    identity = np.abs(np.abs(q[:, 3]) - 1.0) < 1e-9
+    return bool(np.any((c != -1.0) & unit & ~identity))
+
+
+def orientation_note(topic: str) -> str:
+    """What :func:`carries_orientation` means for the user (one line)."""
+    return (f"{topic} already carries an orientation (orientation_covariance[0] is not -1): "
+            "an estimator's output (imu/data) rather than raw data (imu/data_raw)? Its "
+            "orientation is ignored; the estimate comes from its gyro and accelerometer")
+
+
 def covariance_out(input_cov: Any, stddev: float, add: Any = None) -> np.ndarray:
     """Published 3×3 covariances (9 values, row major) from the input's (REP-145): one
     (9 values) or a stack (M, 9), with ``add`` as one (3×3) or a stack (M, 3, 3).
@@ -250,11 +299,14 @@ class StreamAdapter:
         self._ts[[sk.T_ACC_NORM, sk.T_MAG_NORM, sk.T_MAG_OFFSET, sk.T_LAST_IMU,
                   sk.T_LAST_MAG]] = math.nan
         self._pend = np.zeros((sk.PEND_ROWS, 4))
+        self._pacc = np.zeros((sk.PEND_ROWS, 4))
+        self._ts[sk.T_LAST_ACC] = math.nan
         self._reset_dt_stats()
         # the one-event sequences of on_imu / on_mag
         self._ev = np.zeros((1, sk.E_SIZE))
         self._ev_imu = np.array([[sk.EV_IMU, 0]], dtype=np.int64)
         self._ev_mag = np.array([[sk.EV_MAG, 0]], dtype=np.int64)
+        self._ev_acc = np.array([[sk.EV_ACC, 0]], dtype=np.int64)
         self._out = np.zeros((1, sk.O_SIZE))
         self._derive()
 
@@ -273,12 +325,19 @@ class StreamAdapter:
         self._node.update({k: v for k, v in vals.items() if BY_NAME[k].scope == "node"})
         if not self.filter.params.use_mag:
             self._ts[sk.T_NPEND] = 0
+        if not self.split:
+            self._ts[sk.T_NPEND_ACC] = 0
         self._derive()
+
+    @property
+    def split(self) -> bool:
+        """Split input (``input_mode`` split): separate accelerometer and gyro streams."""
+        return self._node["input_mode"] == "split"
 
     @property
     def params(self) -> dict[str, Any]:
         """Current value of every parameter (filter and node scope)."""
-        return {**self.filter.params.values, **self._node}
+        return {**self.filter.params, **self._node}
 
     def _derive(self) -> None:
         """The node parameters as the kernels read them (``npar``, layout ``P_*``)."""
@@ -299,13 +358,19 @@ class StreamAdapter:
         p[sk.P_ORI_SD] = n["orientation_stddev"]
         p[sk.P_AV_SRC] = sk.AV_SOURCES.index(n["angular_velocity_source"])
         p[sk.P_NO_GRAVITY] = bool(n["remove_gravity_vector"])
+        p[sk.P_SPLIT] = n["input_mode"] == "split"
+        p[sk.P_ACC_DELAY] = n["acc_max_delay"]
         self._npar = p
+        # the filter's rest test: gyro and accelerometer come in separate samples (the filter
+        # rebuilds its configuration on set_params, which is followed by this)
+        self.filter._cfg[C_REST_SPLIT] = float(p[sk.P_SPLIT])
 
     # --- state -----------------------------------------------------------------------------
     def reset(self, reason: str = "requested") -> None:
         """Forget the estimate; the next IMU sample re-initialises. Counters are kept."""
         self.filter.reset()
-        self._ts[[sk.T_T, sk.T_VALID, sk.T_YAW_LOST, sk.T_BACK, sk.T_NPEND]] = 0.0
+        self._ts[[sk.T_T, sk.T_VALID, sk.T_YAW_LOST, sk.T_BACK, sk.T_NPEND,
+                  sk.T_NPEND_ACC]] = 0.0
         self._acnt[sk.A_RESETS] += 1
         self.last_reset_reason = reason
 
@@ -341,6 +406,11 @@ class StreamAdapter:
     def last_mag_stamp(self) -> float:
         return float(self._ts[sk.T_LAST_MAG])
 
+    @property
+    def last_acc_stamp(self) -> float:
+        """Stamp of the latest accelerometer sample of split input (NaN: none yet)."""
+        return float(self._ts[sk.T_LAST_ACC])
+
     def _reset_dt_stats(self) -> None:
         self._ts[[sk.T_DT_N, sk.T_DT_MIN, sk.T_DT_SUM, sk.T_DT_MAX]] = (0.0, math.inf, 0.0, 0.0)
 
@@ -360,9 +430,37 @@ class StreamAdapter:
         """Adapter counters plus the filter's own sample/gap/update counters."""
         return self.counters
 
+    def input_problems(self, imu_topic: str = "", accel_topic: str = "") -> dict[str, str]:
+        """Why the input cannot give an orientation, one line each by kind (``"gyro"``: no
+        angular velocity but exactly zero, or none at all; ``"accel"``: no usable
+        accelerometer sample), judged once :data:`INPUT_CHECK_MESSAGES` messages have
+        arrived; empty: nothing wrong. The topic names, if given, go into the text
+        (``imu_topic``: the IMU, or with split input the gyro topic)."""
+        a, ts = self._acnt, self._ts
+        out = {}
+        n_imu = int(a[sk.A_IMU_RECEIVED])
+        imu = f" on {imu_topic}" if imu_topic else ""
+        if n_imu >= INPUT_CHECK_MESSAGES and not ts[sk.T_GYR_SEEN]:
+            hint = ("is it the accelerometer topic? (split input: check the gyro topic)"
+                    if self.split else "is this an accelerometer-only topic? (separate "
+                    "accelerometer and gyro topics: input_mode split)")
+            out["gyro"] = (f"angular velocity zero or not reported in all {n_imu} IMU messages"
+                           f"{imu}: {hint}")
+        n_acc = int(a[sk.A_ACC_RECEIVED]) if self.split else n_imu
+        acc = f" on {accel_topic or imu_topic}" if (accel_topic or imu_topic) else ""
+        if n_acc >= INPUT_CHECK_MESSAGES and not ts[sk.T_ACC_SEEN]:
+            hint = ("is it the gyro topic? (split input: check the accelerometer topic)"
+                    if self.split else "is this a gyro-only topic? (separate accelerometer "
+                    "and gyro topics: input_mode split)")
+            what = "accelerometer samples" if self.split else "IMU messages"
+            out["accel"] = (f"no usable accelerometer reading (zero, invalid, not reported or "
+                            f"far from gravity) in all {n_acc} {what}{acc}: {hint}")
+        return out
+
     # --- input -----------------------------------------------------------------------------
-    def on_imu(self, stamp: float, gyr: Any, acc: Any) -> StreamOutput | None:
-        """Process one IMU sample (rad/s, m/s²; None or all-NaN = not reported).
+    def on_imu(self, stamp: float, gyr: Any, acc: Any = None) -> StreamOutput | None:
+        """Process one IMU sample (rad/s, m/s²; None or all-NaN = not reported); with split
+        input, one gyro sample (``acc`` is ignored).
 
         Returns the estimate at ``stamp``, or None when nothing is to be published (sample
         dropped, filter not initialised yet).
@@ -390,6 +488,21 @@ class StreamAdapter:
             bias_stddev=o[sk.O_BSTD:sk.O_BSTD + 3],
             heading_initialized=bool(flags & sk.OF_HEADING))
 
+    def on_gyro(self, stamp: float, gyr: Any) -> StreamOutput | None:
+        """Split input: one gyro sample (rad/s); the estimate at ``stamp`` as :meth:`on_imu`."""
+        return self.on_imu(stamp, gyr, None)
+
+    def on_accel(self, stamp: float, acc: Any) -> None:
+        """Split input: one accelerometer sample (m/s², +g up at rest; all NaN = none), fused
+        at its stamp (see the module docstring). ValueError unless ``input_mode`` is split."""
+        if not self.split:
+            raise ValueError("on_accel needs input_mode split (with input_mode imu the "
+                             "accelerometer comes with the gyro in on_imu)")
+        e = self._ev[0]
+        e[sk.E_V:sk.E_V + 3] = _vec(acc, "acc")
+        e[sk.E_STAMP] = stamp
+        self._run(self._ev, self._ev_acc, self._out, 0, 1)
+
     def on_mag(self, stamp: float, mag: Any) -> None:
         """Process one magnetometer sample (any unit, tesla by REP-145; all NaN = none)."""
         e = self._ev[0]
@@ -399,41 +512,64 @@ class StreamAdapter:
 
     def process(self, imu_stamp: Any, gyr: Any, acc: Any, mag_stamp: Any = None,
                 mag: Any = None, *, imu_arrival: Any = None, mag_arrival: Any = None,
+                acc_stamp: Any = None, acc_arrival: Any = None,
                 progress: Callable[[int], None] | None = None,
                 chunk: int = 4096) -> StreamOutputs:
-        """A whole recording, with the results of :meth:`on_imu` / :meth:`on_mag` called
-        message by message in arrival order (bit for bit), in compiled code.
+        """A whole recording, with the results of :meth:`on_imu` / :meth:`on_mag` (and
+        :meth:`on_accel`) called message by message in arrival order (bit for bit), in
+        compiled code.
 
         ``imu_stamp`` (N,) s, ``gyr``/``acc`` (N, 3) (a NaN row: not reported);
-        ``mag_stamp`` (K,) s and ``mag`` (K, 3), or None. The two streams are merged by
-        arrival time, ``imu_arrival`` (N,) and ``mag_arrival`` (K,) in any one unit (e.g. a
-        bag's log times; default: the stamps), the magnetometer first at equal times, each
-        stream in its own order among equal times. ``progress(n)`` is called after every
-        ``chunk`` events. The adapter's state carries over from and to per-message calls.
+        ``mag_stamp`` (K,) s and ``mag`` (K, 3), or None. Split input (``input_mode``
+        split): ``imu_stamp`` and ``gyr`` are the gyro stream, and ``acc`` (J, 3) the
+        accelerometer samples at their own stamps ``acc_stamp`` (J,), required. The streams
+        are merged by arrival time, ``imu_arrival`` (N,), ``mag_arrival`` (K,) and
+        ``acc_arrival`` (J,) in any one unit (e.g. a bag's log times; default: the stamps),
+        at equal times the magnetometer first, then the accelerometer, each stream in its own
+        order among equal times. ``progress(n)`` is called after every ``chunk`` events. The
+        adapter's state carries over from and to per-message calls.
         """
         ts = np.asarray(imu_stamp, dtype=float).reshape(-1)
         n = len(ts)
+        if self.split != (acc_stamp is not None):
+            raise ValueError("split input (input_mode split) takes the accelerometer samples "
+                             "at their own stamps: pass acc_stamp" if self.split else
+                             "acc_stamp is for split input (input_mode split)")
         k = 0 if mag_stamp is None else len(mag_stamp)
-        ev_f = np.full((n + k, sk.E_SIZE), math.nan)
+        j = 0 if acc_stamp is None else len(acc_stamp)
+        ev_f = np.full((n + k + j, sk.E_SIZE), math.nan)
         ev_f[:n, sk.E_STAMP] = ts
         ev_f[:n, sk.E_V:sk.E_V + 3] = _rows(gyr, n, "gyr")
-        ev_f[:n, sk.E_A:sk.E_A + 3] = _rows(acc, n, "acc")
-        ev_i = np.zeros((n + k, 2), dtype=np.int64)
+        if acc_stamp is None:
+            ev_f[:n, sk.E_A:sk.E_A + 3] = _rows(acc, n, "acc")
+        ev_i = np.zeros((n + k + j, 2), dtype=np.int64)
         ev_i[:n, 1] = np.arange(n)
-        ev_i[n:, 0] = sk.EV_MAG
+        ev_i[n:n + k, 0] = sk.EV_MAG
+        ev_i[n + k:, 0] = sk.EV_ACC
         if k:
-            ev_f[n:, sk.E_STAMP] = mag_stamp
-            ev_f[n:, sk.E_V:sk.E_V + 3] = _rows(mag, k, "mag")
-            when = np.concatenate([ts if imu_arrival is None else imu_arrival,
-                                   mag_stamp if mag_arrival is None else mag_arrival])
-            order = np.lexsort((ev_i[:, 0] != sk.EV_MAG, when))  # stable: each stream's order
+            ev_f[n:n + k, sk.E_STAMP] = mag_stamp
+            ev_f[n:n + k, sk.E_V:sk.E_V + 3] = _rows(mag, k, "mag")
+        if j:
+            ev_f[n + k:, sk.E_STAMP] = acc_stamp
+            ev_f[n + k:, sk.E_V:sk.E_V + 3] = _rows(acc, j, "acc")
+        if k or j:
+            parts = [ts if imu_arrival is None else imu_arrival]  # one dtype: ns stay exact
+            if k:
+                parts.append(mag_stamp if mag_arrival is None else mag_arrival)
+            if j:
+                parts.append(acc_stamp if acc_arrival is None else acc_arrival)
+            when = np.concatenate(parts)
+            # at equal times: magnetometer, accelerometer, IMU; stable: each stream's order
+            rank = np.array([2, 0, 1])[ev_i[:, 0]]
+            order = np.lexsort((rank, when))
             ev_f, ev_i = ev_f[order], ev_i[order]
         elif imu_arrival is not None:
             order = np.argsort(imu_arrival, kind="stable")
             ev_f, ev_i = ev_f[order], ev_i[order]
         out = np.zeros((n, sk.O_SIZE))
-        for k0 in range(0, n + k, chunk):
-            k1 = min(k0 + chunk, n + k)
+        total = n + k + j
+        for k0 in range(0, total, chunk):
+            k1 = min(k0 + chunk, total)
             self._run(ev_f, ev_i, out, k0, k1)
             if progress is not None:
                 progress(k1 - k0)
@@ -448,7 +584,7 @@ class StreamAdapter:
             f = self.filter
             k, why = sk.run_events(f._cfg, f._nz, f._st, f._P, f._fl, f.counters,
                                    f._q_from_enu, self._npar, self._ts, self._pend,
-                                   self._acnt, ev_f, ev_i, out, k0, k1, resume)
+                                   self._acnt, ev_f, ev_i, out, k0, k1, resume, self._pacc)
             if why == sk.R_DONE:
                 return
             if why == sk.R_TIME_JUMP:  # the same sample again, re-initialising from it

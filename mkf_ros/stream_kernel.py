@@ -8,10 +8,11 @@ kernel stops at the event that needs one, Python resets the filter (new state ar
 loop resumes, so both paths share every rule, bit for bit.
 
 Layouts: the adapter's time state ``ts`` (``T_*``), its node parameters ``npar`` (``P_*``), the
-magnetometer samples held for the IMU stream ``pend`` (rows ``stamp, m``, in stamp order, equal
-stamps in arrival order), its own
-counters ``acnt`` (:data:`ADAPTER_COUNTERS`), events ``ev_f`` (``E_*``) and ``ev_i`` (kind,
-output row), outputs ``out`` (``O_*``, one row per IMU message, flags ``OF_*``).
+magnetometer samples held for the IMU stream ``pend`` and, with split input, the accelerometer
+samples held for the gyro stream ``pacc`` (rows ``stamp, v``, in stamp order, equal stamps in
+arrival order), its own counters ``acnt`` (:data:`ADAPTER_COUNTERS`), events ``ev_f``
+(``E_*``) and ``ev_i`` (kind, output row), outputs ``out`` (``O_*``, one row per IMU (gyro)
+message, flags ``OF_*``).
 """
 
 from __future__ import annotations
@@ -40,7 +41,8 @@ from mkf_ros.core.quaternion import q_from_rotvec, qmul, rotate_inv, rotmat
 
 #: Out-of-order IMU samples in a row after which the stream is taken to have jumped back.
 MAX_BACKWARDS = 10
-#: Magnetometer samples held while waiting for the IMU stream to reach their stamps.
+#: Magnetometer (and, split input, accelerometer) samples held while waiting for the IMU
+#: (gyro) stream to reach their stamps, per sensor.
 MAX_PENDING_MAG = 32
 #: Smallest time step of an internal magnetometer-only filter step (the MUKF cannot
 #: factorise its sigma points with zero process noise at dt = 0).
@@ -57,20 +59,24 @@ ADAPTER_COUNTERS = (
     "gyr_missing", "gyr_invalid", "acc_missing", "acc_invalid", "acc_implausible",
     "mag_received", "mag_unused", "mag_missing", "mag_invalid", "mag_too_old", "mag_ahead",
     "mag_overflow", "mag_fused", "output_nonfinite", "resets", "resets_time_jump",
+    "acc_received", "acc_too_old", "acc_ahead", "acc_overflow", "acc_fused",
 )
 (A_IMU_RECEIVED, A_IMU_DUPLICATE, A_IMU_OUT_OF_ORDER, A_IMU_BAD_STAMP,
  A_GYR_MISSING, A_GYR_INVALID, A_ACC_MISSING, A_ACC_INVALID, A_ACC_IMPLAUSIBLE,
  A_MAG_RECEIVED, A_MAG_UNUSED, A_MAG_MISSING, A_MAG_INVALID, A_MAG_TOO_OLD, A_MAG_AHEAD,
- A_MAG_OVERFLOW, A_MAG_FUSED, A_OUTPUT_NONFINITE, A_RESETS, A_RESETS_TIME_JUMP) = range(20)
+ A_MAG_OVERFLOW, A_MAG_FUSED, A_OUTPUT_NONFINITE, A_RESETS, A_RESETS_TIME_JUMP,
+ A_ACC_RECEIVED, A_ACC_TOO_OLD, A_ACC_AHEAD, A_ACC_OVERFLOW, A_ACC_FUSED) = range(25)
 A_SIZE = len(ADAPTER_COUNTERS)
 
 # time state: filter time and whether it is set, heading lost in a gap, out-of-order run,
-# number of held samples (these five are cleared by a reset), latest magnitudes/offset/stamps,
-# dt statistics
+# number of held samples (these five, and the held accelerometer samples, are cleared by a
+# reset), latest magnitudes/offset/stamps, dt statistics; whether a usable gyro reading that
+# is not exactly zero, and a usable accelerometer reading, ever arrived (input checks)
 T_T, T_VALID, T_YAW_LOST, T_BACK, T_NPEND = 0, 1, 2, 3, 4
 T_ACC_NORM, T_MAG_NORM, T_MAG_OFFSET, T_LAST_IMU, T_LAST_MAG = 5, 6, 7, 8, 9
 T_DT_N, T_DT_MIN, T_DT_SUM, T_DT_MAX = 10, 11, 12, 13
-T_SIZE = 14
+T_NPEND_ACC, T_GYR_SEEN, T_ACC_SEEN, T_LAST_ACC = 14, 15, 16, 17
+T_SIZE = 18
 #: Rows of ``pend``: one more than it keeps (a sample is inserted, then the oldest dropped).
 PEND_ROWS = MAX_PENDING_MAG + 1
 
@@ -78,14 +84,15 @@ PEND_ROWS = MAX_PENDING_MAG + 1
 P_CONST_DT, P_JUMP, P_ACC_TOL, P_MAG_DELAY, P_HAS_OFF = 0, 1, 2, 3, 4
 P_Q_OFF, P_R_OFF, P_UP_W = 5, 9, 18  # 4, 9 (row-major), 3 values
 P_ORI_SD, P_AV_SRC, P_NO_GRAVITY = 21, 22, 23
-P_SIZE = 24
+P_SPLIT, P_ACC_DELAY = 24, 25  # input_mode split; acc_max_delay
+P_SIZE = 26
 #: ``angular_velocity_source`` choices, in ``npar[P_AV_SRC]`` code order.
 AV_SOURCES = ("input", "bias_corrected", "estimate")
 AV_INPUT, AV_BIAS_CORRECTED, AV_ESTIMATE = 0, 1, 2
 
 # events: ev_f row = stamp, gyro or magnetometer vector, accelerometer; ev_i row = kind, row
 E_STAMP, E_V, E_A, E_SIZE = 0, 1, 4, 7
-EV_IMU, EV_MAG = 0, 1
+EV_IMU, EV_MAG, EV_ACC = 0, 1, 2  # EV_ACC: split input, an accelerometer sample in E_V
 
 # outputs per IMU message; flags: published, and which optional fields are present (an absent
 # one is NaN)
@@ -111,17 +118,23 @@ def norm3(v: np.ndarray) -> float:
 
 
 @jit
-def check_input(acnt: np.ndarray, v: np.ndarray, k_missing: int, is_vector: bool,
-                limit: float) -> bool:
-    """True if ``v`` is a usable reading; otherwise counted (``k_missing``, or the invalid
-    counter right after it). The filter's own rule, :func:`~mkf_ros.core.filter.classify_reading`
-    with its plausibility limits (``limit``: a gyro faster than
-    :data:`~mkf_ros.core.filter.MAX_GYRO_RATE` is invalid, etc.)."""
+def input_class(acnt: np.ndarray, v: np.ndarray, k_missing: int, is_vector: bool,
+                limit: float) -> int:
+    """0 if ``v`` is a usable reading, 1 missing (no reading), 2 invalid; counted
+    (``k_missing``, or the invalid counter right after it). The filter's own rule,
+    :func:`~mkf_ros.core.filter.classify_reading` with its plausibility limits (``limit``: a
+    gyro faster than :data:`~mkf_ros.core.filter.MAX_GYRO_RATE` is invalid, etc.)."""
     c = classify_reading((v[0], v[1], v[2]), is_vector, limit)
     if c:
         acnt[k_missing + c - 1] += 1
-        return False
-    return True
+    return c
+
+
+@jit
+def check_input(acnt: np.ndarray, v: np.ndarray, k_missing: int, is_vector: bool,
+                limit: float) -> bool:
+    """True if ``v`` is a usable reading (:func:`input_class`)."""
+    return input_class(acnt, v, k_missing, is_vector, limit) == 0
 
 
 @jit
@@ -150,24 +163,27 @@ def covariance_rows(c: np.ndarray, stddev: float, add: np.ndarray) -> None:
             row += add[i if add.shape[0] > 1 else 0]
 
 
-# --- magnetometer samples held for the IMU stream -----------------------------------------------
+# --- magnetometer (split input: accelerometer) samples held for the IMU (gyro) stream --------
+# ``pend`` holds magnetometer samples (count ``ts[T_NPEND]``), ``pacc`` accelerometer samples
+# (count ``ts[T_NPEND_ACC]``); ``is_acc`` selects the sensor in the functions below.
 
 
 @jit
-def _pop_front(ts: np.ndarray, pend: np.ndarray, k: int) -> None:
-    """Drop the ``k`` oldest held samples."""
-    n = int(ts[T_NPEND])
+def _pop_front(ts: np.ndarray, pend: np.ndarray, k: int, ni: int = T_NPEND) -> None:
+    """Drop the ``k`` oldest held samples (count in ``ts[ni]``)."""
+    n = int(ts[ni])
     for i in range(n - k):
         for j in range(4):
             pend[i, j] = pend[i + k, j]
-    ts[T_NPEND] = n - k
+    ts[ni] = n - k
 
 
 @jit
 def hold(ts: np.ndarray, pend: np.ndarray, acnt: np.ndarray, stamp: float,
-         m: np.ndarray) -> None:
+         m: np.ndarray, is_acc: bool = False) -> None:
     """Insert a sample in stamp order (after equal stamps); the oldest goes on overflow."""
-    n = int(ts[T_NPEND])
+    ni = T_NPEND_ACC if is_acc else T_NPEND
+    n = int(ts[ni])
     i = n
     while i > 0 and pend[i - 1, 0] > stamp:
         for j in range(4):
@@ -176,10 +192,29 @@ def hold(ts: np.ndarray, pend: np.ndarray, acnt: np.ndarray, stamp: float,
     pend[i, 0] = stamp
     for j in range(3):
         pend[i, 1 + j] = m[j]
-    ts[T_NPEND] = n + 1
+    ts[ni] = n + 1
     if n + 1 > MAX_PENDING_MAG:
-        _pop_front(ts, pend, 1)
-        acnt[A_MAG_OVERFLOW] += 1
+        _pop_front(ts, pend, 1, ni)
+        acnt[A_ACC_OVERFLOW if is_acc else A_MAG_OVERFLOW] += 1
+
+
+@jit
+def fuse_now(cfg: np.ndarray, nz: np.ndarray, st: np.ndarray, P: np.ndarray,
+             fl: np.ndarray, fcnt: np.ndarray, acnt: np.ndarray, v: np.ndarray,
+             age: float, nan3: np.ndarray, is_acc: bool = False) -> None:
+    """Fuse a magnetometer (or accelerometer) sample at the filter's current time, rotated
+    forward over its ``age`` (s): both measure a world-fixed vector in body axes."""
+    if age > 0.0 and fl[F_INIT] > 0 and np.isfinite(v[0] + v[1] + v[2]):
+        w = np.empty(3)
+        for i in range(3):
+            w[i] = st[S_W + i] * age
+        v = rotate_back(v, w)
+    if is_acc:
+        sensor_step(cfg, nz, st, P, fl, fcnt, MIN_STEP, nan3, v, nan3)
+        acnt[A_ACC_FUSED] += 1
+    else:
+        sensor_step(cfg, nz, st, P, fl, fcnt, MIN_STEP, nan3, nan3, v)
+        acnt[A_MAG_FUSED] += 1
 
 
 @jit
@@ -187,76 +222,106 @@ def fuse_mag_now(cfg: np.ndarray, nz: np.ndarray, st: np.ndarray, P: np.ndarray,
                  fl: np.ndarray, fcnt: np.ndarray, acnt: np.ndarray, m: np.ndarray,
                  age: float, nan3: np.ndarray) -> None:
     """Fuse at the filter's current time, ``m`` rotated forward over its ``age`` (s)."""
-    if age > 0.0 and fl[F_INIT] > 0:
-        w = np.empty(3)
-        for i in range(3):
-            w[i] = st[S_W + i] * age
-        m = rotate_back(m, w)
-    sensor_step(cfg, nz, st, P, fl, fcnt, MIN_STEP, nan3, nan3, m)
-    acnt[A_MAG_FUSED] += 1
+    fuse_now(cfg, nz, st, P, fl, fcnt, acnt, m, age, nan3, False)
 
 
 @jit
 def fuse_late(cfg: np.ndarray, nz: np.ndarray, st: np.ndarray, P: np.ndarray, fl: np.ndarray,
               fcnt: np.ndarray, npar: np.ndarray, ts: np.ndarray, acnt: np.ndarray,
-              stamp: float, m: np.ndarray, nan3: np.ndarray) -> None:
-    """A sample stamped at or before the filter time: fused now if recent enough."""
+              stamp: float, m: np.ndarray, nan3: np.ndarray, is_acc: bool = False) -> None:
+    """A sample stamped at or before the filter time: fused now if recent enough
+    (``mag_max_delay``, ``acc_max_delay``)."""
     age = ts[T_T] - stamp
-    if age > npar[P_MAG_DELAY] + SAME_STAMP:
-        acnt[A_MAG_TOO_OLD] += 1
+    if age > npar[P_ACC_DELAY if is_acc else P_MAG_DELAY] + SAME_STAMP:
+        acnt[A_ACC_TOO_OLD if is_acc else A_MAG_TOO_OLD] += 1
         return
-    fuse_mag_now(cfg, nz, st, P, fl, fcnt, acnt, m, max(age, 0.0), nan3)
+    fuse_now(cfg, nz, st, P, fl, fcnt, acnt, m, max(age, 0.0), nan3, is_acc)
+
+
+@jit
+def _first_pending(ts: np.ndarray, pend: np.ndarray, acnt: np.ndarray, t_new: float,
+                   tol: float, same: np.ndarray, is_acc: bool) -> bool:
+    """On the first IMU sample: keep the held samples ahead of it, drop the older ones but the
+    latest within ``tol``, which goes in ``same`` to be fused with it (True if so)."""
+    ni = T_NPEND_ACC if is_acc else T_NPEND
+    n = int(ts[ni])
+    n_keep = 0
+    n_near = 0
+    for i in range(n):
+        p = pend[i, 0]
+        if p > t_new + SAME_STAMP:
+            n_keep += 1
+        elif abs(t_new - p) <= tol:
+            n_near += 1
+            for j in range(3):
+                same[j] = pend[i, 1 + j]
+    acnt[A_ACC_TOO_OLD if is_acc else A_MAG_TOO_OLD] += n - n_keep - min(n_near, 1)
+    _pop_front(ts, pend, n - n_keep, ni)  # sorted: the kept ones are the newest
+    return n_near > 0
 
 
 @jit
 def take_pending(cfg: np.ndarray, nz: np.ndarray, st: np.ndarray, P: np.ndarray,
                  fl: np.ndarray, fcnt: np.ndarray, npar: np.ndarray, ts: np.ndarray,
                  pend: np.ndarray, acnt: np.ndarray, t_new: float, dt: float,
-                 same: np.ndarray, nan3: np.ndarray) -> bool:
-    """Fuse held samples stamped before ``t_new``; put one stamped at ``t_new`` (or, on the
-    first IMU sample, the latest recent one) in ``same`` to fuse with the IMU: True if so."""
-    n = int(ts[T_NPEND])
-    if n == 0:
-        return False
-    if ts[T_VALID] == 0:  # first sample: initialise with the latest recent magnetometer
-        tol = max(npar[P_MAG_DELAY], SAME_STAMP)
-        n_keep = 0
-        n_near = 0
-        for i in range(n):
-            p = pend[i, 0]
-            if p > t_new + SAME_STAMP:
-                n_keep += 1
-            elif abs(t_new - p) <= tol:
-                n_near += 1
-                for j in range(3):
-                    same[j] = pend[i, 1 + j]
-        acnt[A_MAG_TOO_OLD] += n - n_keep - min(n_near, 1)
-        _pop_front(ts, pend, n - n_keep)  # sorted: the kept ones are the newest
-        return n_near > 0
+                 same: np.ndarray, nan3: np.ndarray, pacc: np.ndarray,
+                 same_a: np.ndarray) -> int:
+    """Fuse held samples stamped before ``t_new``, in stamp order (the magnetometer first at
+    equal stamps), each at its own stamp; put one stamped at ``t_new`` (or, on the first IMU
+    sample, the latest recent one) in ``same`` (magnetometer) / ``same_a`` (accelerometer) to
+    fuse with the IMU (gyro) sample. Returns 1 if ``same`` is set, plus 2 if ``same_a`` is."""
+    if ts[T_VALID] == 0:  # first sample: initialise with the latest recent samples
+        r = 0
+        if ts[T_NPEND] > 0 and _first_pending(ts, pend, acnt, t_new,
+                                              max(npar[P_MAG_DELAY], SAME_STAMP), same, False):
+            r |= 1
+        if ts[T_NPEND_ACC] > 0 and _first_pending(ts, pacc, acnt, t_new,
+                                                  max(npar[P_ACC_DELAY], SAME_STAMP), same_a,
+                                                  True):
+            r |= 2
+        return r
     if dt > cfg[C_MAXDT]:  # a gap: the held samples cannot be placed
-        x = t_new - npar[P_MAG_DELAY]
-        old = 0
-        while old < n and pend[old, 0] < x:
-            old += 1
-        acnt[A_MAG_TOO_OLD] += old
-        _pop_front(ts, pend, old)
-    has_same = False
-    while ts[T_NPEND] > 0 and pend[0, 0] <= t_new + SAME_STAMP:
-        tm = pend[0, 0]
-        m = pend[0, 1:4].copy()
-        _pop_front(ts, pend, 1)
+        for is_acc in (False, True):
+            buf = pacc if is_acc else pend
+            ni = T_NPEND_ACC if is_acc else T_NPEND
+            x = t_new - npar[P_ACC_DELAY if is_acc else P_MAG_DELAY]
+            n = int(ts[ni])
+            old = 0
+            while old < n and buf[old, 0] < x:
+                old += 1
+            acnt[A_ACC_TOO_OLD if is_acc else A_MAG_TOO_OLD] += old
+            _pop_front(ts, buf, old, ni)
+    r = 0
+    while True:
+        m_due = ts[T_NPEND] > 0 and pend[0, 0] <= t_new + SAME_STAMP
+        a_due = ts[T_NPEND_ACC] > 0 and pacc[0, 0] <= t_new + SAME_STAMP
+        if not (m_due or a_due):
+            break
+        is_acc = a_due and not (m_due and pend[0, 0] <= pacc[0, 0])
+        buf = pacc if is_acc else pend
+        tm = buf[0, 0]
+        v = buf[0, 1:4].copy()
+        _pop_front(ts, buf, 1, T_NPEND_ACC if is_acc else T_NPEND)
         if abs(tm - t_new) <= SAME_STAMP:
-            if has_same:
-                fuse_mag_now(cfg, nz, st, P, fl, fcnt, acnt, same.copy(), 0.0, nan3)
-            same[:] = m
-            has_same = True
+            bit = 2 if is_acc else 1
+            sm = same_a if is_acc else same
+            if r & bit:
+                fuse_now(cfg, nz, st, P, fl, fcnt, acnt, sm.copy(), 0.0, nan3, is_acc)
+            sm[:] = v
+            r |= bit
         elif tm <= ts[T_T]:  # held before a reset moved the time: treat as late
-            fuse_late(cfg, nz, st, P, fl, fcnt, npar, ts, acnt, tm, m, nan3)
+            fuse_late(cfg, nz, st, P, fl, fcnt, npar, ts, acnt, tm, v, nan3, is_acc)
         else:
-            sensor_step(cfg, nz, st, P, fl, fcnt, max(tm - ts[T_T], MIN_STEP), nan3, nan3, m)
-            acnt[A_MAG_FUSED] += 1
+            if is_acc:
+                sensor_step(cfg, nz, st, P, fl, fcnt, max(tm - ts[T_T], MIN_STEP), nan3, v,
+                            nan3)
+                acnt[A_ACC_FUSED] += 1
+            else:
+                sensor_step(cfg, nz, st, P, fl, fcnt, max(tm - ts[T_T], MIN_STEP), nan3, nan3,
+                            v)
+                acnt[A_MAG_FUSED] += 1
             ts[T_T] = tm
-    return has_same
+    return r
 
 
 # --- events ---------------------------------------------------------------------------------
@@ -307,13 +372,59 @@ def mag_event(cfg: np.ndarray, nz: np.ndarray, st: np.ndarray, P: np.ndarray, fl
 
 
 @jit_inline
+def acc_event(cfg: np.ndarray, nz: np.ndarray, st: np.ndarray, P: np.ndarray, fl: np.ndarray,
+              fcnt: np.ndarray, npar: np.ndarray, ts: np.ndarray, pacc: np.ndarray,
+              acnt: np.ndarray, stamp: float, acc: np.ndarray, nan3: np.ndarray) -> None:
+    """One accelerometer sample of split input (its own stream, ``input_mode`` split): like a
+    magnetometer sample, held until the gyro stream reaches its stamp and fused there (with
+    the gyro sample of the same stamp), fused at once if up to ``acc_max_delay`` late (rotated
+    forward by the estimated rate), dropped if older. The same checks as the accelerometer of
+    a combined message: a missing, invalid or implausible sample is counted and not fused."""
+    acnt[A_ACC_RECEIVED] += 1
+    if input_class(acnt, acc, A_ACC_MISSING, True, MAX_ACC_G * cfg[C_GRAVITY]) != 0:
+        return
+    norm = norm3(acc)
+    ts[T_ACC_NORM] = norm
+    if abs(norm / cfg[C_GRAVITY] - 1.0) > npar[P_ACC_TOL]:
+        acnt[A_ACC_IMPLAUSIBLE] += 1
+        return
+    ts[T_ACC_SEEN] = 1.0
+    a = acc.copy()
+    if npar[P_CONST_DT] > 0.0:  # stamps are not trusted: fuse at the current time
+        if ts[T_VALID] == 0:
+            pacc[0, 0] = 0.0
+            pacc[0, 1:4] = a
+            ts[T_NPEND_ACC] = 1
+        else:
+            fuse_now(cfg, nz, st, P, fl, fcnt, acnt, a, 0.0, nan3, True)
+        return
+    if not np.isfinite(stamp) or stamp == 0.0:
+        acnt[A_ACC_INVALID] += 1
+        return
+    ts[T_LAST_ACC] = stamp
+    if ts[T_VALID] == 0:  # before the first gyro sample: keep the latest few
+        hold(ts, pacc, acnt, stamp, a, True)
+        return
+    d = stamp - ts[T_T]
+    if d > cfg[C_MAXDT]:
+        acnt[A_ACC_AHEAD] += 1
+    elif d > SAME_STAMP:
+        hold(ts, pacc, acnt, stamp, a, True)
+    else:
+        fuse_late(cfg, nz, st, P, fl, fcnt, npar, ts, acnt, stamp, a, nan3, True)
+
+
+@jit_inline
 def imu_event(cfg: np.ndarray, nz: np.ndarray, st: np.ndarray, P: np.ndarray, fl: np.ndarray,
               fcnt: np.ndarray, q_from_enu: np.ndarray, npar: np.ndarray, ts: np.ndarray,
               pend: np.ndarray, acnt: np.ndarray, stamp: float, gyr: np.ndarray,
-              acc: np.ndarray, out: np.ndarray, resume: bool, nan3: np.ndarray) -> int:
-    """One IMU sample: time rules, input checks, held magnetometer samples, filter step,
-    output. Returns ``_OUT`` (``out`` written), ``_NONE``, or a reset request ``R_*``;
-    ``resume``: the same sample again after a time-jump reset (already counted)."""
+              acc: np.ndarray, out: np.ndarray, resume: bool, nan3: np.ndarray,
+              pacc: np.ndarray) -> int:
+    """One IMU sample (split input: a gyro sample; its accelerometer field is ignored): time
+    rules, input checks, held magnetometer (and accelerometer) samples, filter step, output.
+    Returns ``_OUT`` (``out`` written), ``_NONE``, or a reset request ``R_*``; ``resume``: the
+    same sample again after a time-jump reset (already counted). A reading that is not
+    usable goes to the filter as missing (all NaN)."""
     out[O_FLAGS] = 0.0
     if not resume:
         acnt[A_IMU_RECEIVED] += 1
@@ -341,8 +452,14 @@ def imu_event(cfg: np.ndarray, nz: np.ndarray, st: np.ndarray, P: np.ndarray, fl
                 return R_TIME_JUMP  # Python resets; the sample comes back with resume
     ts[T_BACK] = 0
     ts[T_LAST_IMU] = stamp
-    has_g = check_input(acnt, gyr, A_GYR_MISSING, False, MAX_GYRO_RATE)
-    has_a_in = check_input(acnt, acc, A_ACC_MISSING, True, MAX_ACC_G * cfg[C_GRAVITY])
+    g_cls = input_class(acnt, gyr, A_GYR_MISSING, False, MAX_GYRO_RATE)
+    has_g = g_cls == 0
+    if has_g and (gyr[0] != 0.0 or gyr[1] != 0.0 or gyr[2] != 0.0):
+        ts[T_GYR_SEEN] = 1.0
+    split = npar[P_SPLIT] > 0.0
+    a_cls = 1 if split else input_class(acnt, acc, A_ACC_MISSING, True,
+                                        MAX_ACC_G * cfg[C_GRAVITY])
+    has_a_in = a_cls == 0
     has_a = has_a_in
     if has_a:
         norm = norm3(acc)
@@ -350,23 +467,37 @@ def imu_event(cfg: np.ndarray, nz: np.ndarray, st: np.ndarray, P: np.ndarray, fl
         if abs(norm / cfg[C_GRAVITY] - 1.0) > npar[P_ACC_TOL]:
             acnt[A_ACC_IMPLAUSIBLE] += 1
             has_a = False
+        else:
+            ts[T_ACC_SEEN] = 1.0
     if valid and dt > 0.0:
         ts[T_DT_N] += 1
         ts[T_DT_MIN] = min(ts[T_DT_MIN], dt)
         ts[T_DT_SUM] += dt
         ts[T_DT_MAX] = max(ts[T_DT_MAX], dt)
     mag = np.empty(3)
+    a_in = acc if has_a else nan3
     # the call is skipped when nothing is held, as it mostly is (it costs ~0.4 µs)
-    has_m = ts[T_NPEND] > 0 and take_pending(cfg, nz, st, P, fl, fcnt, npar, ts, pend, acnt,
-                                             t_new, dt, mag, nan3)
+    has_m = False
+    a_held = False
+    if ts[T_NPEND] > 0 or ts[T_NPEND_ACC] > 0:
+        a_same = np.empty(3)
+        r = take_pending(cfg, nz, st, P, fl, fcnt, npar, ts, pend, acnt, t_new, dt, mag, nan3,
+                         pacc, a_same)
+        has_m = (r & 1) > 0
+        if r & 2:
+            a_in = a_same
+            a_held = True
     gaps = fcnt[K_GAPS]
     step = dt if not valid or npar[P_CONST_DT] > 0.0 else t_new - ts[T_T]
-    sensor_step(cfg, nz, st, P, fl, fcnt, step, gyr if has_g else nan3,
-                acc if has_a else nan3, mag if has_m else nan3)
+    sensor_step(cfg, nz, st, P, fl, fcnt, step,
+                gyr if has_g else nan3, a_in,
+                mag if has_m else nan3)
     if fcnt[K_GAPS] != gaps:
         ts[T_YAW_LOST] = 1.0
     if has_m:
         acnt[A_MAG_FUSED] += 1
+    if a_held:
+        acnt[A_ACC_FUSED] += 1
     ts[T_T] = t_new
     ts[T_VALID] = 1.0
     return output(cfg, st, P, fl, q_from_enu, npar, ts, acnt, gyr, has_g, acc, has_a_in, out)
@@ -458,19 +589,24 @@ def run_events(cfg: np.ndarray, nz: np.ndarray, st: np.ndarray, P: np.ndarray,
                fl: np.ndarray, fcnt: np.ndarray, q_from_enu: np.ndarray, npar: np.ndarray,
                ts: np.ndarray, pend: np.ndarray, acnt: np.ndarray, ev_f: np.ndarray,
                ev_i: np.ndarray, out: np.ndarray, k0: int, k1: int,
-               resume: bool) -> tuple[int, int]:
+               resume: bool, pacc: np.ndarray) -> tuple[int, int]:
     """Events ``k0 … k1-1`` in order; returns ``(k, R_DONE)`` at the end, or the index and
     reason of an event that needs a reset (``R_TIME_JUMP``: call again from ``k`` with
     ``resume``; ``R_NONFINITE``: the event is done, call again from ``k + 1``)."""
     nan3 = np.full(3, np.nan)
     for k in range(k0, k1):
         e = ev_f[k]
-        if ev_i[k, 0] == EV_MAG:
+        kind = ev_i[k, 0]
+        if kind == EV_MAG:
             mag_event(cfg, nz, st, P, fl, fcnt, npar, ts, pend, acnt, e[E_STAMP],
                       e[E_V:E_V + 3], nan3)
             continue
+        if kind == EV_ACC:
+            acc_event(cfg, nz, st, P, fl, fcnt, npar, ts, pacc, acnt, e[E_STAMP],
+                      e[E_V:E_V + 3], nan3)
+            continue
         r = imu_event(cfg, nz, st, P, fl, fcnt, q_from_enu, npar, ts, pend, acnt, e[E_STAMP],
-                      e[E_V:E_V + 3], e[E_A:E_A + 3], out[ev_i[k, 1]], resume, nan3)
+                      e[E_V:E_V + 3], e[E_A:E_A + 3], out[ev_i[k, 1]], resume, nan3, pacc)
         resume = False
         if r >= R_TIME_JUMP:
             return k, r

@@ -643,3 +643,32 @@ def test_batch_equals_per_message_on_garbage(seed: int, params: dict) -> None:
     assert_same(outs, process(batch, r, chunk=500))
     assert batch.all_counters() == one.all_counters()
     assert batch.last_reset_reason == one.last_reset_reason
+
+
+# ---------------------------------------------------------------- split accelerometer / gyro
+
+
+@pytest.mark.parametrize("offset", [0.0, 0.5 / 200])
+def test_split_input_detects_rest_as_the_combined_stream(offset: float) -> None:
+    """Split input (accelerometer at a quarter of the gyro's rate, at the gyro's stamps or
+    half a gyro period after them, as a RealSense's run on their own clocks): rest detection
+    still runs (each sensor's part of the test held between its samples), with about as many
+    zero-rate updates as the combined stream's, the same gyro bias and the same orientation."""
+    bias = (0.004, -0.003, 0.006)
+    sim = simulate("static", duration=20.0, rate=200.0, seed=1, gyro_bias=bias)
+    t = T0 + sim.t
+    comb = StreamAdapter()
+    rc = comb.process(t, sim.gyr, sim.acc)
+    j = np.arange(0, len(t), 4)
+    split = StreamAdapter(input_mode="split")
+    rs = split.process(t, sim.gyr, sim.acc[j], acc_stamp=t[j] + offset)
+    n_c, n_s = comb.counters["rest_updates"], split.counters["rest_updates"]
+    assert n_c > 0.9 * len(t) and abs(n_s - n_c) <= 0.01 * n_c, (n_c, n_s)
+    np.testing.assert_allclose(rs.bias[-1], rc.bias[-1], atol=5e-5)
+    assert abs(rs.bias[-1][2] - bias[2]) < 5e-4
+    common = np.intersect1d(rs.index, rc.index)
+    assert len(common) >= len(t) - 1  # every gyro message answered (but one before any acc)
+    e = orientation_errors(rs.quat_wxyz[np.searchsorted(rs.index, common)],
+                           rc.quat_wxyz[np.searchsorted(rc.index, common)])
+    # the first tilt corrections differ (a quarter of the accelerometer samples), then agree
+    assert rmse_deg(e["total"]) < 0.05 and np.degrees(e["total"][-2000:]).max() < 0.05

@@ -73,6 +73,8 @@ class ProcessResult:
     log_s: np.ndarray  #: (M,) s since the bag start, output log times
     scores: Scores | None
     notes: list[str]
+    accel_topic: str | None = None  #: split input: the accelerometer topic (imu_topic: gyro)
+    n_accel: int = 0
 
 
 def _decode(raws: np.ndarray | list[bytes], layout: cdr.Layout, topic: str,
@@ -93,9 +95,13 @@ def _field(values: np.ndarray, cov0: np.ndarray) -> np.ndarray:
 
 def run_stream(adapter: Any, imu: cdr.Decoded, imu_log: np.ndarray, mag: cdr.Decoded | None,
                mag_log: np.ndarray | None, node_params: Mapping[str, Any],
-               progress: Callable[[int], None] | None = None) -> Outputs:
+               progress: Callable[[int], None] | None = None, accel: cdr.Decoded | None = None,
+               accel_log: np.ndarray | None = None) -> Outputs:
     """Run ``adapter`` over the messages in recording order (by log time, the magnetometer
-    first at equal times, as ``mkf synth`` writes); the ``imu/data`` fields it publishes."""
+    first at equal times, as ``mkf synth`` writes); the ``imu/data`` fields it publishes.
+    Split input (``accel`` given, ``input_mode`` split): ``imu`` is the gyro stream (its
+    linear acceleration ignored) and ``accel`` the accelerometer stream (its angular velocity
+    ignored), each message fused at its own stamp."""
     from mkf_ros.stream import covariance_out
 
     def seconds(stamp_ns: np.ndarray) -> np.ndarray:  # as the node: sec + nanosec · 1e-9
@@ -105,12 +111,19 @@ def run_stream(adapter: Any, imu: cdr.Decoded, imu_log: np.ndarray, mag: cdr.Dec
     av_in = f["angular_velocity_covariance"]
     la_in = f["linear_acceleration_covariance"]
     gyr = _field(f["angular_velocity"], av_in[:, 0])
-    acc = _field(f["linear_acceleration"], la_in[:, 0])
+    a_st = None
+    if accel is not None:
+        fa = accel.fields
+        acc = _field(fa["linear_acceleration"], fa["linear_acceleration_covariance"][:, 0])
+        a_st = seconds(accel.stamp_ns)
+    else:
+        acc = _field(f["linear_acceleration"], la_in[:, 0])
     m_st = m_val = None
     if mag is not None and mag_log is not None and len(mag_log):
         m_st, m_val = seconds(mag.stamp_ns), mag.fields["magnetic_field"]
     res = adapter.process(seconds(imu.stamp_ns), gyr, acc, m_st, m_val, imu_arrival=imu_log,
-                          mag_arrival=mag_log, progress=progress)
+                          mag_arrival=mag_log, acc_stamp=a_st, acc_arrival=accel_log,
+                          progress=progress)
     i = res.index
     m = len(i)
     w_ok = ~np.isnan(res.angular_velocity[:, 0])
@@ -215,7 +228,8 @@ def stream_param_names() -> list[str]:
 
 
 def process_bag(bag: str | Path, out: str | Path, params: Mapping[str, Any] | None = None, *,
-                imu_topic: str = "imu/data_raw", mag_topic: str = "imu/mag",
+                imu_topic: str | None = None, mag_topic: str | None = None,
+                accel_topic: str | None = None, gyro_topic: str | None = None,
                 truth_topic: str | None = "imu/ground_truth", output_topic: str = "imu/data",
                 storage: str = "mcap", overwrite: bool = False, copy_input: bool = False,
                 skip: float = 0.0, progress: Any = None) -> ProcessResult:
@@ -224,30 +238,66 @@ def process_bag(bag: str | Path, out: str | Path, params: Mapping[str, Any] | No
     ``params``: filter and node parameters by name (ValueError if invalid). ``progress``: a
     factory ``(description, total) -> callable(increment)`` or None. Raises :class:`BagError`
     for unusable input; the output bag is written only if everything succeeded.
+
+    Topics: ``imu_topic`` None finds the IMU: the bag's only ``sensor_msgs/Imu`` topic, or
+    ``imu/data_raw`` among several (otherwise an error lists them with their message counts);
+    with ``use_mag``, ``mag_topic`` None likewise takes the only ``MagneticField`` topic (or
+    ``imu/mag``). ``accel_topic`` and ``gyro_topic`` (both, and no ``imu_topic``) select split
+    input (``input_mode`` split): separate accelerometer and gyro ``Imu`` streams, the output
+    one message per gyro message.
     """
     from mkf_ros.bags.synth import read_description
-    from mkf_ros.stream import StreamAdapter
+    from mkf_ros.stream import REJECTIONS, StreamAdapter, carries_orientation, orientation_note
 
     bag, out = Path(bag), Path(out)
     notes: list[str] = []
     tm: dict[str, float] = {}
-    adapter = StreamAdapter(dict(params or {}))
+    params = dict(params or {})
+    if (accel_topic is None) != (gyro_topic is None):
+        raise BagError("split input needs both --accel-topic and --gyro-topic (separate "
+                       "accelerometer and gyroscope sensor_msgs/Imu topics)")
+    split = accel_topic is not None
+    if split:
+        if imu_topic is not None:
+            raise BagError("--imu-topic (one combined IMU topic) and --accel-topic/--gyro-topic "
+                           "(split input) exclude each other")
+        if params.get("input_mode", "split") != "split":
+            raise BagError("--accel-topic/--gyro-topic are split input: input_mode must be "
+                           "split")
+        params["input_mode"] = "split"
+    elif params.get("input_mode") == "split":
+        raise BagError("input_mode split needs --accel-topic and --gyro-topic")
+    adapter = StreamAdapter(params)
     p = adapter.params
     use_mag = bool(p["use_mag"])
     t0 = time.perf_counter()
+    acc_name = None
     with BagReader(bag) as br:
-        imu_name = br.resolve(imu_topic, cdr.IMU.msgtype, role="IMU")
+        if split:
+            imu_name = br.resolve(gyro_topic or "", cdr.IMU.msgtype, role="gyroscope")
+            acc_name = br.resolve(accel_topic or "", cdr.IMU.msgtype, role="accelerometer")
+            if acc_name == imu_name:
+                raise BagError(f"--accel-topic and --gyro-topic are the same topic {imu_name}; "
+                               "for one combined IMU topic use --imu-topic")
+        elif imu_topic is not None:
+            imu_name = br.resolve(imu_topic, cdr.IMU.msgtype, role="IMU")
+        else:
+            imu_name = br.discover(cdr.IMU.msgtype, role="IMU", flag="--imu-topic",
+                                   preferred="imu/data_raw")
         mag_name = None
         if use_mag:
-            mag_name = br.resolve(mag_topic, cdr.MAGNETIC_FIELD.msgtype, role="magnetometer")
-        elif normalize_topic(mag_topic) in br.topics:
-            notes.append(f"{normalize_topic(mag_topic)} is in the bag but use_mag is false "
-                         "(pass --use-mag to fuse it)")
+            mag_name = (br.resolve(mag_topic, cdr.MAGNETIC_FIELD.msgtype, role="magnetometer")
+                        if mag_topic is not None else
+                        br.discover(cdr.MAGNETIC_FIELD.msgtype, role="magnetometer",
+                                    flag="--mag-topic", preferred="imu/mag"))
+        elif br.of_type(cdr.MAGNETIC_FIELD.msgtype):
+            notes.append(f"{', '.join(br.of_type(cdr.MAGNETIC_FIELD.msgtype))} in the bag but "
+                         "use_mag is false (pass --use-mag to fuse it)")
         truth_name = None
         if truth_topic and normalize_topic(truth_topic) in br.topics:
             truth_name = br.resolve(truth_topic, cdr.QUATERNION_STAMPED.msgtype,
                                     role="ground-truth")
-        want = [t for t in (imu_name, mag_name, truth_name) if t]
+        want = [t for t in (imu_name, acc_name, mag_name, truth_name) if t]
         extra = list(br.topics) if copy_input else []
         read = list(dict.fromkeys(want + extra))
         tick = progress("read", br.work_total(read)) if progress else None
@@ -262,6 +312,10 @@ def process_bag(bag: str | Path, out: str | Path, params: Mapping[str, Any] | No
     if len(imu_b) == 0:
         raise BagError(f"IMU topic {imu_name} in {bag} has no messages")
     imu = _decode(imu_b.data, cdr.IMU, imu_name, bag)
+    acc = acc_b = None
+    if acc_name:
+        acc_b = batches[acc_name]
+        acc = _decode(acc_b.data, cdr.IMU, acc_name, bag)
     mag = mag_b = None
     if mag_name:
         mag_b = batches[mag_name]
@@ -271,10 +325,24 @@ def process_bag(bag: str | Path, out: str | Path, params: Mapping[str, Any] | No
     tm["read"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    n_events = len(imu_b) + (len(mag_b) if mag_b else 0)
+    n_events = len(imu_b) + (len(mag_b) if mag_b else 0) + (len(acc_b) if acc_b else 0)
     tick = progress("filter", n_events) if progress else None
-    outs = run_stream(adapter, imu, imu_b.log_ns, mag, mag_b.log_ns if mag_b else None, p, tick)
+    outs = run_stream(adapter, imu, imu_b.log_ns, mag, mag_b.log_ns if mag_b else None, p, tick,
+                      acc, acc_b.log_ns if acc_b else None)
     tm["filter"] = time.perf_counter() - t0
+    found = adapter.input_problems(imu_name, acc_name or "")
+    if "gyro" in found:  # an estimate of the tilt alone; said, not refused
+        notes.append(found.pop("gyro"))
+    problems = list(found.values())
+    if not problems and len(outs.index) == 0:
+        why = ", ".join(f"{v} {k}" for k, v in adapter.counters.items()
+                        if v and k in (*REJECTIONS, "acc_missing", "acc_implausible"))
+        problems = [f"no estimate from the {len(imu_b)} messages of {imu_name}"
+                    + (f" ({why})" if why else "")]
+    if problems:  # nothing to write: stop before the output bag exists
+        raise BagError("; ".join(problems) + "; no output written")
+    if carries_orientation(imu.fields["orientation"], imu.fields["orientation_covariance"][:, 0]):
+        notes.append(orientation_note(imu_name))
 
     t0 = time.perf_counter()
     data = encode_outputs(imu, imu_b, outs)
@@ -309,6 +377,7 @@ def process_bag(bag: str | Path, out: str | Path, params: Mapping[str, Any] | No
             notes.append(f"no {truth_name} message has the stamp of an output; not scored")
     counters = adapter.all_counters()
     return ProcessResult(out=out, imu_topic=imu_name, mag_topic=mag_name, n_imu=len(imu_b),
+                         accel_topic=acc_name, n_accel=len(acc_b) if acc_b else 0,
                          n_mag=len(mag_b) if mag_b else 0, n_out=len(outs.index), params=p,
                          counters=counters, timings=tm, outputs=outs,
                          stamps=out_stamp * 1e-9, log_s=log_s, scores=scores, notes=notes)

@@ -110,6 +110,8 @@ class BagReader:
                            ".mcap or .db3 file, or a ROS 1 .bag file")
         if p.is_file() and p.stat().st_size == 0:
             raise BagError(f"cannot read bag {self.path}: the file is empty")
+        if p.is_file():
+            _check_content(p)
         if p.suffix == ".bag":
             from rosbags.rosbag1 import Reader as Reader1
 
@@ -179,9 +181,40 @@ class BagReader:
                     raise BagError(f"{what} {name} in {self.path} is {info.msgtype}, expected "
                                    f"{msgtype}")
                 return name
-        have = ", ".join(f"{t} ({i.msgtype})" for t, i in sorted(self.topics.items())) or "none"
         what = f"{role} topic" if role else "topic"
-        raise BagError(f"{what} {normalize_topic(topic)} not in {self.path} (topics: {have})")
+        if msgtype:
+            have = self.listing(msgtype)
+        else:
+            have = "topics: " + (", ".join(sorted(self.topics)) or "none")
+        raise BagError(f"{what} {normalize_topic(topic)} not in {self.path} ({have})")
+
+    def of_type(self, msgtype: str) -> list[str]:
+        """The topics of type ``msgtype``, sorted."""
+        return sorted(t for t, i in self.topics.items() if i.msgtype == msgtype)
+
+    def listing(self, msgtype: str) -> str:
+        """``msgtype`` topics: each with its message count (for error messages)."""
+        names = self.of_type(msgtype)
+        short = msgtype.replace("/msg/", "/")
+        if not names:
+            return f"no {short} topic in the bag"
+        return f"{short} topics: " + ", ".join(
+            f"{t} ({self.topics[t].count:,} messages)" for t in names)
+
+    def discover(self, msgtype: str, *, role: str, flag: str,
+                 preferred: str | None = None) -> str:
+        """The bag's only ``msgtype`` topic, or ``preferred`` if it is one of several; BagError
+        naming the candidates (with message counts) and ``flag`` to choose otherwise."""
+        names = self.of_type(msgtype)
+        if len(names) == 1:
+            return names[0]
+        if preferred and normalize_topic(preferred) in names:
+            return normalize_topic(preferred)
+        if not names:
+            raise BagError(f"no {role} topic in {self.path}: "
+                           f"{self.listing(msgtype)}")
+        raise BagError(f"{len(names)} {role} topics in {self.path}, choose one with {flag}: "
+                       f"{self.listing(msgtype)}")
 
     # -- messages --------------------------------------------------------------------------
     def _converter(self, conn: Any) -> Callable[[bytes], bytes] | None:
@@ -314,6 +347,38 @@ def _merge(parts: list[tuple[np.ndarray, list[bytes]]]) -> Batch:
     d = [x for p in parts for x in p[1]]
     order = np.argsort(t, kind="stable")
     return Batch(t[order], [d[i] for i in order.tolist()])
+
+
+#: the first bytes of each storage format → (its suffix, what it is)
+_MAGIC = {
+    ".mcap": (b"\x89MCAP", "an MCAP file (rosbag2 .mcap)"),
+    ".db3": (b"SQLite format 3\x00", "an sqlite3 database (rosbag2 .db3)"),
+    ".bag": (b"#ROSBAG V2.0", "a ROS 1 bag (.bag)"),
+}
+
+
+def _check_content(p: Path) -> None:
+    """BagError unless the file's first bytes are those of the format its suffix names,
+    saying what the file is instead (a .db3 renamed .bag, a text file, ...)."""
+    with p.open("rb") as f:
+        head = f.read(512)
+    magic, what = _MAGIC[p.suffix]
+    if head.startswith(magic):
+        return
+    for suffix, (m, other) in _MAGIC.items():
+        if head.startswith(m):
+            raise BagError(f"cannot read bag {p}: it is {other}, not {what} as its name "
+                           f"says (rename it to {p.stem}{suffix})")
+    try:
+        text = head.decode("utf-8")
+    except UnicodeDecodeError:
+        text = ""
+    if text and "\x00" not in text:
+        first = text.strip().splitlines()[0][:40] if text.strip() else ""
+        raise BagError(f"cannot read bag {p}: it is a text file (starting {first!r}), not "
+                       f"{what}")
+    raise BagError(f"cannot read bag {p}: it is not {what} (its first bytes {head[:16]!r} are "
+                   "those of no bag format: MCAP, sqlite3, ROS 1)")
 
 
 #: storage backend messages → what they mean for the user

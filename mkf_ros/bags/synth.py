@@ -22,7 +22,8 @@ from mkf_ros.sim import SimData
 
 #: 2024-01-01T00:00:00Z: default start of synthetic bags (reproducible bytes)
 DEFAULT_START_NS = 1_704_067_200 * 1_000_000_000
-TOPICS = {"imu": "/imu/data_raw", "mag": "/imu/mag", "truth": "/imu/ground_truth"}
+TOPICS = {"imu": "/imu/data_raw", "mag": "/imu/mag", "truth": "/imu/ground_truth",
+          "accel": "/imu/accel", "gyro": "/imu/gyro"}
 #: custom_data key under which a synthetic bag records how it was made (JSON)
 CUSTOM_KEY = "mkf_ros.synth"
 
@@ -72,6 +73,22 @@ def sim_streams(sim: SimData, *, start_ns: int = DEFAULT_START_NS, frame_id: str
     }
 
 
+def split_imu(imu: Stream, accel_every: int, accel_topic: str = TOPICS["accel"],
+              gyro_topic: str = TOPICS["gyro"]) -> tuple[Stream, Stream]:
+    """The accelerometer and gyroscope streams a RealSense-like driver publishes from one
+    combined ``sensor_msgs/Imu`` stream: every ``accel_every``-th message (from the first)
+    with its angular velocity zeroed on ``accel_topic``, every message with its linear
+    acceleration zeroed on ``gyro_topic`` (stamps, log times and covariances kept)."""
+    if accel_every < 1:
+        raise ValueError(f"accel_every must be >= 1, got {accel_every}")
+    acc_rows = imu.rows[::accel_every].copy()
+    cdr.set_fields(acc_rows, cdr.IMU, angular_velocity=0.0)
+    gyr_rows = imu.rows.copy()
+    cdr.set_fields(gyr_rows, cdr.IMU, linear_acceleration=0.0)
+    return (Stream(accel_topic, cdr.IMU.msgtype, imu.log_ns[::accel_every], acc_rows),
+            Stream(gyro_topic, cdr.IMU.msgtype, imu.log_ns, gyr_rows))
+
+
 def interleave(streams: list[Stream]) -> tuple[np.ndarray, np.ndarray, list[bytes]]:
     """All messages in log-time order (ties keep the list order): (stream index, log ns,
     raw bytes)."""
@@ -104,17 +121,28 @@ def _jsonable(x: Any) -> Any:
 def write_bag(sim: SimData, path: str | Path, storage: str = "mcap", *,
               start_ns: int = DEFAULT_START_NS, frame_id: str = "imu_link",
               overwrite: bool = False, topics: dict[str, str] | None = None,
-              compress: bool = False) -> dict[str, int]:
-    """Write ``sim`` to a new bag (atomically); returns the message count per topic."""
+              compress: bool = False, split_accel: int = 0) -> dict[str, int]:
+    """Write ``sim`` to a new bag (atomically); returns the message count per topic.
+    ``split_accel`` > 0: instead of ``imu/data_raw``, separate accelerometer (``imu/accel``,
+    every ``split_accel``-th sample) and gyroscope (``imu/gyro``) topics, as
+    :func:`split_imu` (RealSense-like; process with ``input_mode`` split)."""
     streams = sim_streams(sim, start_ns=start_ns, frame_id=frame_id, topics=topics)
-    order = [streams["imu"], streams["mag"], streams["truth"]]
+    if split_accel:
+        names = dict(TOPICS, **(topics or {}))
+        acc, gyr = split_imu(streams["imu"], split_accel, names["accel"], names["gyro"])
+        order = [acc, gyr, streams["mag"], streams["truth"]]
+        # at equal times: magnetometer, accelerometer, gyro (held, then fused with the gyro)
+        write_order = [2, 0, 1, 3]
+    else:
+        order = [streams["imu"], streams["mag"], streams["truth"]]
+        # at equal times the magnetometer goes first: the estimator then holds it and fuses
+        # it with the IMU sample of that stamp (a first sample initialises with its heading)
+        write_order = [1, 0, 2]
     with BagWriter(path, storage, overwrite=overwrite, compress=compress) as w:
         conns = [w.add_topic(s.topic, s.msgtype) for s in order]
         w._w.set_custom_data(CUSTOM_KEY, json.dumps(describe(sim)))
-        # at equal times the magnetometer goes first: the estimator then holds it and fuses it
-        # with the IMU sample of that stamp (a first sample initialises with its heading)
-        which, t, raws = interleave([order[1], order[0], order[2]])
-        ids = np.array([conns[1].id, conns[0].id, conns[2].id])[which]
+        which, t, raws = interleave([order[i] for i in write_order])
+        ids = np.array([conns[i].id for i in write_order])[which]
         w.write_batch(ids, t, raws)
     return {s.topic: len(s.log_ns) for s in order}
 

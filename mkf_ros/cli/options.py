@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+from collections.abc import Iterable
 from typing import Any
 
 from mkf_ros.core.params import Param, filter_params
@@ -12,12 +13,19 @@ def flag(p: Param) -> str:
     return "--" + p.name.replace("_", "-")
 
 
-def add_filter_options(parser: argparse.ArgumentParser) -> None:
-    """One ``--name`` flag per filter parameter; unset flags keep the parameter's default."""
-    g = parser.add_argument_group("filter parameters")
-    for p in filter_params():
-        kw: dict[str, Any] = dict(default=None, dest=p.name,
-                                  help=f"{p.doc()} (default: {p.default})".replace("%", "%%"))
+def help_text(p: Param) -> str:
+    """The flag's help: the definition's one-line doc and default. argparse %-formats help
+    strings, so a literal ``%`` (``acc_gate``: "0.1% false rejection") is escaped here."""
+    return f"{p.doc()} (default: {p.default})".replace("%", "%%")
+
+
+def add_param_flags(parser: argparse.ArgumentParser, params: Iterable[Param],
+                    title: str) -> None:
+    """One ``--name`` flag per parameter, in an argument group; unset flags stay None (the
+    parameter's default applies)."""
+    g = parser.add_argument_group(title)
+    for p in params:
+        kw: dict[str, Any] = dict(default=None, dest=p.name, help=help_text(p))
         if p.type is bool:
             g.add_argument(flag(p), action=argparse.BooleanOptionalAction, **kw)
         elif p.type is list:
@@ -26,6 +34,11 @@ def add_filter_options(parser: argparse.ArgumentParser) -> None:
             g.add_argument(flag(p), choices=p.choices, **kw)
         else:
             g.add_argument(flag(p), type=p.type, metavar=p.unit.upper() or "X", **kw)
+
+
+def add_filter_options(parser: argparse.ArgumentParser) -> None:
+    """One ``--name`` flag per filter parameter; unset flags keep the parameter's default."""
+    add_param_flags(parser, filter_params(), "filter parameters")
 
 
 def filter_overrides(args: argparse.Namespace) -> dict[str, Any]:

@@ -20,22 +20,25 @@ PROGRESS_MIN = 100_000
 
 def add_param_options(parser: argparse.ArgumentParser, names: list[str], title: str) -> None:
     """One ``--name`` flag per parameter in ``names`` (generated from PARAMS)."""
-    from mkf_ros.cli.options import flag
+    from mkf_ros.cli.options import add_param_flags
     from mkf_ros.core.params import BY_NAME
 
-    g = parser.add_argument_group(title)
-    for name in names:
-        p = BY_NAME[name]
-        kw: dict[str, Any] = dict(default=None, dest=p.name,
-                                  help=f"{p.doc()} (default: {p.default})".replace("%", "%%"))
-        if p.type is bool:
-            g.add_argument(flag(p), action=argparse.BooleanOptionalAction, **kw)
-        elif p.type is list:
-            g.add_argument(flag(p), type=float, nargs=p.length or "+", metavar="X", **kw)
-        elif p.choices:
-            g.add_argument(flag(p), choices=p.choices, **kw)
-        else:
-            g.add_argument(flag(p), type=p.type, metavar=p.unit.upper() or "X", **kw)
+    add_param_flags(parser, [BY_NAME[n] for n in names], title)
+
+
+class Once(argparse.Action):
+    """A flag that takes one value and may be given once: a repeated ``--imu-topic`` is an
+    error, not a silent choice of the last."""
+
+    def __call__(self, parser: argparse.ArgumentParser, namespace: argparse.Namespace,
+                 values: Any, option_string: str | None = None) -> None:
+        old = getattr(namespace, self.dest, None)
+        if old is not None:
+            hint = (" (separate accelerometer and gyroscope topics: --accel-topic and "
+                    "--gyro-topic)" if self.dest == "imu_topic" else "")
+            parser.error(f"{option_string} given twice ({old}, {values}); it takes one "
+                         f"topic{hint}")
+        setattr(namespace, self.dest, values)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -50,8 +53,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--storage", default="mcap", metavar="{mcap,sqlite3}",
                         help="output storage (default mcap)")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing OUT_BAG")
-    parser.add_argument("--imu-topic", default="imu/data_raw", metavar="TOPIC")
-    parser.add_argument("--mag-topic", default="imu/mag", metavar="TOPIC")
+    parser.add_argument("--imu-topic", action=Once, metavar="TOPIC",
+                        help="sensor_msgs/Imu topic, gyro and accelerometer in each message "
+                        "(default: the bag's only Imu topic, or imu/data_raw among several)")
+    parser.add_argument("--accel-topic", action=Once, metavar="TOPIC",
+                        help="split input (with --gyro-topic): the accelerometer's "
+                        "sensor_msgs/Imu topic (RealSense: camera/accel/sample)")
+    parser.add_argument("--gyro-topic", action=Once, metavar="TOPIC",
+                        help="split input (with --accel-topic): the gyroscope's "
+                        "sensor_msgs/Imu topic (RealSense: camera/gyro/sample); the output "
+                        "has one message per gyro message")
+    parser.add_argument("--mag-topic", action=Once, metavar="TOPIC",
+                        help="sensor_msgs/MagneticField topic, with --use-mag (default: the "
+                        "bag's only one, or imu/mag among several)")
     parser.add_argument("--truth-topic", default="imu/ground_truth", metavar="TOPIC",
                         help="geometry_msgs/QuaternionStamped, sensor → ENU (scored if present)")
     parser.add_argument("--output-topic", default="imu/data", metavar="TOPIC")
@@ -143,7 +157,8 @@ def run(args: argparse.Namespace) -> int:
     try:
         with _bars(show) as bars:
             r = process_bag(args.bag, out, _overrides(args), imu_topic=args.imu_topic,
-                            mag_topic=args.mag_topic, truth_topic=args.truth_topic,
+                            mag_topic=args.mag_topic, accel_topic=args.accel_topic,
+                            gyro_topic=args.gyro_topic, truth_topic=args.truth_topic,
                             output_topic=args.output_topic, storage=args.storage,
                             overwrite=args.overwrite, copy_input=args.copy_input,
                             skip=args.skip, progress=bars)
@@ -160,7 +175,11 @@ def report(r: Any, args: argparse.Namespace) -> None:
     p = r.params
     print(f"{args.bag} → {r.out} ({args.storage})")
     mag = (f", {r.mag_topic} {r.n_mag:,} (fused)" if r.mag_topic else ", no magnetometer")
-    print(f"  input   {r.imu_topic} {r.n_imu:,}{mag}")
+    if r.accel_topic:
+        print(f"  input   split: gyro {r.imu_topic} {r.n_imu:,}, accelerometer "
+              f"{r.accel_topic} {r.n_accel:,}{mag}")
+    else:
+        print(f"  input   {r.imu_topic} {r.n_imu:,}{mag}")
     print(f"  filter  {p['algorithm']}-{p['chart']}, world_frame {p['world_frame']}, "
           f"use_mag {str(p['use_mag']).lower()}")
     from mkf_ros.bags import normalize_topic

@@ -91,6 +91,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="rosbag2 storage (default mcap, as Jazzy records)")
     parser.add_argument("--compress", action="store_true", help="zstd-compressed MCAP chunks")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing bag")
+    parser.add_argument("--split-accel", type=int, default=0, metavar="K",
+                        help="write separate accelerometer (imu/accel, every K-th sample) and "
+                        "gyroscope (imu/gyro) topics instead of imu/data_raw, as a RealSense "
+                        "publishes them (mkf process --accel-topic imu/accel --gyro-topic "
+                        "imu/gyro); default 0: one combined topic")
     parser.add_argument("--frame-id", default="imu_link", help="header.frame_id (imu_link)")
     parser.add_argument("--start", type=float, default=1_704_067_200.0, metavar="UNIX_S",
                         help="stamp of the first sample (default 2024-01-01T00:00:00Z)")
@@ -110,6 +115,8 @@ def run(args: argparse.Namespace) -> int:
         raise CliError("give a SCENARIO (mkf synth --list shows them)")
     if args.scenario not in scenarios:
         raise CliError(f"unknown scenario {args.scenario!r}; known: {', '.join(scenarios)}")
+    if args.split_accel < 0:
+        raise CliError(f"--split-accel must be >= 0, got {args.split_accel}")
     if not args.out:
         raise CliError("give the output bag with --out BAG")
     from mkf_ros.bags import BagError
@@ -119,7 +126,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         counts = write_bag(sim, args.out, args.storage, start_ns=round(args.start * 1e9),
                            frame_id=args.frame_id, overwrite=args.overwrite,
-                           compress=args.compress)
+                           compress=args.compress, split_accel=args.split_accel)
     except BagError as e:
         raise CliError(str(e)) from None
     print(f"wrote {args.out} ({args.storage}): scenario {args.scenario}, "

@@ -86,7 +86,8 @@ C_ACC_MODE = 50
 C_ACC_TAU, C_ACC_DTIME, C_GYR_SCALE, C_GYR_GATE = 51, 52, 53, 54
 C_MAG_TAU, C_MAG_CTOL, C_MAG_UNDIST, C_MAG_DTIME = 55, 56, 57, 58
 C_ACC_ALIGN = 59
-C_SIZE = 60
+C_REST_SPLIT = 60  # 1: gyro and accelerometer come in separate samples (split input)
+C_SIZE = 61
 MAG_HEADING, MAG_VECTOR = 0, 1
 ACC_TILT, ACC_VECTOR = 0, 1
 
@@ -110,7 +111,8 @@ S_AEX, S_AWLP = 51, 52  # low-passed (|a| − g)² and |ω|, over acc_time_const
 S_DTA, S_DTM = 53, 54  # s since the previous accelerometer / magnetometer sample
 S_RDEV = 55  # 2: rest detection, low-passed squared deviations of the gyro and accelerometer
 S_ALPHA = 57  # 4 × (Δt, τ, 1 − exp(−Δt/τ)): the last low-pass gains (acc, field, rest, |ω|)
-S_SIZE = 69
+S_RDT = 69  # 2: split input, s since the gyro / accelerometer last entered the rest test
+S_SIZE = 71
 NX_MAX = 9
 
 # --- noise matrices derived from the configuration (built once per parameter set) -------------
@@ -368,6 +370,7 @@ def _align(cfg: np.ndarray, st: np.ndarray, P: np.ndarray, fl: np.ndarray,
         st[S_ALR + i] = acc[i]
         st[S_GLP + i] = gyr[i] if has_g else 0.0
     st[S_RDEV] = st[S_RDEV + 1] = 0.0
+    st[S_RDT] = st[S_RDT + 1] = 0.0
     st[S_GREJ] = 0.0
     st[S_ALT] = 0.0
     st[S_DTA] = 0.0
@@ -593,7 +596,7 @@ def _gyro_gate(cfg: np.ndarray, st: np.ndarray, P: np.ndarray, nx: int, cnt: np.
 
 @jit_inline
 def _rest_test(cfg: np.ndarray, st: np.ndarray, P: np.ndarray, nx: int, dt: float, g: tuple,
-               has_g: bool, a: tuple, has_a: bool) -> bool:
+               has_g: bool, a: tuple, has_a: bool, g_none: bool, a_none: bool) -> bool:
     """Rest detection (extension): for ``rest_time`` without a break, the gyro and the
     accelerometer stay within ``rest_gyro_threshold`` / ``rest_acc_threshold`` of their own
     low-pass, RMS over REST_LP_TAU (the body is steady; a vibrating or rolling body is not) and the
@@ -601,20 +604,50 @@ def _rest_test(cfg: np.ndarray, st: np.ndarray, P: np.ndarray, nx: int, dt: floa
     ``gyro_bias_stddev²`` plus the rest noise (a faster turn is not rest; the current ``P_bb``
     would lock a wrongly learned bias out of its own correction). A steady slow turn within
     that cannot be told from a bias by an IMU alone; the zero-rate update therefore never
-    moves the attitude (the rate updates in :func:`_sensor_step`)."""
-    if cfg[C_REST] <= 0 or not (has_g and has_a):
+    moves the attitude (the rate updates in :func:`_sensor_step`).
+
+    Split input (``C_REST_SPLIT``: gyro and accelerometer in separate samples): a step without
+    a reading of one sensor (``g_none`` / ``a_none``: not given, as opposed to rejected) keeps
+    that sensor's part of the test as its last sample left it, each low-pass steps over the
+    time since its own previous sample, and only a step with a gyro reading is at rest. The
+    accelerometer, often at a lower rate than the gyro, has its squared deviation scaled by
+    ``(2 − α) / (2 (1 − α)²)``: a deviation from a low-pass that includes the sample
+    underestimates the sample variance by that factor (white noise; 1 % at α = 0.008, a
+    250 Hz sample, 5 % at α = 0.03, a quarter of that), so ``rest_acc_threshold`` means the
+    same at any accelerometer rate."""
+    split = cfg[C_REST_SPLIT] > 0
+    if split:
+        st[S_RDT] += dt
+        st[S_RDT + 1] += dt
+    if cfg[C_REST] <= 0 or not ((has_g or (split and g_none))
+                                and (has_a or (split and a_none))):
         st[S_T_REST] = 0.0
         return False
-    al = _alpha(st, 2, dt, REST_LP_TAU)
-    _lowpass_state(st, S_GLP, g, al)
-    _lowpass_state(st, S_ALR, a, al)
-    dg = (g[0] - st[S_GLP]) ** 2 + (g[1] - st[S_GLP + 1]) ** 2 + (g[2] - st[S_GLP + 2]) ** 2
-    da = (a[0] - st[S_ALR]) ** 2 + (a[1] - st[S_ALR + 1]) ** 2 + (a[2] - st[S_ALR + 2]) ** 2
-    st[S_RDEV] += al * (dg - st[S_RDEV])  # mean squared deviations: a single noisy sample
-    st[S_RDEV + 1] += al * (da - st[S_RDEV + 1])  # does not end a rest
+    dtg = dt
+    if split:
+        dtg = st[S_RDT]
+        al = _alpha(st, 2, dtg, REST_LP_TAU) if has_g else 0.0
+        ala = 1.0 - np.exp(-st[S_RDT + 1] / REST_LP_TAU) if has_a else 0.0
+        if has_g:
+            st[S_RDT] = 0.0
+        if has_a:
+            st[S_RDT + 1] = 0.0
+    else:
+        al = ala = _alpha(st, 2, dt, REST_LP_TAU)
+    # mean squared deviations: a single noisy sample does not end a rest
+    if has_g:
+        _lowpass_state(st, S_GLP, g, al)
+        dg = (g[0] - st[S_GLP]) ** 2 + (g[1] - st[S_GLP + 1]) ** 2 + (g[2] - st[S_GLP + 2]) ** 2
+        st[S_RDEV] += al * (dg - st[S_RDEV])
+    if has_a:
+        _lowpass_state(st, S_ALR, a, ala)
+        da = (a[0] - st[S_ALR]) ** 2 + (a[1] - st[S_ALR + 1]) ** 2 + (a[2] - st[S_ALR + 2]) ** 2
+        if split:  # unbiased at any rate (see above)
+            da *= (2.0 - ala) / (2.0 * (1.0 - ala) ** 2)
+        st[S_RDEV + 1] += ala * (da - st[S_RDEV + 1])
     steady = st[S_RDEV] < cfg[C_REST_GYR] ** 2 and st[S_RDEV + 1] < cfg[C_REST_ACC] ** 2
     if steady:
-        v = cfg[C_REST_VAR] + cfg[C_RW] * dt / (2.0 * REST_LP_TAU)
+        v = cfg[C_REST_VAR] + cfg[C_RW] * dtg / (2.0 * REST_LP_TAU)
         if nx == 9:
             v += cfg[C_B0]
             b = (st[S_B], st[S_B + 1], st[S_B + 2])
@@ -626,7 +659,7 @@ def _rest_test(cfg: np.ndarray, st: np.ndarray, P: np.ndarray, nx: int, dt: floa
         st[S_T_REST] += dt
     else:
         st[S_T_REST] = 0.0
-    return st[S_T_REST] >= cfg[C_REST_TIME]
+    return has_g and st[S_T_REST] >= cfg[C_REST_TIME]
 
 
 @jit_inline
@@ -994,7 +1027,7 @@ def _sensor_step(cfg: np.ndarray, nz: np.ndarray, st: np.ndarray, P: np.ndarray,
         if a_stat == 2:
             has_a = False
     Qa = ((qa, 0.0, 0.0), (0.0, qa, 0.0), (0.0, 0.0, qa))
-    rest = _rest_test(cfg, st, P, nx, dt, g, has_g, a_raw, has_a)
+    rest = _rest_test(cfg, st, P, nx, dt, g, has_g, a_raw, has_a, gs > 0, as_ > 0)
     heading = int(cfg[C_MAG_MODE]) == MAG_HEADING
     mag_gate = cfg[C_MAG_GATE] if cfg[C_MAG_GATE] > 0 else np.inf
     if cfg[C_PAPER] > 0:  # the paper's start has no prior to gate against

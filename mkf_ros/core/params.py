@@ -11,8 +11,8 @@ from __future__ import annotations
 
 import difflib
 import math
-from collections.abc import Iterable, Mapping
-from dataclasses import dataclass, field
+from collections.abc import Iterable, Iterator, Mapping
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -287,6 +287,17 @@ PARAMS: tuple[Param, ...] = (
     _P("mag_max_delay", float, 0.1, "A magnetometer sample up to this much older than the "
        "latest IMU sample is still fused (rotated forward by the estimated rate); older ones "
        "are dropped", unit="s", range=(0.0, 10.0), scope="node", group="node: input and time"),
+    _P("input_mode", str, "imu", "'imu': one sensor_msgs/Imu stream carrying the gyro and the "
+       "accelerometer in every message (imu/data_raw); 'split': separate accelerometer and "
+       "gyroscope streams of sensor_msgs/Imu (imu/accel and imu/gyro; Intel RealSense "
+       "accel/sample and gyro/sample, each message's other vector ignored): the gyro drives "
+       "the prediction and the output (one message per gyro message, with its header), each "
+       "accelerometer sample is fused at its own stamp", choices=("imu", "split"),
+       scope="node", group="node: input and time", read_only=True),
+    _P("acc_max_delay", float, 0.1, "Split input: an accelerometer sample up to this much "
+       "older than the latest gyro sample is still fused (rotated forward by the estimated "
+       "rate); older ones are dropped", unit="s", range=(0.0, 10.0), scope="node",
+       group="node: input and time"),
     _P("acc_magnitude_tolerance", float, 0.5, "Plausibility check before the filter: "
        "accelerometer samples whose magnitude differs from gravity by more than this fraction "
        "(gravity removed? units of g?) never reach the filter, not even to initialise; the "
@@ -360,11 +371,12 @@ def unknown_parameter(name: str, known: Iterable[str]) -> str:
             f"docs/estimator.md and mkf_ros.core.params.PARAMS")
 
 
-@dataclass
 class FilterParams(Mapping[str, Any]):
-    """Validated values of the filter parameters; attribute and mapping access."""
+    """Validated values of the filter parameters: a read-only mapping (``params["chart"]``,
+    ``dict(params)``, ``params.values()``, ``params.items()``) with attribute access
+    (``params.chart``). Immutable: :meth:`replace` makes a changed copy."""
 
-    values: dict[str, Any] = field(default_factory=dict)
+    __slots__ = ("_values",)
 
     def __init__(self, overrides: Mapping[str, Any] | None = None, **kwargs: Any) -> None:
         merged = dict(overrides or {}, **kwargs)
@@ -373,23 +385,33 @@ class FilterParams(Mapping[str, Any]):
             if k not in vals:
                 raise ValueError(unknown_parameter(k, vals))
             vals[k] = BY_NAME[k].validate(v)
-        object.__setattr__(self, "values", vals)
+        object.__setattr__(self, "_values", vals)
 
-    def __getattr__(self, name: str) -> Any:
+    def __getattr__(self, name: str) -> Any:  # only called for names that are not attributes
         try:
-            return self.__dict__["values"][name]
+            return object.__getattribute__(self, "_values")[name]
         except KeyError:
-            raise AttributeError(name) from None
+            raise AttributeError(
+                f"{type(self).__name__!r} object has no attribute {name!r}") from None
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        raise AttributeError(f"FilterParams is immutable; use .replace({name}=...)")
 
     def __getitem__(self, key: str) -> Any:
-        return self.values[key]
+        return self._values[key]
 
-    def __iter__(self) -> Iterable[str]:  # type: ignore[override]
-        return iter(self.values)
+    def __iter__(self) -> Iterator[str]:
+        return iter(self._values)
 
     def __len__(self) -> int:
-        return len(self.values)
+        return len(self._values)
+
+    def __repr__(self) -> str:
+        return f"FilterParams({self._values!r})"
+
+    def __reduce__(self) -> tuple[Any, ...]:  # pickling (process pools) through __init__
+        return (FilterParams, (dict(self._values),))
 
     def replace(self, **changes: Any) -> FilterParams:
         """A copy with ``changes`` validated and applied."""
-        return FilterParams(self.values, **changes)
+        return FilterParams(self._values, **changes)

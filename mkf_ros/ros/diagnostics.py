@@ -50,6 +50,9 @@ class Snapshot:
     last_reset_reason: str = ""
     frame_id: str = ""
     extra: dict[str, str] = field(default_factory=dict)
+    #: input that cannot give an orientation (``StreamAdapter.input_problems``; "orientation":
+    #: a topic that carries one already), one line by kind
+    input_problems: dict[str, str] = field(default_factory=dict)
 
 
 def _fmt(x: float, spec: str = ".3g") -> str:
@@ -94,6 +97,8 @@ class DiagnosticsTracker:
         if use_mag and mag_silent > timeout:
             warn(f"no data on {s.mag_topic} for {mag_silent:.0f} s: use_mag is true but the "
                  "heading is not magnetometer-referenced")
+        for kind, problem in s.input_problems.items():  # no accelerometer: no estimate at all
+            warn(problem, ERROR if kind == "accel" else WARN)
         if delta.get("imu_received", 0) > 0 and not s.initialized:
             warn("receiving IMU data but not initialised: " + self._why_not_init(s, delta))
         dropped = {k: delta.get(k, 0) for k in REJECTIONS if delta.get(k, 0) > 0}

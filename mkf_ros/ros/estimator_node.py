@@ -58,12 +58,17 @@ from sensor_msgs.msg import Imu, MagneticField
 from std_msgs.msg import Header
 from std_srvs.srv import Trigger
 
-from mkf_ros.core.params import BY_NAME
+from mkf_ros.core.params import BY_NAME, PARAMS
 from mkf_ros.core.quaternion import qconj_np
 from mkf_ros.ros import convert, rawmsg
 from mkf_ros.ros.diagnostics import DiagnosticsTracker, Snapshot
 from mkf_ros.ros.parameters import UnknownParameter, declare_all, to_double, unknown_overrides
-from mkf_ros.stream import StreamAdapter
+from mkf_ros.stream import (
+    INPUT_CHECK_MESSAGES,
+    StreamAdapter,
+    carries_orientation,
+    orientation_note,
+)
 
 
 def input_qos() -> QoSProfile:
@@ -126,14 +131,26 @@ class EstimatorNode(Node):
         self._last_mag_wall: float | None = None
         self._frame_id = ""
         self._warned: set[str] = set()
+        self._ori_checks = INPUT_CHECK_MESSAGES  # IMU messages left to check for an orientation
+        self._carries_orientation = False
         self._out = Imu()
         self._encoder = rawmsg.ImuEncoder()
 
         qos_opts = QoSOverridingOptions.with_default_policies
         self._pub = self.create_publisher(Imu, "imu/data", output_qos(),
                                           qos_overriding_options=qos_opts())
-        self._sub_imu = self.create_subscription(Imu, "imu/data_raw", self._on_imu, input_qos(),
+        # input_mode split: the gyro drives the stream (and the output), the accelerometer is
+        # fused at its own stamps (RealSense: -r imu/gyro:=camera/gyro/sample
+        # -r imu/accel:=camera/accel/sample)
+        split = self.stream.split
+        self._sub_imu = self.create_subscription(Imu, "imu/gyro" if split else "imu/data_raw",
+                                                 self._on_imu, input_qos(),
                                                  qos_overriding_options=qos_opts(), raw=True)
+        self.received_acc = 0  #: split input: messages taken from imu/accel
+        self._sub_acc = (self.create_subscription(Imu, "imu/accel", self._on_accel,
+                                                  input_qos(), raw=True,
+                                                  qos_overriding_options=qos_opts())
+                         if split else None)
         self._sub_mag = self.create_subscription(MagneticField, "imu/mag", self._on_mag,
                                                  input_qos(), qos_overriding_options=qos_opts(),
                                                  raw=True)
@@ -227,6 +244,8 @@ class EstimatorNode(Node):
             if h is None:  # not little-endian CDR: message objects
                 self._on_imu_msg(deserialize_message(data, Imu))
                 return
+            if self._ori_checks:
+                self._check_orientation(h.d[rawmsg.Q:rawmsg.Q + 4], h.d[rawmsg.QC])
             gyr, acc = rawmsg.imu_arrays(h)
             p = self._p
             with self._lock:
@@ -248,6 +267,9 @@ class EstimatorNode(Node):
     def _on_imu_msg(self, msg: Imu) -> None:
         """The same with message objects (inputs that are not little-endian CDR)."""
         stamp, gyr, acc = convert.imu_to_arrays(msg)
+        if self._ori_checks:
+            o = msg.orientation
+            self._check_orientation((o.x, o.y, o.z, o.w), msg.orientation_covariance[0])
         p = self._p
         with self._lock:
             out = self.stream.on_imu(stamp, gyr, acc)
@@ -259,6 +281,37 @@ class EstimatorNode(Node):
         self._pub.publish(self._out)
         self._published += 1
         self._extras(msg.header, out, p)
+
+    def _check_orientation(self, quat_xyzw: Any, cov0: float) -> None:
+        """One of the first IMU messages: does it carry an orientation (an estimator's output
+        subscribed as raw data)? Logged once, and in /diagnostics from then on."""
+        self._ori_checks -= 1
+        if not self._carries_orientation and carries_orientation(quat_xyzw, cov0):
+            self._carries_orientation = True
+            self._warn_once("input-orientation", orientation_note(self._sub_imu.topic_name))
+
+    def _input_problems(self) -> dict[str, str]:
+        """Input that cannot give an orientation (see :meth:`StreamAdapter.input_problems`),
+        by kind; call with the lock held."""
+        acc = self._sub_acc.topic_name if self._sub_acc is not None else ""
+        out = self.stream.input_problems(self._sub_imu.topic_name, acc)
+        if self._carries_orientation:
+            out["orientation"] = orientation_note(self._sub_imu.topic_name)
+        return out
+
+    def _on_accel(self, data: bytes) -> None:
+        """Split input: one accelerometer message (its angular velocity ignored)."""
+        self.received_acc += 1
+        try:
+            h = rawmsg.parse(data, rawmsg.IMU_DOUBLES)
+            if h is None:
+                stamp, _, acc = convert.imu_to_arrays(deserialize_message(data, Imu))
+            else:
+                stamp, acc = h.stamp, rawmsg.imu_arrays(h)[1]
+            with self._lock:
+                self.stream.on_accel(stamp, acc)
+        except Exception as e:
+            self._count_exception(e, "accelerometer callback")
 
     def _on_mag(self, data: bytes) -> None:
         self.received_mag += 1
@@ -329,6 +382,10 @@ class EstimatorNode(Node):
         try:
             now = time.monotonic()
             self._check_silence(now)
+            with self._lock:
+                problems = self._input_problems()
+            for kind, text in problems.items():  # in the log once, in /diagnostics always
+                self._warn_once(f"input-{kind}", text)
             if self.stream.params["diagnostics_period"] > 0:
                 arr = DiagnosticArray()
                 arr.header.stamp = self.get_clock().now().to_msg()
@@ -352,7 +409,8 @@ class EstimatorNode(Node):
                 cov=f.covariance if f.initialized else None, bias=f.bias,
                 bias_stddev=f.bias_stddev, acc_norm=s.acc_norm, mag_norm=s.mag_norm,
                 mag_offset=s.mag_offset, dt_stats=s.pop_dt_stats(),
-                last_reset_reason=s.last_reset_reason, frame_id=self._frame_id)
+                last_reset_reason=s.last_reset_reason, frame_id=self._frame_id,
+                input_problems=self._input_problems())
 
     def _check_silence(self, now: float) -> None:
         """Log (not only diagnose) a silent input, once per silence."""
@@ -425,12 +483,25 @@ parameters (units, ranges, defaults): mkf params --format markdown
 (rclpy's SingleThreadedExecutor)"""
 
 
+def parameter_help() -> str:
+    """The ROS parameters with their defaults and units, generated from PARAMS (descriptions,
+    ranges and choices: ``mkf params``)."""
+    lines = ["parameters (-p NAME:=VALUE; descriptions and ranges: mkf params):"]
+    for p in PARAMS:
+        unit = f" [{p.unit}]" if p.unit else ""
+        choices = f" ({'|'.join(p.choices)})" if p.choices else ""
+        ro = " (read-only: start-up only)" if p.read_only else ""
+        lines.append(f"  {p.name:<26} {p.default!r}{unit}{choices}{ro}")
+    return "\n".join(lines)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Console script ``estimator`` (``ros2 run mkf_ros estimator [--ros-args ...]``)."""
     args = list(sys.argv if argv is None else argv)
     plain = remove_ros_args(args)[1:]
     if any(a in ("-h", "--help") for a in plain):
         print(USAGE)
+        print(parameter_help())
         return 0
     kind = os.environ.get("MKF_ROS_EXECUTOR", DEFAULT_EXECUTOR)
     for a in plain:

@@ -10,7 +10,10 @@ times. Header stamps are never touched.
 **Synth mode** (no ``bag``): a synthetic recording (``mkf synth --list`` shows the scenarios)
 published on ``imu/data_raw`` (sensor_msgs/Imu), ``imu/mag`` (sensor_msgs/MagneticField, T)
 and ``imu/ground_truth`` (geometry_msgs/QuaternionStamped, the true orientation sensor → ENU,
-same stamps as the IMU). Stamps start at the wall-clock time of the start.
+same stamps as the IMU). Stamps start at the wall-clock time of the start. With
+``split_accel`` N > 0 the IMU goes out as a RealSense driver publishes it, for an estimator with
+``input_mode`` split: ``imu/accel`` (every N-th sample, angular velocity zero) and ``imu/gyro``
+(every sample, linear acceleration zero) instead of ``imu/data_raw``.
 
 Both modes: ``rate`` (playback speed factor), ``start_offset`` and ``duration`` (s), ``loop``,
 ``topics`` (selection), ``publish_clock`` (rosgraph_msgs/Clock on ``/clock`` at
@@ -85,6 +88,9 @@ PARAMS: dict[str, tuple[Any, str]] = {
     "gyro_bias": ([0.0, 0.0, 0.0], "synth mode: constant gyro bias, rad/s"),
     "mag_field": ([0.0, 25e-6, -43.30127018922193e-6], "synth mode: Earth field in ENU, T"),
     "frame_id": ("imu_link", "synth mode: header.frame_id"),
+    "split_accel": (0, "synth mode: > 0 publishes imu/accel (every N-th sample, angular "
+                    "velocity zero) and imu/gyro (linear acceleration zero) instead of "
+                    "imu/data_raw, as a RealSense driver (estimator input_mode split)"),
 }
 
 
@@ -140,7 +146,7 @@ class SynthSource(Source):
     def __init__(self, p: dict[str, Any], start_ns: int) -> None:
         import numpy as np
 
-        from mkf_ros.bags.synth import interleave, sim_streams
+        from mkf_ros.bags.synth import interleave, sim_streams, split_imu
         from mkf_ros.sim import SCENARIOS, simulate
 
         if p["scenario"] not in SCENARIOS:
@@ -159,6 +165,9 @@ class SynthSource(Source):
         duration = p["duration"] if p["duration"] > 0 else 60.0
         if not (p["imu_rate"] > 0 and p["mag_rate"] > 0):
             raise PlayerError("imu_rate and mag_rate must be positive")
+        if p["split_accel"] < 0:
+            raise PlayerError(f"split_accel must be >= 0 (0: one imu/data_raw topic), got "
+                              f"{p['split_accel']}")
         try:
             sim = simulate(p["scenario"], duration=p["start_offset"] + duration,
                            rate=p["imu_rate"], seed=p["seed"], gyro_noise=p["gyro_noise"],
@@ -170,7 +179,10 @@ class SynthSource(Source):
         streams = sim_streams(sim, start_ns=start_ns, frame_id=p["frame_id"],
                               topics={"imu": "imu/data_raw", "mag": "imu/mag",
                                       "truth": "imu/ground_truth"})
-        order = [streams["mag"], streams["imu"], streams["truth"]]  # mag first at equal times
+        imu = [streams["imu"]]
+        if p["split_accel"] > 0:  # at equal times: accelerometer, then gyro (as mkf synth)
+            imu = list(split_imu(streams["imu"], p["split_accel"], "imu/accel", "imu/gyro"))
+        order = [streams["mag"], *imu, streams["truth"]]  # mag first at equal times
         which, t, raws = interleave(order)
         names = [s.topic for s in order]
         keep = t >= start_ns + round(p["start_offset"] * 1e9)
@@ -183,8 +195,10 @@ class SynthSource(Source):
                       zip(which.tolist(), t.tolist(), raws, keep.tolist(), strict=True)
                       if k and names[w] in want]
         self.topics = {s.topic: s.msgtype for s in order if s.topic in want}
+        split = (f", accelerometer on imu/accel every {p['split_accel']} samples"
+                 if p["split_accel"] > 0 else "")
         self.description = (f"synthetic {p['scenario']} ({duration:g} s, IMU {p['imu_rate']:g} "
-                            f"Hz, magnetometer {min(p['mag_rate'], p['imu_rate']):g} Hz, "
+                            f"Hz{split}, magnetometer {min(p['mag_rate'], p['imu_rate']):g} Hz, "
                             f"seed {p['seed']})")
         self.sim = sim
 

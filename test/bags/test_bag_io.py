@@ -187,11 +187,37 @@ def test_missing_unknown_and_empty_inputs(tmp_path: Path) -> None:
         BagReader(db)
 
 
+def test_a_file_named_bag_that_is_not_one_says_what_it_is(tmp_path: Path) -> None:
+    """A rosbag2 file renamed .bag, a text file named .bag: an error naming what the file is
+    (not a decoder's message such as "'utf-8' codec can't decode byte 0x89")."""
+    for storage, suffix, what in (("sqlite3", ".db3", "an sqlite3 database"),
+                                  ("mcap", ".mcap", "an MCAP file")):
+        f = next(p for p in _good_bag(tmp_path, storage).iterdir() if p.suffix == suffix)
+        renamed = tmp_path / f"{storage}.bag"
+        f.rename(renamed)
+        with pytest.raises(BagError) as e:
+            BagReader(renamed)
+        assert str(e.value) == (f"cannot read bag {renamed}: it is {what} (rosbag2 {suffix}), "
+                                f"not a ROS 1 bag (.bag) as its name says (rename it to "
+                                f"{storage}{suffix})")
+    notes = tmp_path / "notes.bag"
+    notes.write_text("topic: imu\nrate: 100\n")
+    with pytest.raises(BagError, match=r"^cannot read bag .*notes\.bag: it is a text file "
+                       r"\(starting 'topic: imu'\), not a ROS 1 bag \(\.bag\)$"):
+        BagReader(notes)
+    blob = tmp_path / "blob.db3"
+    blob.write_bytes(bytes(range(256)) * 4)
+    with pytest.raises(BagError, match=r"it is not an sqlite3 database \(rosbag2 \.db3\) \(its "
+                       r"first bytes .* are those of no bag format"):
+        BagReader(blob)
+
+
 def test_resolve_names_topics_and_types(tmp_path: Path) -> None:
     bag = _good_bag(tmp_path, "mcap")
     with BagReader(bag) as br:
         assert br.resolve("imu/data_raw", IMU) == "/imu/data_raw"
-        with pytest.raises(BagError, match=r"IMU topic /imu/nope not in .* \(topics: "):
+        with pytest.raises(BagError, match=r"IMU topic /imu/nope not in .* \(sensor_msgs/Imu "
+                           r"topics: /imu/data_raw \([\d,]+ messages\)\)$"):
             br.resolve("imu/nope", IMU, role="IMU")
         with pytest.raises(BagError, match="is sensor_msgs/msg/MagneticField, expected"):
             br.resolve("/imu/mag", IMU)

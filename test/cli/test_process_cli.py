@@ -214,7 +214,8 @@ def test_bad_topics_and_types(tmp_path: Path, good: Path, capsys: pytest.Capture
     out = tmp_path / "out"
     base = ["process", str(good), "--out", str(out)]
     _fails(capsys, [*base, "--imu-topic", "imu/nope"],
-           r"IMU topic /imu/nope not in .*\(topics: /imu/data_raw \(sensor_msgs/msg/Imu\)")
+           r"IMU topic /imu/nope not in .*\(sensor_msgs/Imu topics: /imu/data_raw \(\d+ "
+           r"messages\)\)$")
     _fails(capsys, [*base, "--imu-topic", "imu/mag"],
            "IMU topic /imu/mag in .* is sensor_msgs/msg/MagneticField, expected "
            "sensor_msgs/msg/Imu")
@@ -286,3 +287,129 @@ def test_progress_bars_and_ros1_input(tmp_path: Path, capsys: pytest.CaptureFixt
     assert r.n_out == 201 and r.scores is not None and r.scores.rmse["inclination"] < 0.5
     err = capsys.readouterr().err
     assert "read" in err and "filter" in err
+
+
+def test_split_accel_gyro_topics_match_the_combined_stream(tmp_path: Path,
+                                                          capsys: pytest.CaptureFixture) -> None:
+    """A RealSense-like bag (accelerometer at 1/4 rate and gyro on their own topics, each with
+    the other vector zeroed) processed with --accel-topic/--gyro-topic: one output per gyro
+    message with its stamp, orientation within 0.5° RMS of the combined stream's, and the
+    truth tracked. Without the split flags the zeroed vectors would freeze the estimate."""
+    kw = dict(duration=8.0, rate=100.0, mag_rate=25.0, seed=2)
+    sim = simulate("slow_rotation", **kw)
+    comb, split = tmp_path / "comb", tmp_path / "split"
+    write_bag(sim, comb)
+    write_bag(sim, split, split_accel=4)
+    n = len(sim.t)
+    n_acc = len(range(0, n, 4))
+    with BagReader(split) as br:
+        assert {t: i.count for t, i in br.topics.items() if i.msgtype == IMU} == {
+            "/imu/accel": n_acc, "/imu/gyro": n}
+    for bag, extra in ((comb, []), (split, ["--accel-topic", "imu/accel", "--gyro-topic",
+                                            "/imu/gyro"])):
+        assert main(["process", str(bag), "--out", str(tmp_path / f"{bag.name}.out"),
+                     "--use-mag", "--no-plot", *extra]) == 0
+    text = capsys.readouterr().out
+    assert f"input   split: gyro /imu/gyro {n}, accelerometer /imu/accel {n_acc}" in text
+    s_c, q_c = _outputs(tmp_path / "comb.out")
+    s_s, q_s = _outputs(tmp_path / "split.out")
+    np.testing.assert_array_equal(s_s, s_c)  # every gyro message answered, at its stamp
+    diff = rmse_deg(orientation_errors(q_s, q_c)["total"])
+    assert diff < 0.5, diff
+    assert rmse_deg(orientation_errors(q_s, sim.quat)["total"]) < 2.0
+
+
+def test_split_input_needs_both_topics(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    bag, _ = _bag(tmp_path, "in")
+    out = tmp_path / "out"
+    base = ["process", str(bag), "--out", str(out)]
+    _fails(capsys, [*base, "--accel-topic", "imu/data_raw"], "needs both --accel-topic and "
+           "--gyro-topic")
+    _fails(capsys, [*base, "--input-mode", "split"], "needs --accel-topic and --gyro-topic")
+    _fails(capsys, [*base, "--accel-topic", "imu/data_raw", "--gyro-topic", "imu/data_raw"],
+           "are the same topic /imu/data_raw")
+    _no_output(tmp_path, out)
+
+
+def test_repeated_topic_flag_is_rejected(tmp_path: Path, good: Path,
+                                         capsys: pytest.CaptureFixture) -> None:
+    out = tmp_path / "out"
+    with pytest.raises(SystemExit) as e:
+        main(["process", str(good), "--out", str(out), "--imu-topic", "a", "--imu-topic", "b"])
+    assert e.value.code == 2
+    err = capsys.readouterr().err
+    assert "--imu-topic given twice (a, b)" in err and "--accel-topic" in err
+    _no_output(tmp_path, out)
+
+
+def test_imu_topic_is_discovered(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    """The only Imu (and MagneticField) topic is used without flags; among several Imu topics
+    (none imu/data_raw) the error lists just those, with counts, and the flag to choose."""
+    sim = simulate("slow_rotation", duration=4.0, rate=100.0, mag_rate=25.0, seed=2)
+    one = tmp_path / "one"
+    write_bag(sim, one, topics={"imu": "/sensors/imu0", "mag": "/sensors/compass"})
+    assert main(["process", str(one), "--out", str(tmp_path / "o1"), "--use-mag",
+                 "--no-plot"]) == 0
+    text = capsys.readouterr().out
+    assert f"input   /sensors/imu0 {len(sim.t)}, /sensors/compass " in text
+    two = tmp_path / "two"
+    write_bag(sim, two, split_accel=2)  # /imu/accel and /imu/gyro
+    out = tmp_path / "o2"
+    line = _fails(capsys, ["process", str(two), "--out", str(out)],
+                  "2 IMU topics in .*, choose one with --imu-topic: sensor_msgs/Imu topics: "
+                  rf"/imu/accel \({len(range(0, len(sim.t), 2))} messages\), /imu/gyro "
+                  rf"\({len(sim.t)} messages\)$")
+    assert "ground_truth" not in line and "/imu/mag" not in line
+    _no_output(tmp_path, out)
+
+
+def test_a_topic_without_accelerometer_stops_with_one_line(tmp_path: Path,
+                                                           capsys: pytest.CaptureFixture) -> None:
+    """The gyro topic of a RealSense-like bag (accelerometer zeroed) taken as the IMU cannot
+    give any orientation: one line naming it and the way out, exit 2, no output bag (not an
+    empty one). The same for split input with the topics swapped, and for a recording too
+    short to judge (no estimate at all)."""
+    sim = simulate("slow_rotation", duration=3.0, rate=100.0, seed=2)
+    split = tmp_path / "split"
+    write_bag(sim, split, split_accel=4)
+    n = len(sim.t)
+    out = tmp_path / "out"
+    _fails(capsys, ["process", str(split), "--out", str(out), "--imu-topic", "imu/gyro"],
+           rf"^mkf process: error: no usable accelerometer reading .* in all {n} IMU messages "
+           r"on /imu/gyro: is this a gyro-only topic\? .*input_mode split.*; no output written$")
+    _no_output(tmp_path, out)
+    _fails(capsys, ["process", str(split), "--out", str(out), "--accel-topic", "imu/gyro",
+                    "--gyro-topic", "imu/accel"],
+           rf"in all {n} accelerometer samples on /imu/gyro: is it the gyro topic\?")
+    _no_output(tmp_path, out)
+    short = tmp_path / "short"
+    write_bag(simulate("static", duration=0.2, rate=100.0, seed=2), short, split_accel=4)
+    _fails(capsys, ["process", str(short), "--out", str(out), "--imu-topic", "imu/gyro"],
+           r"no estimate from the 21 messages of /imu/gyro \(.*21 acc_invalid.*\); no output "
+           "written$")
+    _no_output(tmp_path, out)
+
+
+def test_accelerometer_only_and_estimator_output_topics_are_named(
+        tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    """An accelerometer-only topic gives a tilt, and a note saying why the heading never
+    moves; an estimator's output (orientation set) taken as input is named too. A raw IMU
+    topic gets neither note."""
+    sim = simulate("slow_rotation", duration=3.0, rate=100.0, seed=2)
+    split, comb = tmp_path / "split", tmp_path / "comb"
+    write_bag(sim, split, split_accel=2)
+    write_bag(sim, comb)
+    n_acc = len(range(0, len(sim.t), 2))
+    assert main(["process", str(split), "--out", str(tmp_path / "o1"), "--imu-topic",
+                 "imu/accel", "--no-plot"]) == 0
+    text = capsys.readouterr().out
+    assert (f"  note    angular velocity zero or not reported in all {n_acc} IMU messages on "
+            "/imu/accel: is this an accelerometer-only topic?") in text
+    assert main(["process", str(comb), "--out", str(tmp_path / "o2"), "--no-plot"]) == 0
+    text = capsys.readouterr().out
+    assert "accelerometer-only" not in text and "carries an orientation" not in text
+    assert main(["process", str(tmp_path / "o2"), "--out", str(tmp_path / "o3"),
+                 "--imu-topic", "imu/data", "--no-plot"]) == 0
+    text = capsys.readouterr().out
+    assert ("  note    /imu/data already carries an orientation (orientation_covariance[0] is "
+            "not -1): an estimator's output (imu/data) rather than raw data") in text

@@ -42,6 +42,31 @@ def test_filter_params_mapping() -> None:
     assert fp.replace(algorithm="mukf").algorithm == "mukf" and fp.algorithm == "mekf"
 
 
+def test_filter_params_is_a_mapping() -> None:
+    """The exported object behaves as the Mapping it claims to be: values()/items()/keys()
+    (a field named ``values`` once shadowed values()), dict(), equality, immutability,
+    pickling (process pools)."""
+    import pickle
+    from collections.abc import Mapping
+
+    import mkf_ros
+
+    fp = mkf_ros.FilterParams(chart="rv")
+    names = [p.name for p in filter_params()]
+    expected = {p.name: (p.default if p.name != "chart" else "rv") for p in filter_params()}
+    assert isinstance(fp, Mapping)
+    assert list(fp.keys()) == names and len(fp) == len(names)
+    assert list(fp.values()) == [expected[n] for n in names]
+    assert dict(fp.items()) == expected == dict(fp) == {**fp}
+    assert fp == expected and "chart" in fp and "values" not in fp
+    assert fp.get("nope", 7) == 7
+    with pytest.raises(AttributeError, match="immutable"):
+        fp.chart = "mrp"  # type: ignore[misc]
+    with pytest.raises(AttributeError, match="no attribute 'nope'"):
+        _ = fp.nope
+    assert pickle.loads(pickle.dumps(fp)) == fp
+
+
 def test_yaml_lists_every_parameter_with_doc() -> None:
     text = to_yaml(list(BY_NAME.values()), "estimator")
     data = yaml.safe_load(text)["estimator"]["ros__parameters"]

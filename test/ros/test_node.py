@@ -17,10 +17,11 @@ from sensor_msgs.msg import Imu
 
 from mkf_ros.core.quaternion import qconj_np
 from mkf_ros.ros.convert import quat_wxyz
+from mkf_ros.stream import INPUT_CHECK_MESSAGES
 
 pytestmark = pytest.mark.ros
 T0 = 100.0
-OK, WARN = b"\x00", b"\x01"
+OK, WARN, ERROR = b"\x00", b"\x01", b"\x02"
 
 
 def statuses(h):
@@ -65,7 +66,7 @@ def test_diagnostics_report(harness, monkeypatch) -> None:
     clock = FakeMonotonic(1000.0)
     monkeypatch.setattr(estimator_node, "time", clock)
     h = harness({"diagnostics_period": 3600.0, "estimate_gyro_bias": True})
-    h.send_imu([T0 + 0.01 * k for k in range(50)])
+    h.send_imu([T0 + 0.01 * k for k in range(50)], gyr=(0.0, 0.0, 0.01))  # exactly 0 is named
     clock.t += 0.5
     h.est._on_timer()
     assert h.spin_until(lambda: len(statuses(h)) >= 1, 10.0)
@@ -114,6 +115,42 @@ def test_not_initialised_says_why(harness) -> None:
     assert st.level == WARN
     assert "accelerometer magnitude 1 m/s² is far from gravity" in st.message
     assert "units of g" in st.message
+
+
+def test_input_without_accelerometer_is_named_once(harness, capfd) -> None:
+    """A gyro-only topic (accelerometer zero) cannot give an orientation: nothing is published,
+    /diagnostics says why at ERROR, and the log says it once (not every period)."""
+    h = harness({"diagnostics_period": 0.1})
+    n = INPUT_CHECK_MESSAGES + 10
+    h.send_imu([T0 + 0.01 * k for k in range(n)], gyr=(0.0, 0.0, 0.3), acc=(0.0, 0.0, 0.0))
+    text = ("no usable accelerometer reading (zero, invalid, not reported or far from gravity) "
+            f"in all {n} IMU messages on /imu/data_raw: is this a gyro-only topic?")
+    assert h.spin_until(lambda: sum(text in s.message for s in statuses(h)) >= 3, 5.0)
+    assert all(s.level == ERROR for s in statuses(h) if text in s.message)
+    assert h.out == []
+    assert capfd.readouterr().err.count("is this a gyro-only topic?") == 1
+
+
+def test_zero_gyro_and_orientation_carrying_input_are_named_once(harness, capfd) -> None:
+    """An input whose angular velocity is exactly zero (an accelerometer-only topic?) and whose
+    messages carry an orientation (an estimator's output?) is still filtered, and both are
+    named: WARN in /diagnostics, once in the log."""
+    h = harness({"diagnostics_period": 0.1})
+    msgs = []
+    for k in range(INPUT_CHECK_MESSAGES + 10):
+        m = imu_msg(T0 + 0.01 * k, (0.0, 0.0, 0.0), (0.0, 0.0, 9.80665))
+        m.orientation.z, m.orientation.w = math.sin(0.25), math.cos(0.25)
+        m.orientation_covariance[0] = 1e-4
+        msgs.append(m)
+    h.send(msgs)
+    assert len(h.out) == len(msgs)
+    zero = "is this an accelerometer-only topic?"
+    ori = "/imu/data_raw already carries an orientation (orientation_covariance[0] is not -1)"
+    assert h.spin_until(lambda: sum(zero in s.message and ori in s.message
+                                    for s in statuses(h)) >= 3, 5.0)
+    assert all(s.level == WARN for s in statuses(h) if zero in s.message)
+    err = capfd.readouterr().err
+    assert err.count(zero) == 1 and err.count(ori) == 1
 
 
 def fake_tf2(monkeypatch) -> list:

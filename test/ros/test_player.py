@@ -240,6 +240,8 @@ def test_bad_parameters(ros_context: Any, tmp_path: Path, bag: Path) -> None:
         make(scenario_params=["acc_peak"])
     with pytest.raises(PlayerError, match="wait_topics: imu/nope is not published"):
         make(wait_topics=["imu/nope"])
+    with pytest.raises(PlayerError, match="split_accel must be >= 0"):
+        make(split_accel=-1)
 
 
 def _run_player(*ros_args: str) -> subprocess.CompletedProcess:
