@@ -324,9 +324,9 @@ def parse_overrides(items: list[str]) -> dict[str, Any]:
         if k in FIXED_BY_BENCH:
             raise SystemExit(f"--filter-params: {k} is set per column by the benchmark "
                              "(use --algorithms to choose columns)")
-        val: Any = [x for x in v.replace("[", "").replace("]", "").split(",") if x.strip()] \
-            if p.type is list else v
         try:
+            val: Any = [float(x) for x in v.replace("[", "").replace("]", "").split(",")
+                        if x.strip()] if p.type is list else v
             out[k] = p.validate(val)
         except ValueError as e:
             raise SystemExit(f"--filter-params: {e}") from None

@@ -274,16 +274,18 @@ def test_mukf_failed_step_still_predicts() -> None:
 
 
 @pytest.mark.parametrize("algorithm", ALGOS)
-def test_one_huge_gyro_sample_is_an_outlier(algorithm: str) -> None:
-    """One gyro sample of 1e6 rad/s (a corrupted message; it used to leave the bias at
-    5.19 rad/s for good): the gyro's innovation gate skips it; the bias and the attitude do
-    not notice."""
+@pytest.mark.parametrize(("rate", "counter"), [(500.0, "gyr_rejected_chi2"),
+                                               (1e6, "gyr_invalid")])
+def test_one_huge_gyro_sample_is_an_outlier(algorithm: str, rate: float, counter: str) -> None:
+    """One corrupted gyro sample (1e6 rad/s used to leave the bias at 5.19 rad/s for good):
+    within the plausibility limit (1000 rad/s) the gyro's innovation gate skips it, beyond it
+    the sample is invalid (issue 14); either way the bias and the attitude do not notice."""
     sim = simulate("static", duration=10, rate=100, seed=1)
     gyr = sim.gyr.copy()
-    gyr[500] = (1e6, 0.0, 0.0)
+    gyr[500] = (rate, 0.0, 0.0)
     r = mkf_ros.estimate(gyr, sim.acc, sim.mag, timestamps=sim.t, algorithm=algorithm)
     clean = mkf_ros.estimate(sim.gyr, sim.acc, sim.mag, timestamps=sim.t, algorithm=algorithm)
-    assert r.counters["gyr_rejected_chi2"] == 1
+    assert r.counters[counter] == 1
     assert np.all(np.abs(r.bias[-1] - clean.bias[-1]) < 1e-3)
     assert np.degrees(orientation_errors(r.quat, clean.quat)["total"].max()) < 0.1
 

@@ -97,9 +97,16 @@ def test_descriptors_generated_from_the_definition(running) -> None:
 
 def test_every_parameter_changes_at_runtime(running) -> None:
     """Each parameter set to another valid value (and back) from another node: accepted,
-    readable, applied to the adapter (and the filter), and the node keeps publishing."""
+    readable, applied to the adapter (and the filter), and the node keeps publishing. A
+    read-only parameter (``input_mode``: it decides the subscriptions) is refused and keeps
+    its value."""
     h, t, failures = running, T0 + 1.0, []
     for p in PARAMS:
+        if p.read_only:
+            res = h.set(**{p.name: alt_value(p)})[0]
+            if res.successful or h.get(p.name)[0] != p.default:
+                failures.append(f"read-only {p.name} changed at runtime")
+            continue
         for value in (alt_value(p), p.default):
             res = h.set(**{p.name: value})[0]
             got = h.get(p.name)[0]
