@@ -150,6 +150,11 @@ YAW0_STDDEV = 1e-3  # rad: heading is defined by the start-up heading when no ma
 YAW_VAR_UNKNOWN = np.pi ** 2 / 3.0  # rad²: variance of an angle uniform over ±180°
 REST_LP_TAU = 0.5  # s: rest detection compares the gyro and accelerometer with their low-pass
 REST_CHI2 = 16.27  # 3 degrees of freedom, 0.1 %: the low-passed rate agrees with the bias
+# Euler baselines' tilt re-alignment (issue 14 item 5, :func:`_bl_realign`): the accelerometer
+# "looks like gravity" when its magnitude is within this fraction of ``gravity`` ...
+REALIGN_ACC_TOL = 0.05
+# ... and the gyro (bias removed) is below this rate (rad/s), so little centripetal acceleration
+REALIGN_MAX_RATE = 0.5
 
 
 # --- plausibility of a reading (issue 14): the one definition, for the library and the node ----
@@ -857,6 +862,39 @@ def from_canonical(cfg: np.ndarray, st: np.ndarray, P: np.ndarray) -> None:
 
 
 @jit
+def _bl_realign(cfg: np.ndarray, st: np.ndarray, P: np.ndarray, a: tuple, w: tuple) -> bool:
+    """Euler baselines only (issue 14 item 5): when the accelerometer has been refused for
+    ``acc_recovery_time`` and this sample looks like gravity (magnitude within
+    :data:`REALIGN_ACC_TOL` of ``gravity``, rate below :data:`REALIGN_MAX_RATE`), re-align the
+    tilt from it, keeping yaw and its variance, as after a gap (:func:`_align`). Widening the
+    prior alone does not bring them back: once the tilt is far off, the Euler UKF's sigma points
+    span more than a turn and its χ² gate refuses gravity whatever the variance (measured: tilt
+    variances of 20–90 rad² still refused). The tilt variance is one sample's (as in
+    :func:`_align`) plus the square of the tilt's jump: never narrower than the step taken.
+    Works on the canonical form (between :func:`_bl_export` and :func:`from_canonical`).
+    Returns whether it re-aligned (False: not a baseline that needs it, or not gravity)."""
+    algo = int(cfg[C_ALGO])
+    if algo != ALGO_EULER_KF and algo != ALGO_EULER_UKF:
+        return False
+    n = np.sqrt(a[0] * a[0] + a[1] * a[1] + a[2] * a[2])
+    if (abs(n / cfg[C_GRAVITY] - 1.0) > REALIGN_ACC_TOL
+            or w[0] * w[0] + w[1] * w[1] + w[2] * w[2] > REALIGN_MAX_RATE ** 2):
+        return False
+    R = rotmat(st[S_QC:S_QC + 4])
+    # the jump: between the estimate's up (R's last row, in body axes) and the accelerometer's
+    c = (R[2, 0] * a[0] + R[2, 1] * a[1] + R[2, 2] * a[2]) / n
+    jump = np.arccos(max(-1.0, min(1.0, c)))
+    var_yaw = 0.0  # world-z variance of the attitude block, kept
+    for i in range(3):
+        for j in range(3):
+            var_yaw += R[2, i] * R[2, j] * P[i, j]
+    st[S_QC:S_QC + 4] = keep_yaw(align_tilt(np.array(a)), st[S_QC:S_QC + 4])
+    _set_world_attitude_cov(st, P, int(cfg[C_NX]), cfg[C_RA] + 9.0 * cfg[C_QA] + jump * jump,
+                            var_yaw, False)
+    return True
+
+
+@jit
 def _baseline_update(cfg: np.ndarray, nz: np.ndarray, st: np.ndarray, P: np.ndarray,
                      cnt: np.ndarray, dt: float, g: np.ndarray, has_g: bool, a_body: np.ndarray,
                      has_a: bool, var_a_extra: float, m_body: np.ndarray, has_m: bool,
@@ -1019,7 +1057,8 @@ def _sensor_step(cfg: np.ndarray, nz: np.ndarray, st: np.ndarray, P: np.ndarray,
             ang = np.arccos(max(-1.0, min(1.0, up[0] * a_body[0] + up[1] * a_body[1]
                                           + up[2] * a_body[2])))
             _bl_export(cfg, st, P)
-            _inflate_world(st, P, ang * ang, 0.0)
+            if not _bl_realign(cfg, st, P, acc, wl):
+                _inflate_world(st, P, ang * ang, 0.0)
             from_canonical(cfg, st, P)
             st[S_T_ACC] = 0.0
         if a_stat > 0:

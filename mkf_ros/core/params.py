@@ -173,7 +173,9 @@ PARAMS: tuple[Param, ...] = (
        group="robustness"),
     _P("acc_recovery_time", float, 1.0, "After this long without an accepted accelerometer "
        "sample, the tilt variance grows by the measured disagreement (no forced update: the "
-       "gates then judge against the wider prior)", unit="s", range=(0.0, 3600.0),
+       "gates then judge against the wider prior); the Euler baselines instead re-align the "
+       "tilt from a sample that looks like gravity (magnitude near g, little rotation), "
+       "keeping yaw", unit="s", range=(0.0, 3600.0),
        group="robustness"),
     _P("acc_time_constant", float, 0.8, "The accelerometer is low-passed in an almost "
        "inertial frame before it corrects the tilt (extension): two first-order stages with "
