@@ -1,4 +1,4 @@
-"""Orientation error metrics (the BROAD benchmark's, see bench/README)."""
+"""Orientation error metrics (the BROAD benchmark's; docs/real_data.md § "The metric")."""
 
 from __future__ import annotations
 
