@@ -23,11 +23,10 @@ from typing import Any
 
 import numpy as np
 
+from mkf_ros import rep145
 from mkf_ros.bags import cdr
 from mkf_ros.bags.reader import BagError, BagReader, normalize_topic
 from mkf_ros.bags.writer import BagWriter
-
-NOT_REPORTED = np.array([-1.0, 0, 0, 0, 0, 0, 0, 0, 0])
 
 
 @dataclass
@@ -85,14 +84,6 @@ def _decode(raws: np.ndarray | list[bytes], layout: cdr.Layout, topic: str,
         raise BagError(f"{path}: {e}") from None
 
 
-def _field(values: np.ndarray, cov0: np.ndarray) -> np.ndarray:
-    """``values`` as (N, 3) floats; NaN rows where covariance[0] is -1 (REP-145 "not
-    reported", which the adapter treats like a missing reading)."""
-    v = np.array(values, dtype=float)
-    v[cov0 == -1.0] = math.nan
-    return v
-
-
 def run_stream(adapter: Any, imu: cdr.Decoded, imu_log: np.ndarray, mag: cdr.Decoded | None,
                mag_log: np.ndarray | None, node_params: Mapping[str, Any],
                progress: Callable[[int], None] | None = None, accel: cdr.Decoded | None = None,
@@ -102,22 +93,21 @@ def run_stream(adapter: Any, imu: cdr.Decoded, imu_log: np.ndarray, mag: cdr.Dec
     Split input (``accel`` given, ``input_mode`` split): ``imu`` is the gyro stream (its
     linear acceleration ignored) and ``accel`` the accelerometer stream (its angular velocity
     ignored), each message fused at its own stamp."""
-    from mkf_ros.stream import covariance_out
-
     def seconds(stamp_ns: np.ndarray) -> np.ndarray:  # as the node: sec + nanosec · 1e-9
         return stamp_ns // 1_000_000_000 + (stamp_ns % 1_000_000_000) * 1e-9
 
     f = imu.fields
     av_in = f["angular_velocity_covariance"]
     la_in = f["linear_acceleration_covariance"]
-    gyr = _field(f["angular_velocity"], av_in[:, 0])
+    gyr = rep145.input_rows(f["angular_velocity"], av_in[:, 0])
     a_st = None
     if accel is not None:
         fa = accel.fields
-        acc = _field(fa["linear_acceleration"], fa["linear_acceleration_covariance"][:, 0])
+        acc = rep145.input_rows(fa["linear_acceleration"],
+                                fa["linear_acceleration_covariance"][:, 0])
         a_st = seconds(accel.stamp_ns)
     else:
-        acc = _field(f["linear_acceleration"], la_in[:, 0])
+        acc = rep145.input_rows(f["linear_acceleration"], la_in[:, 0])
     m_st = m_val = None
     if mag is not None and mag_log is not None and len(mag_log):
         m_st, m_val = seconds(mag.stamp_ns), mag.fields["magnetic_field"]
@@ -128,15 +118,11 @@ def run_stream(adapter: Any, imu: cdr.Decoded, imu_log: np.ndarray, mag: cdr.Dec
     m = len(i)
     w_ok = ~np.isnan(res.angular_velocity[:, 0])
     a_ok = ~np.isnan(res.linear_acceleration[:, 0])
-    w_est = ~np.isnan(res.angular_velocity_cov[:, 0, 0])  # the filter's: replaces the input's
-    w_in = w_ok & ~w_est
-    add = res.angular_velocity_cov_add[w_in]
-    w_cov = np.tile(NOT_REPORTED, (m, 1))
-    w_cov[w_est] = res.angular_velocity_cov[w_est].reshape(-1, 9)
-    w_cov[w_in] = covariance_out(av_in[i[w_in]], float(node_params["angular_velocity_stddev"]),
-                                 None if np.isnan(add).all() else add)
-    a_cov = np.tile(NOT_REPORTED, (m, 1))
-    a_cov[a_ok] = covariance_out(la_in[i[a_ok]], float(node_params["linear_acceleration_stddev"]))
+    w_cov = rep145.published_covariances(w_ok, res.angular_velocity_cov, av_in[i],
+                                         float(node_params["angular_velocity_stddev"]),
+                                         res.angular_velocity_cov_add)
+    a_cov = rep145.published_covariances(a_ok, None, la_in[i],
+                                         float(node_params["linear_acceleration_stddev"]))
     return Outputs(index=i, quat=res.quat_wxyz, cov=res.orientation_cov.reshape(m, 9),
                    angvel=np.where(w_ok[:, None], res.angular_velocity, 0.0), angvel_cov=w_cov,
                    linacc=np.where(a_ok[:, None], res.linear_acceleration, 0.0),

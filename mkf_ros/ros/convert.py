@@ -15,9 +15,8 @@ from builtin_interfaces.msg import Time
 from geometry_msgs.msg import Quaternion, TransformStamped, Vector3
 from sensor_msgs.msg import Imu, MagneticField
 
-from mkf_ros.stream import StreamOutput, covariance_out
-
-_NOT_REPORTED = np.array([-1.0, 0, 0, 0, 0, 0, 0, 0, 0])
+from mkf_ros import rep145
+from mkf_ros.stream import StreamOutput
 
 
 def stamp_to_sec(stamp: Time) -> float:
@@ -52,8 +51,10 @@ def set_quat(msg: Quaternion, q_wxyz: np.ndarray) -> None:
 
 def imu_to_arrays(msg: Imu) -> tuple[float, np.ndarray | None, np.ndarray | None]:
     """``(stamp_s, gyr rad/s, acc m/s²)``; a field whose covariance[0] is -1 is None."""
-    g = None if msg.angular_velocity_covariance[0] == -1.0 else vec(msg.angular_velocity)
-    a = None if msg.linear_acceleration_covariance[0] == -1.0 else vec(msg.linear_acceleration)
+    g = None if rep145.not_reported(msg.angular_velocity_covariance[0]) else \
+        vec(msg.angular_velocity)
+    a = None if rep145.not_reported(msg.linear_acceleration_covariance[0]) else \
+        vec(msg.linear_acceleration)
     return stamp_to_sec(msg.header.stamp), g, a
 
 
@@ -66,31 +67,18 @@ def fill_imu(out: Imu, inp: Imu, est: StreamOutput, angular_velocity_stddev: flo
              linear_acceleration_stddev: float) -> Imu:
     """Write the estimate into ``out`` (reused between calls): header of the input,
     orientation and its covariance from the filter, angular velocity per the chosen source,
-    linear acceleration passed through; input covariances copied or filled (REP-145)."""
+    linear acceleration passed through; covariances per :mod:`mkf_ros.rep145`."""
     out.header = inp.header
     set_quat(out.orientation, est.quat_wxyz)
     out.orientation_covariance = np.ascontiguousarray(est.orientation_cov, dtype=float).reshape(9)
-    w = est.angular_velocity
-    if w is None:
-        set_vec(out.angular_velocity, np.zeros(3))
-        out.angular_velocity_covariance = _NOT_REPORTED.copy()
-    else:
-        set_vec(out.angular_velocity, w)
-        if est.angular_velocity_cov is not None:
-            out.angular_velocity_covariance = np.ascontiguousarray(
-                est.angular_velocity_cov, dtype=float).reshape(9)
-        else:
-            out.angular_velocity_covariance = covariance_out(
-                inp.angular_velocity_covariance, angular_velocity_stddev,
-                est.angular_velocity_cov_add)
-    a = est.linear_acceleration
-    if a is None:
-        set_vec(out.linear_acceleration, np.zeros(3))
-        out.linear_acceleration_covariance = _NOT_REPORTED.copy()
-    else:
-        set_vec(out.linear_acceleration, a)
-        out.linear_acceleration_covariance = covariance_out(
-            inp.linear_acceleration_covariance, linear_acceleration_stddev)
+    w, a = est.angular_velocity, est.linear_acceleration
+    set_vec(out.angular_velocity, np.zeros(3) if w is None else w)
+    out.angular_velocity_covariance = rep145.published_covariance(
+        w, est.angular_velocity_cov, inp.angular_velocity_covariance, angular_velocity_stddev,
+        est.angular_velocity_cov_add)
+    set_vec(out.linear_acceleration, np.zeros(3) if a is None else a)
+    out.linear_acceleration_covariance = rep145.published_covariance(
+        a, None, inp.linear_acceleration_covariance, linear_acceleration_stddev)
     return out
 
 

@@ -21,6 +21,7 @@ import struct
 
 import numpy as np
 
+from mkf_ros import rep145
 from mkf_ros.stream import StreamOutput, covariance_out
 
 _HEAD = struct.Struct("<iII")
@@ -29,8 +30,6 @@ IMU_DOUBLES = 37
 MAG_DOUBLES = 12
 # offsets into the Imu doubles
 Q, QC, W, WC, A, AC = 0, 4, 13, 16, 25, 28
-_NOT_REPORTED = np.zeros(9)
-_NOT_REPORTED[0] = -1.0
 
 
 class RawHeader:
@@ -61,8 +60,7 @@ def parse(buf: bytes, n_doubles: int) -> RawHeader | None:
 def imu_arrays(h: RawHeader) -> tuple[np.ndarray | None, np.ndarray | None]:
     """``(gyr, acc)`` of a parsed Imu; a field whose covariance[0] is -1 is None."""
     d = h.d  # a read-only view of the message: copy, or numba compiles a read-only variant
-    return (None if d[WC] == -1.0 else d[W:W + 3].copy()), (
-        None if d[AC] == -1.0 else d[A:A + 3].copy())
+    return rep145.input_vector(d[W:W + 3], d[WC]), rep145.input_vector(d[A:A + 3], d[AC])
 
 
 class ImuEncoder:
@@ -90,22 +88,12 @@ class ImuEncoder:
         q = est.quat_wxyz
         o[0], o[1], o[2], o[3] = q[1], q[2], q[3], q[0]
         o[QC:QC + 9] = est.orientation_cov.reshape(9)
-        w = est.angular_velocity
-        if w is None:
-            o[W:W + 3] = 0.0
-            o[WC:WC + 9] = _NOT_REPORTED
-        else:
-            o[W:W + 3] = w
-            if est.angular_velocity_cov is not None:
-                o[WC:WC + 9] = est.angular_velocity_cov.reshape(9)
-            else:
-                o[WC:WC + 9] = self._cov(d[WC:WC + 9], angular_velocity_stddev,
-                                         est.angular_velocity_cov_add)
-        a = est.linear_acceleration
-        if a is None:
-            o[A:A + 3] = 0.0
-            o[AC:AC + 9] = _NOT_REPORTED
-        else:
-            o[A:A + 3] = a
-            o[AC:AC + 9] = self._cov(d[AC:AC + 9], linear_acceleration_stddev, None)
+        w, a = est.angular_velocity, est.linear_acceleration
+        o[W:W + 3] = 0.0 if w is None else w
+        o[WC:WC + 9] = rep145.published_covariance(
+            w, est.angular_velocity_cov, d[WC:WC + 9], angular_velocity_stddev,
+            est.angular_velocity_cov_add, fill=self._cov)
+        o[A:A + 3] = 0.0 if a is None else a
+        o[AC:AC + 9] = rep145.published_covariance(
+            a, None, d[AC:AC + 9], linear_acceleration_stddev, fill=self._cov)
         return h.prefix + o.tobytes()
