@@ -8,11 +8,9 @@ estimate. Only little-endian plain CDR (encapsulation ``00 01``, what every ROS 
 x86/ARM sends) is handled here; anything else returns None and the node falls back to
 ``rclpy.serialization`` and message objects.
 
-Layout (offsets after the 4-byte encapsulation header, doubles 8-aligned):
-``int32 sec, uint32 nanosec, uint32 len, char frame_id[len]`` (NUL included), then
-Imu: orientation (x, y, z, w), orientation_covariance[9], angular_velocity (3),
-angular_velocity_covariance[9], linear_acceleration (3), linear_acceleration_covariance[9];
-MagneticField: magnetic_field (3), magnetic_field_covariance[9].
+The layout (header, padding, the float64 fields and their order) is the one
+:mod:`mkf_ros.bags.cdr` decodes bags with: :data:`mkf_ros.bags.cdr.IMU` and
+:data:`~mkf_ros.bags.cdr.MAGNETIC_FIELD`.
 """
 
 from __future__ import annotations
@@ -22,14 +20,17 @@ import struct
 import numpy as np
 
 from mkf_ros import rep145
+from mkf_ros.bags import cdr
 from mkf_ros.stream import StreamOutput, covariance_out
 
-_HEAD = struct.Struct("<iII")
-_LE = b"\x00\x01"
-IMU_DOUBLES = 37
-MAG_DOUBLES = 12
+_HEAD = struct.Struct("<iII")  # header.stamp.sec, header.stamp.nanosec, frame_id length
+_LE = cdr.CDR_LE[:2]
+IMU_DOUBLES = cdr.IMU.doubles
+MAG_DOUBLES = cdr.MAGNETIC_FIELD.doubles
 # offsets into the Imu doubles
-Q, QC, W, WC, A, AC = 0, 4, 13, 16, 25, 28
+Q, QC, W, WC, A, AC = (cdr.IMU.offsets()[f][0] for f in (
+    "orientation", "orientation_covariance", "angular_velocity", "angular_velocity_covariance",
+    "linear_acceleration", "linear_acceleration_covariance"))
 
 
 class RawHeader:
@@ -38,14 +39,14 @@ class RawHeader:
     __slots__ = ("d", "frame_id", "nanosec", "prefix", "sec", "stamp")
 
     def __init__(self, buf: bytes, n_doubles: int) -> None:
-        sec, nsec, n = _HEAD.unpack_from(buf, 4)
-        end = 16 + n
-        off = 4 + ((end - 4 + 7) & ~7)
+        sec, nsec, n = _HEAD.unpack_from(buf, cdr.HEADER_BYTES)
+        end = cdr.HEADER_BYTES + _HEAD.size + n  # frame_id ends (NUL included)
+        off = cdr.HEADER_BYTES + cdr.body_offset(n - 1)
         if n == 0 or len(buf) < off + 8 * n_doubles:
             raise ValueError(f"truncated message ({len(buf)} bytes)")
         self.sec, self.nanosec = sec, nsec
         self.stamp = sec + nsec * 1e-9
-        self.frame_id = buf[16:end - 1].decode("utf-8", "replace")
+        self.frame_id = buf[end - n:end - 1].decode("utf-8", "replace")
         self.prefix = buf[:off]  # encapsulation + header + padding, reused for the output
         self.d = np.frombuffer(buf, "<f8", n_doubles, off)
 
@@ -86,7 +87,7 @@ class ImuEncoder:
                linear_acceleration_stddev: float) -> bytes:
         d, o = h.d, self._out
         q = est.quat_wxyz
-        o[0], o[1], o[2], o[3] = q[1], q[2], q[3], q[0]
+        o[Q], o[Q + 1], o[Q + 2], o[Q + 3] = q[1], q[2], q[3], q[0]
         o[QC:QC + 9] = est.orientation_cov.reshape(9)
         w, a = est.angular_velocity, est.linear_acceleration
         o[W:W + 3] = 0.0 if w is None else w
