@@ -1,4 +1,5 @@
-"""Orientation error metrics (the BROAD benchmark's; docs/real_data.md § "The metric")."""
+"""Orientation error metrics (the BROAD benchmark's; docs/real_data.md § "The metric") and
+the roll/pitch/yaw angles the node's debug topic and the plots show."""
 
 from __future__ import annotations
 
@@ -19,6 +20,18 @@ def orientation_errors(q_est: np.ndarray, q_ref: np.ndarray) -> dict[str, np.nda
     heading = 2.0 * np.arctan2(z, w)
     incl = 2.0 * np.arccos(np.clip(np.sqrt(w * w + z * z), 0.0, 1.0))
     return {"total": total, "heading": heading, "inclination": incl}
+
+
+def roll_pitch_yaw(q_wxyz: np.ndarray) -> np.ndarray:
+    """Roll, pitch, yaw (rad; fixed axes x-y-z, as tf2's getRPY) of ``[w, x, y, z]``
+    quaternions (..., 4): (..., 3). ``R = R_z(yaw) R_y(pitch) R_x(roll)``; pitch in
+    [-π/2, π/2]."""
+    q = np.asarray(q_wxyz, dtype=float)
+    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    roll = np.arctan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
+    pitch = np.arcsin(np.clip(2 * (w * y - z * x), -1.0, 1.0))
+    yaw = np.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+    return np.stack([roll, pitch, yaw], axis=-1)
 
 
 def rmse_deg(err_rad: np.ndarray) -> float:

@@ -12,6 +12,8 @@ from pathlib import Path
 
 import numpy as np
 
+from mkf_ros.metrics import roll_pitch_yaw
+
 #: shading of the disturbance intervals a synthetic recording reports
 INTERVAL_STYLE = {
     "acc_disturbed": ("tab:orange", "acceleration"),
@@ -25,12 +27,8 @@ MAX_POINTS = 20_000
 
 
 def euler_deg(q_wxyz: np.ndarray) -> np.ndarray:
-    """(N, 3) roll, pitch, yaw in degrees (fixed axes x-y-z, as tf2's getRPY)."""
-    w, x, y, z = (np.asarray(q_wxyz, float)[..., i] for i in range(4))
-    roll = np.arctan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
-    pitch = np.arcsin(np.clip(2 * (w * y - z * x), -1.0, 1.0))
-    yaw = np.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
-    return np.degrees(np.stack([roll, pitch, yaw], axis=-1))
+    """(N, 3) roll, pitch, yaw in degrees (:func:`mkf_ros.metrics.roll_pitch_yaw`)."""
+    return np.degrees(roll_pitch_yaw(q_wxyz))
 
 
 def _breaks(a: np.ndarray) -> np.ndarray:

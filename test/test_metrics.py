@@ -38,3 +38,25 @@ def test_missing_gyro_explains_nothing():
     u = unexplained_steps(_about_z([0.0, 0.1]), t, gyr)
     np.testing.assert_allclose(u, [0.1], atol=1e-12)
 
+
+
+def _axis(i: int, angle: float) -> np.ndarray:
+    q = np.zeros(4)
+    q[0], q[1 + i] = math.cos(angle / 2), math.sin(angle / 2)
+    return q
+
+
+def test_roll_pitch_yaw_inverts_z_y_x_composition():
+    """q = q_z(yaw) ⊗ q_y(pitch) ⊗ q_x(roll) (tf2's setRPY) gives back (roll, pitch, yaw)."""
+    from mkf_ros.core.quaternion import qmul_np
+    from mkf_ros.metrics import roll_pitch_yaw
+
+    rng = np.random.default_rng(5)
+    angles = np.column_stack([rng.uniform(-3.1, 3.1, 50), rng.uniform(-1.5, 1.5, 50),
+                              rng.uniform(-3.1, 3.1, 50)])
+    q = np.array([qmul_np(_axis(2, y), qmul_np(_axis(1, p), _axis(0, r)))
+                  for r, p, y in angles])
+    np.testing.assert_allclose(roll_pitch_yaw(q), angles, atol=1e-9)
+    np.testing.assert_allclose(roll_pitch_yaw(-q[0]), angles[0], atol=1e-9)  # sign ignored
+    np.testing.assert_allclose(roll_pitch_yaw([math.cos(0.5), 0.0, math.sin(0.5), 0.0]),
+                               [0.0, 1.0, 0.0], atol=1e-12)  # 1 rad pitch, literal

@@ -8,14 +8,13 @@ filter as missing and published with covariance[0] = -1 again).
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 from builtin_interfaces.msg import Time
 from geometry_msgs.msg import Quaternion, TransformStamped, Vector3
 from sensor_msgs.msg import Imu, MagneticField
 
 from mkf_ros import rep145
+from mkf_ros.metrics import roll_pitch_yaw
 from mkf_ros.stream import StreamOutput
 
 
@@ -83,12 +82,10 @@ def fill_imu(out: Imu, inp: Imu, est: StreamOutput, angular_velocity_stddev: flo
 
 
 def rpy(q_wxyz: np.ndarray) -> tuple[float, float, float]:
-    """Roll, pitch, yaw (rad; fixed axes x-y-z, as tf2's getRPY) of ``[w, x, y, z]``."""
-    w, x, y, z = (float(c) for c in q_wxyz)
-    roll = math.atan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
-    pitch = math.asin(max(-1.0, min(1.0, 2 * (w * y - z * x))))
-    yaw = math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
-    return roll, pitch, yaw
+    """Roll, pitch, yaw (rad; fixed axes x-y-z, as tf2's getRPY) of ``[w, x, y, z]``
+    (:func:`mkf_ros.metrics.roll_pitch_yaw`)."""
+    r, p, y = roll_pitch_yaw(q_wxyz).tolist()
+    return r, p, y
 
 
 def transform(stamp: Time, parent: str, child: str, q_wxyz: np.ndarray) -> TransformStamped:
