@@ -82,47 +82,17 @@ class Recording:
 # ----------------------------------------------------------------------------------- helpers
 def quat_from_rotmat(r: np.ndarray) -> np.ndarray:
     """Quaternions [w, x, y, z] (w ≥ 0) of rotation matrices ``r`` of shape (..., 3, 3), such
-    that ``R(q) = r`` (the matrix maps sensor to world when q does). Shepperd's method: the
-    largest of the four candidate components is taken from the diagonal, the rest from the
-    off-diagonal terms, so it is accurate for every rotation. Non-finite input gives NaN rows."""
+    that ``R(q) = r`` (the matrix maps sensor to world when q does): the filter's own
+    :func:`mkf_ros.core.frames.quat_from_matrix` (Shepperd's method, accurate for every
+    rotation) on each matrix. Non-finite input gives NaN rows."""
+    from mkf_ros.core.frames import quat_from_matrix
+
     r = np.asarray(r, dtype=float)
-    shape = r.shape[:-2]
     m = r.reshape(-1, 3, 3)
-    n = m.shape[0]
-    q = np.full((n, 4), np.nan)
-    ok = np.isfinite(m).all(axis=(1, 2))
-    m = m[ok]
-    tr = np.trace(m, axis1=1, axis2=2)
-    d = np.stack([tr, m[:, 0, 0], m[:, 1, 1], m[:, 2, 2]], axis=1)
-    k = np.argmax(d, axis=1)
-    out = np.empty((m.shape[0], 4))
-    # k = 0: w largest
-    s = np.sqrt(np.maximum(1.0 + tr, 0.0)) * 2.0  # 4w
-    c0 = np.stack([0.25 * s, (m[:, 2, 1] - m[:, 1, 2]), (m[:, 0, 2] - m[:, 2, 0]),
-                   (m[:, 1, 0] - m[:, 0, 1])], axis=1)
-    c0[:, 1:] /= np.where(s > 0, s, 1.0)[:, None]
-    # k = 1: x largest
-    s1 = np.sqrt(np.maximum(1.0 + m[:, 0, 0] - m[:, 1, 1] - m[:, 2, 2], 0.0)) * 2.0  # 4x
-    c1 = np.stack([(m[:, 2, 1] - m[:, 1, 2]), 0.25 * s1, (m[:, 0, 1] + m[:, 1, 0]),
-                   (m[:, 0, 2] + m[:, 2, 0])], axis=1)
-    c1[:, [0, 2, 3]] /= np.where(s1 > 0, s1, 1.0)[:, None]
-    # k = 2: y largest
-    s2 = np.sqrt(np.maximum(1.0 + m[:, 1, 1] - m[:, 0, 0] - m[:, 2, 2], 0.0)) * 2.0  # 4y
-    c2 = np.stack([(m[:, 0, 2] - m[:, 2, 0]), (m[:, 0, 1] + m[:, 1, 0]), 0.25 * s2,
-                   (m[:, 1, 2] + m[:, 2, 1])], axis=1)
-    c2[:, [0, 1, 3]] /= np.where(s2 > 0, s2, 1.0)[:, None]
-    # k = 3: z largest
-    s3 = np.sqrt(np.maximum(1.0 + m[:, 2, 2] - m[:, 0, 0] - m[:, 1, 1], 0.0)) * 2.0  # 4z
-    c3 = np.stack([(m[:, 1, 0] - m[:, 0, 1]), (m[:, 0, 2] + m[:, 2, 0]),
-                   (m[:, 1, 2] + m[:, 2, 1]), 0.25 * s3], axis=1)
-    c3[:, :3] /= np.where(s3 > 0, s3, 1.0)[:, None]
-    for j, c in enumerate((c0, c1, c2, c3)):
-        sel = k == j
-        out[sel] = c[sel]
-    out /= np.linalg.norm(out, axis=1, keepdims=True)
-    out[out[:, 0] < 0] *= -1.0
-    q[ok] = out
-    return q.reshape(*shape, 4)
+    q = np.full((m.shape[0], 4), np.nan)
+    for i in np.flatnonzero(np.isfinite(m).all(axis=(1, 2))):
+        q[i] = quat_from_matrix(np.ascontiguousarray(m[i]))
+    return q.reshape(*r.shape[:-2], 4)
 
 
 def _valid_rotmats(r: np.ndarray, tol: float = 1e-3) -> np.ndarray:
