@@ -14,6 +14,7 @@ from types import ModuleType
 
 import numpy as np
 import pytest
+from quat_helpers import canon, random_quats
 from scipy.io import savemat
 
 import mkf_ros
@@ -44,21 +45,6 @@ HEADER = ("Time (s);Vicon Orientation;;;;IMU Acceleration;;;IMU Gyroscope;;;"
 ACC_SCALE = 3300.0 / 1023.0 / 330.0  # g per count
 GYR_SCALE = 3300.0 / 1023.0 / (3.33 * 180.0 / math.pi)  # rad/s per count
 GYR_BIAS = np.array([373.6, 375.4, 369.7])  # x, y, z counts
-
-
-def canon(q: np.ndarray) -> np.ndarray:
-    """Unit quaternions with w ≥ 0 (q and −q are the same rotation)."""
-    q = np.asarray(q, dtype=float)
-    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
-    return np.where(q[..., :1] < 0, -q, q)
-
-
-def random_quats(n: int, seed: int) -> np.ndarray:
-    return canon(np.random.default_rng(seed).normal(size=(n, 4)))
-
-
-def quat_z(angle: float) -> np.ndarray:
-    return np.array([math.cos(angle / 2), 0.0, 0.0, math.sin(angle / 2)])
 
 
 # ----------------------------------------------------------------------------------- writers

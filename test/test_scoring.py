@@ -8,6 +8,7 @@ import math
 
 import numpy as np
 import pytest
+from quat_helpers import canon, quat_z, random_quats
 
 from mkf_ros.core.quaternion import qconj_np, qmul_np
 from mkf_ros.datasets import Recording
@@ -25,21 +26,6 @@ from mkf_ros.scoring import (
 )
 
 DEG = math.pi / 180.0
-
-
-def canon(q: np.ndarray) -> np.ndarray:
-    """Unit quaternions with w ≥ 0 (q and −q are the same rotation)."""
-    q = np.asarray(q, dtype=float)
-    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
-    return np.where(q[..., :1] < 0, -q, q)
-
-
-def random_quats(n: int, seed: int) -> np.ndarray:
-    return canon(np.random.default_rng(seed).normal(size=(n, 4)))
-
-
-def quat_z(angle: float) -> np.ndarray:
-    return np.array([math.cos(angle / 2), 0.0, 0.0, math.sin(angle / 2)])
 
 
 def qexp(rv: np.ndarray) -> np.ndarray:
