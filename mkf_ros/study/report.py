@@ -13,6 +13,7 @@ import platform
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -182,17 +183,27 @@ def _r_label(r: float) -> str:
     return f"R = 1e{round(np.log10(r))}"
 
 
-def fig_charts(t: Table, path: Path, sampling: str = "sigma") -> Path | None:
-    """Fig. 5: the four charts compared (chart update), one panel per filter × R."""
+def _variant_grid(t: Table, update: str, sampling: str, row_height: float
+                  ) -> tuple[list[tuple[str, str]], list, Any, Any] | None:
+    """One panel per filter variant (MEKF; MUKF with each Q scaling) with results for
+    ``update`` × R (largest first): ``(variants, rs, fig, axs)``, None without results."""
     filters = [(f, s) for f in cfg.FILTERS
                for s in ((cfg.NO_SCALING,) if f == "mekf" else ("published", "consistent"))
-               if t.values(filter=f, mukf_scaling=s, update="cu", sampling=sampling)]
-    rs = t.axis("r", update="cu", sampling=sampling)[::-1]
+               if t.values(filter=f, mukf_scaling=s, update=update, sampling=sampling)]
+    rs = t.axis("r", update=update, sampling=sampling)[::-1]
     if not filters or not rs:
         return None
-    plt = _plt()
-    fig, axs = plt.subplots(len(filters), len(rs), figsize=(3.6 * len(rs), 2.9 * len(filters)),
-                            squeeze=False, sharex=True)
+    fig, axs = _plt().subplots(len(filters), len(rs), squeeze=False, sharex=True,
+                               figsize=(3.6 * len(rs), row_height * len(filters)))
+    return filters, rs, fig, axs
+
+
+def fig_charts(t: Table, path: Path, sampling: str = "sigma") -> Path | None:
+    """Fig. 5: the four charts compared (chart update), one panel per filter × R."""
+    grid = _variant_grid(t, "cu", sampling, 2.9)
+    if grid is None:
+        return None
+    filters, rs, fig, axs = grid
     for i, (f, s) in enumerate(filters):
         for j, r in enumerate(rs):
             ax = axs[i][j]
@@ -245,15 +256,10 @@ def fig_update(t: Table, parts: runner.Parts, n_s: int, path: Path,
                sampling: str = "sigma") -> Path | None:
     """Fig. 7: chart update vs reset, as the relative difference (reset − CU)/CU with the
     paired (common-random-number) confidence bar; published difference as open markers."""
-    filters = [(f, s) for f in cfg.FILTERS
-               for s in ((cfg.NO_SCALING,) if f == "mekf" else ("published", "consistent"))
-               if t.values(filter=f, mukf_scaling=s, update="reset", sampling=sampling)]
-    rs = t.axis("r", update="reset", sampling=sampling)[::-1]
-    if not filters or not rs:
+    grid = _variant_grid(t, "reset", sampling, 2.7)
+    if grid is None:
         return None
-    plt = _plt()
-    fig, axs = plt.subplots(len(filters), len(rs), figsize=(3.6 * len(rs), 2.7 * len(filters)),
-                            squeeze=False, sharex=True)
+    filters, rs, fig, axs = grid
     for i, (f, s) in enumerate(filters):
         for j, r in enumerate(rs):
             ax = axs[i][j]
