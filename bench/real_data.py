@@ -55,7 +55,7 @@ import os
 import subprocess
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -569,21 +569,38 @@ def _within(what: str, mekf: float, mukf: float) -> Check:
                               f"({(mukf / mekf - 1) * 100 if mekf > 0 else float('inf'):+.1f} %)")
 
 
-def _within_trials(what: str, mekf: dict[str, float], mukf: dict[str, float]) -> Check:
-    """:func:`_within` on every trial, one line: the trials outside the tolerance."""
-    bad, n_ok, missing = [], 0, False
-    for name, a in mekf.items():
-        u = mukf.get(name, float("nan"))
-        if not (np.isfinite(a) and np.isfinite(u)):
+def _per_trial(label: str, trials: Iterable[tuple[str, float, float]],
+               judge: Callable[[float, float], tuple[bool, str]], outside: str) -> Check:
+    """One line over ``(trial, value, reference)``: how many trials ``judge`` accepts and,
+    after ``outside``, the others with ``judge``'s text; n/a when any value is missing."""
+    bad, n, n_ok, missing = [], 0, 0, False
+    for name, v, ref in trials:
+        n += 1
+        if not (np.isfinite(v) and np.isfinite(ref)):
             missing = True
-        elif abs(u - a) <= MUKF_REL_TOL * a:
+            continue
+        ok, why = judge(v, ref)
+        if ok:
             n_ok += 1
         else:
-            bad.append(f"{name} {u:.2f} vs {a:.2f}")
-    text = f"{what}: {n_ok}/{len(mekf)} trials"
+            bad.append(f"{name} {why}")
+    text = f"{label} {n_ok}/{n} trials"
     if bad:
-        text += "; outside (mukf vs mekf): " + ", ".join(bad)
+        text += f"; {outside}: " + ", ".join(bad)
     return Check(_status(None if missing else not bad), text)
+
+
+def _within_trials(what: str, mekf: dict[str, float], mukf: dict[str, float]) -> Check:
+    """:func:`_within` on every trial, one line: the trials outside the tolerance."""
+    return _per_trial(f"{what}:", ((k, mukf.get(k, float("nan")), a) for k, a in mekf.items()),
+                      lambda u, a: (abs(u - a) <= MUKF_REL_TOL * a, f"{u:.2f} vs {a:.2f}"),
+                      "outside (mukf vs mekf)")
+
+
+def _within_vqf(v: float, p: float) -> tuple[bool, str]:
+    """A trial's error against ``TRIAL_FACTOR`` × VQF's + ``TRIAL_OFFSET``."""
+    bound = TRIAL_FACTOR * p + TRIAL_OFFSET
+    return v <= bound, f"{v:.2f} > {bound:.2f}"
 
 
 def target_checks(data: dict[str, DatasetResult]) -> list[Check]:
@@ -605,25 +622,14 @@ def target_checks(data: dict[str, DatasetResult]) -> list[Check]:
         for dim, kind in (("9D", "total"), ("6D", "inclination")):
             what = f"broad every trial {dim} {kind} ≤ {TRIAL_FACTOR:g} × vqf + {TRIAL_OFFSET:g}"
             per: dict[str, dict[str, float]] = {o: {} for o in OURS}
+            peer = {r.name: b.results[r.name].get(f"vqf {dim}", {}).get(kind, float("nan"))
+                    for r in b.included}
             for o in OURS:
-                bad, n_ok, missing = [], 0, False
-                for r in b.included:
-                    res = b.results[r.name]
-                    v = res.get(f"{o} {dim}", {}).get(kind, float("nan"))
-                    p = res.get(f"vqf {dim}", {}).get(kind, float("nan"))
-                    per[o][r.name] = v
-                    if not (np.isfinite(v) and np.isfinite(p)):
-                        missing = True
-                        continue
-                    bound = TRIAL_FACTOR * p + TRIAL_OFFSET
-                    if v <= bound:
-                        n_ok += 1
-                    else:
-                        bad.append(f"{r.name} {v:.2f} > {bound:.2f}")
-                text = f"{what}: {o} {n_ok}/{len(b.included)} trials"
-                if bad:
-                    text += "; over: " + ", ".join(bad)
-                out.append(Check(_status(None if missing else not bad), text))
+                per[o] = {r.name: b.results[r.name].get(f"{o} {dim}", {}).get(kind, float("nan"))
+                          for r in b.included}
+                out.append(_per_trial(f"{what}: {o}",
+                                      ((k, v, peer[k]) for k, v in per[o].items()),
+                                      _within_vqf, "over"))
             out.append(_within_trials(f"mukf within {MUKF_REL_TOL:.0%} of mekf, broad every "
                                       f"trial {dim} {kind}", per["mekf"], per["mukf"]))
     rp = data.get("repoimu")
