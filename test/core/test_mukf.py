@@ -22,6 +22,34 @@ def _random_state(rng: np.random.Generator, nx: int) -> tuple:
             rng.normal(size=3) * 0.01)
 
 
+def _kernel_state(q: np.ndarray, ebar: np.ndarray, w: np.ndarray, b: np.ndarray,
+                  P0: np.ndarray, nx: int) -> tuple:
+    """Copies the kernel updates in place: ``(q, ē, ω, b, P)`` with P padded to 9 × 9."""
+    P = np.zeros((9, 9))
+    P[:nx, :nx] = P0
+    return q.copy(), ebar.copy(), w.copy(), b.copy(), P
+
+
+def _packed(vms: list, vrefs: list, Rvs: list, Qvs: list) -> tuple:
+    """The kernel's two vector-measurement slots (measured, reference, R, Q), zero-padded."""
+    vm_a, vr_a = np.zeros((2, 3)), np.zeros((2, 3))
+    Rv_a, Qv_a = np.zeros((2, 3, 3)), np.zeros((2, 3, 3))
+    for k in range(len(vms)):
+        vm_a[k], vr_a[k], Rv_a[k], Qv_a[k] = vms[k], vrefs[k], Rvs[k], Qvs[k]
+    return vm_a, vr_a, Rv_a, Qv_a
+
+
+def _assert_equals_ref(qc: np.ndarray, e: np.ndarray, wk: np.ndarray, bk: np.ndarray,
+                       P: np.ndarray, nx: int, ref: tuple) -> None:
+    """Kernel state equals the transcription's (quaternion up to sign), to 1e-10."""
+    qm, er, wr, br, Pr = ref
+    assert min(np.abs(qc - qm).max(), np.abs(qc + qm).max()) < 1e-10
+    np.testing.assert_allclose(e, er, atol=1e-10)
+    np.testing.assert_allclose(wk, wr, atol=1e-10)
+    np.testing.assert_allclose(bk, br, atol=1e-10)
+    np.testing.assert_allclose(P[:nx, :nx], Pr, atol=1e-10)
+
+
 @pytest.mark.parametrize("nx", [6, 9])
 @pytest.mark.parametrize("chart", CHART_NAMES)
 @pytest.mark.parametrize("cu", [True, False])
@@ -46,25 +74,14 @@ def test_kernel_equals_full_augmentation(nx: int, chart: str, cu: bool, publishe
             Rw = 1e-4 * np.eye(3)
             ref = mukf_step_ref(chart_id(chart), cu, published, 1 / 25, q, ebar, w, b, P0, nx,
                                 dt, Qw, Qb, vms, vrefs, Rvs, Qvs, wm, Rw)
-            qc, e, wk, bk = q.copy(), ebar.copy(), w.copy(), b.copy()
-            P = np.zeros((9, 9))
-            P[:nx, :nx] = P0
-            pad = np.zeros((2, 3))
-            vm_a, vr_a = pad.copy(), pad.copy()
-            Rv_a, Qv_a = np.zeros((2, 3, 3)), np.zeros((2, 3, 3))
-            for k in range(nvec):
-                vm_a[k], vr_a[k], Rv_a[k], Qv_a[k] = vms[k], vrefs[k], Rvs[k], Qvs[k]
+            qc, e, wk, bk, P = _kernel_state(q, ebar, w, b, P0, nx)
+            vm_a, vr_a, Rv_a, Qv_a = _packed(vms, vrefs, Rvs, Qvs)
             use_v = np.array([nvec > 0, nvec > 1])
             ok = mukf_step(chart_id(chart), cu, published, 1 / 25, qc, e, wk, bk, P, nx, dt, Qw,
                            Qb, vm_a, vr_a, Rv_a, Qv_a, use_v,
                            wm if use_w else np.zeros(3), use_w, Rw)
             assert ok
-            qm, er, wr, br, Pr = ref
-            assert min(np.abs(qc - qm).max(), np.abs(qc + qm).max()) < 1e-10
-            np.testing.assert_allclose(e, er, atol=1e-10)
-            np.testing.assert_allclose(wk, wr, atol=1e-10)
-            np.testing.assert_allclose(bk, br, atol=1e-10)
-            np.testing.assert_allclose(P[:nx, :nx], Pr, atol=1e-10)
+            _assert_equals_ref(qc, e, wk, bk, P, nx, ref)
 
 
 @pytest.mark.parametrize("chart", CHART_NAMES)
@@ -124,24 +141,14 @@ def test_ext_equals_full_augmentation(nx: int, chart: str, cu: bool, mode: int) 
             gates[0] = 0.9 * nis_ref[0]
             drop = (0,)
             ref = mukf_step_ref(*args, drop=drop)
-        qc, e, wk, bk = q.copy(), ebar.copy(), w.copy(), b.copy()
-        P = np.zeros((9, 9))
-        P[:nx, :nx] = P0
-        vm_a, vr_a = np.zeros((2, 3)), np.zeros((2, 3))
-        Rv_a, Qv_a = np.zeros((2, 3, 3)), np.zeros((2, 3, 3))
-        for k in range(nvec):
-            vm_a[k], vr_a[k], Rv_a[k], Qv_a[k] = vms[k], vrefs[k], Rvs[k], Qvs[k]
+        qc, e, wk, bk, P = _kernel_state(q, ebar, w, b, P0, nx)
+        vm_a, vr_a, Rv_a, Qv_a = _packed(vms, vrefs, Rvs, Qvs)
         nis = np.zeros(4)
         ok = mukf_step_ext(chart_id(chart), cu, mode, 1 / 25, qc, e, wk, bk, P, nx, dt, Qw, Qb,
                            vm_a, vr_a, Rv_a, Qv_a, np.array([nvec > 0, nvec > 1]), wm, use_w, Rw,
                            np.zeros(3), np.zeros(3), False, 0.0, use_z, z_var, gates, nis)
         assert ok
-        qm, er, wr, br, Pr = ref
-        assert min(np.abs(qc - qm).max(), np.abs(qc + qm).max()) < 1e-10
-        np.testing.assert_allclose(e, er, atol=1e-10)
-        np.testing.assert_allclose(wk, wr, atol=1e-10)
-        np.testing.assert_allclose(bk, br, atol=1e-10)
-        np.testing.assert_allclose(P[:nx, :nx], Pr, atol=1e-10)
+        _assert_equals_ref(qc, e, wk, bk, P, nx, ref)
         np.testing.assert_allclose(nis[blocks], nis_ref[:len(blocks)], rtol=1e-9)
 
 
