@@ -171,12 +171,21 @@ def _published(ax, rows: list[Row], bars: bool = False, **kw: object) -> None:
                         color=kw.get("color"))
 
 
-def _axes(ax, title: str) -> None:
+def _axes(ax, title: str, ylog: bool = True) -> None:
     ax.set_xscale("log")
-    ax.set_yscale("log")
+    if ylog:
+        ax.set_yscale("log")
     ax.set_title(title, fontsize=9)
     ax.grid(True, which="both", lw=0.3, alpha=0.5)
     ax.tick_params(labelsize=7)
+
+
+def _edge_labels(ax, i: int, j: int, n_rows: int, ylabel: str) -> None:
+    """Axis labels on the grid's left column and bottom row only."""
+    if j == 0:
+        ax.set_ylabel(ylabel, fontsize=8)
+    if i == n_rows - 1:
+        ax.set_xlabel("update rate (Hz)", fontsize=8)
 
 
 def _r_label(r: float) -> str:
@@ -215,10 +224,7 @@ def fig_charts(t: Table, path: Path, sampling: str = "sigma") -> Path | None:
                     _published(ax, rows, color=CHART_COLORS[c], label=f"{c.upper()} (paper)")
             name = f.upper() + ("" if s == cfg.NO_SCALING else f" ({s} scaling)")
             _axes(ax, f"{name}, {_r_label(r)}")
-            if j == 0:
-                ax.set_ylabel("mean error (deg)", fontsize=8)
-            if i == len(filters) - 1:
-                ax.set_xlabel("update rate (Hz)", fontsize=8)
+            _edge_labels(ax, i, j, len(filters), "mean error (deg)")
     axs[0][0].legend(fontsize=6, ncol=2)
     fig.suptitle("Fig. 5 - charts compared (chart update); bars: mu +- 3 sigma/sqrt(N_s); "
                  "dashed x: published", fontsize=9)
@@ -288,15 +294,9 @@ def fig_update(t: Table, parts: runner.Parts, n_s: int, path: Path,
                     ax.plot(px, py, ls="none", marker="o", mfc="none", color=col, ms=5,
                             label=f"{c.upper()} (paper)")
             ax.axhline(0.0, color="k", lw=0.6)
-            ax.set_xscale("log")
-            ax.grid(True, which="both", lw=0.3, alpha=0.5)
-            ax.tick_params(labelsize=7)
             name = f.upper() + ("" if s == cfg.NO_SCALING else f" ({s})")
-            ax.set_title(f"{name}, {_r_label(r)}", fontsize=9)
-            if j == 0:
-                ax.set_ylabel("(reset - CU) / CU  (%)", fontsize=8)
-            if i == len(filters) - 1:
-                ax.set_xlabel("update rate (Hz)", fontsize=8)
+            _axes(ax, f"{name}, {_r_label(r)}", ylog=False)
+            _edge_labels(ax, i, j, len(filters), "(reset - CU) / CU  (%)")
     axs[0][0].legend(fontsize=6, ncol=2)
     fig.suptitle("Fig. 7 - chart update vs reset: relative difference of the mean error; "
                  "bars: paired 3-SE (same trajectories)", fontsize=9)
