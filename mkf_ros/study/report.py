@@ -11,6 +11,7 @@ import json
 import os
 import platform
 import shutil
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -368,6 +369,17 @@ class Verdict:
     evidence: list[str]
 
 
+def _paper_groups(inner: Sequence[str]) -> Iterator[tuple[str, str, str, float, float]]:
+    """``(filter, scaling, x, R, rate)`` over the paper's variants (MEKF, MUKF with the
+    published scaling) × ``inner`` × R × rate ≥ :data:`MIN_RATE`, the verdicts' groups."""
+    for f, s in (("mekf", cfg.NO_SCALING), ("mukf", "published")):
+        for x in inner:
+            for r in cfg.RS:
+                for rate in cfg.RATES_HZ:
+                    if rate >= MIN_RATE:
+                        yield f, s, x, r, rate
+
+
 def q_charts(t: Table, parts: runner.Parts, n_s: int) -> Verdict | None:
     """Q1 (paper: no chart is clearly better): per (filter, update, R, rate ≥ 5 Hz) group."""
     groups = 0
@@ -376,33 +388,27 @@ def q_charts(t: Table, parts: runner.Parts, n_s: int) -> Verdict | None:
     spreads = []
     pairs = sig = 0
     rel_sig: list[float] = []
-    for f, s in (("mekf", cfg.NO_SCALING), ("mukf", "published")):
-        for u in cfg.UPDATES:
-            for r in cfg.RS:
-                for rate in cfg.RATES_HZ:
-                    if rate < MIN_RATE:
-                        continue
-                    rows = [t.get(f, c, u, r, rate, s) for c in cfg.CHARTS]
-                    if not _finite(*rows):
-                        continue
-                    groups += 1
-                    mus = np.array([x.mu for x in rows])
-                    spreads.append((mus.max() - mus.min()) / mus.mean())
-                    seps = [_separated(a, b) for i, a in enumerate(rows) for b in rows[i + 1:]]
-                    any_sep += any(seps)
-                    best = int(np.argmin(mus))
-                    if all(_separated(rows[best], x) == -1 for k, x in enumerate(rows)
-                           if k != best):
-                        wins[cfg.CHARTS[best]] += 1
-                    for i, a in enumerate(rows):
-                        for b in rows[i + 1:]:
-                            d = compare_paired(parts, n_s, a.cell, b.cell)
-                            if d is None or not np.isfinite(d[1]):
-                                continue
-                            pairs += 1
-                            if abs(d[0]) > d[1]:
-                                sig += 1
-                                rel_sig.append(abs(d[0]) / (0.5 * (a.mu + b.mu)))
+    for f, s, u, r, rate in _paper_groups(cfg.UPDATES):
+        rows = [t.get(f, c, u, r, rate, s) for c in cfg.CHARTS]
+        if not _finite(*rows):
+            continue
+        groups += 1
+        mus = np.array([x.mu for x in rows])
+        spreads.append((mus.max() - mus.min()) / mus.mean())
+        seps = [_separated(a, b) for i, a in enumerate(rows) for b in rows[i + 1:]]
+        any_sep += any(seps)
+        best = int(np.argmin(mus))
+        if all(_separated(rows[best], x) == -1 for k, x in enumerate(rows) if k != best):
+            wins[cfg.CHARTS[best]] += 1
+        for i, a in enumerate(rows):
+            for b in rows[i + 1:]:
+                d = compare_paired(parts, n_s, a.cell, b.cell)
+                if d is None or not np.isfinite(d[1]):
+                    continue
+                pairs += 1
+                if abs(d[0]) > d[1]:
+                    sig += 1
+                    rel_sig.append(abs(d[0]) / (0.5 * (a.mu + b.mu)))
     if not groups:
         return None
     top = max(wins, key=lambda c: wins[c])
@@ -473,23 +479,18 @@ def q_update(t: Table, parts: runner.Parts, n_s: int) -> Verdict | None:
     n = sep = 0
     pairs = sig = 0
     rel_sig: list[float] = []
-    for f, s in (("mekf", cfg.NO_SCALING), ("mukf", "published")):
-        for c in cfg.CHARTS:
-            for r in cfg.RS:
-                for rate in cfg.RATES_HZ:
-                    if rate < MIN_RATE:
-                        continue
-                    a, b = t.get(f, c, "cu", r, rate, s), t.get(f, c, "reset", r, rate, s)
-                    if not _finite(a, b):
-                        continue
-                    n += 1
-                    sep += _separated(a, b) != 0
-                    d = compare_paired(parts, n_s, a.cell, b.cell)
-                    if d is not None and np.isfinite(d[1]):
-                        pairs += 1
-                        if abs(d[0]) > d[1]:
-                            sig += 1
-                            rel_sig.append(abs(d[0]) / b.mu)
+    for f, s, c, r, rate in _paper_groups(cfg.CHARTS):
+        a, b = t.get(f, c, "cu", r, rate, s), t.get(f, c, "reset", r, rate, s)
+        if not _finite(a, b):
+            continue
+        n += 1
+        sep += _separated(a, b) != 0
+        d = compare_paired(parts, n_s, a.cell, b.cell)
+        if d is not None and np.isfinite(d[1]):
+            pairs += 1
+            if abs(d[0]) > d[1]:
+                sig += 1
+                rel_sig.append(abs(d[0]) / b.mu)
     if not n:
         return None
     ours = ("**No measurable difference**" if sep <= 0.10 * n
