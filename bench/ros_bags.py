@@ -78,6 +78,7 @@ from typing import Any
 
 import numpy as np
 
+from mkf_ros import rep145
 from mkf_ros.bags import BagError, BagReader, cdr
 from mkf_ros.metrics import orientation_errors, step_angles, unexplained_steps
 
@@ -131,7 +132,8 @@ class BagData:
         quaternion that is not constant and not marked "not reported"), else None."""
         f = self.imu.fields
         q = f["orientation"]
-        if (f["orientation_covariance"][:, 0] == -1.0).any() or not np.isfinite(q).all():
+        if rep145.not_reported(f["orientation_covariance"][:, 0]).any() or \
+                not np.isfinite(q).all():
             return None
         if np.abs(np.linalg.norm(q, axis=1) - 1.0).max() > 1e-3 or np.ptp(q, axis=0).max() < 1e-6:
             return None

@@ -59,6 +59,7 @@ from typing import Any
 
 import numpy as np
 
+from mkf_ros import rep145
 from mkf_ros import stream_kernel as sk
 from mkf_ros.core.filter import (
     C_REST_SPLIT,
@@ -220,7 +221,7 @@ def carries_orientation(quat_xyzw: Any, cov0: Any) -> bool:
     c = np.asarray(cov0, dtype=float).reshape(-1)
     unit = np.abs(np.linalg.norm(q, axis=1) - 1.0) < 1e-3
     identity = np.abs(np.abs(q[:, 3]) - 1.0) < 1e-9
-    return bool(np.any((c != -1.0) & unit & ~identity))
+    return bool(np.any(~rep145.not_reported(c) & unit & ~identity))
 
 
 def orientation_note(topic: str) -> str:
