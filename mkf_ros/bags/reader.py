@@ -257,7 +257,7 @@ class BagReader:
         except Exception as e:
             raise BagError(f"cannot read bag {self.path}: {_reason(e)}") from None
 
-    def read(self, topics: Iterable[str], progress: Callable[[int], None] | None = None
+    def read(self, topics: Iterable[str], progress: Callable[[int], object] | None = None
              ) -> dict[str, Batch]:
         """Every message of ``topics`` at once (fast bulk path for MCAP and sqlite3 files).
 
@@ -282,7 +282,7 @@ class BagReader:
             return sum(f.stat().st_size for f in self._files)
         return sum(self.topics[t].count for t in topics if t in self.topics)
 
-    def _read_mcap(self, topics: list[str], progress: Callable[[int], None] | None
+    def _read_mcap(self, topics: list[str], progress: Callable[[int], object] | None
                    ) -> dict[str, Batch]:
         from mkf_ros.bags.mcap import McapError, McapFile, _concat
 
@@ -299,7 +299,7 @@ class BagReader:
                 parts[mf.channels[cid].topic].append((t, d))
         return {t: Batch(*_concat(p)) for t, p in parts.items()}
 
-    def _read_sqlite(self, topics: list[str], progress: Callable[[int], None] | None
+    def _read_sqlite(self, topics: list[str], progress: Callable[[int], object] | None
                      ) -> dict[str, Batch]:
         parts: dict[str, list[tuple[np.ndarray, list[bytes]]]] = {t: [] for t in topics}
         for f in self._files:
@@ -322,7 +322,7 @@ class BagReader:
                 db.close()
         return {t: _merge(p) for t, p in parts.items()}
 
-    def _read_generic(self, topics: list[str], progress: Callable[[int], None] | None
+    def _read_generic(self, topics: list[str], progress: Callable[[int], object] | None
                       ) -> dict[str, Batch]:
         ts: dict[str, list[int]] = {t: [] for t in topics}
         ds: dict[str, list[bytes]] = {t: [] for t in topics}
