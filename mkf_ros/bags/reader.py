@@ -244,14 +244,14 @@ class BagReader:
         """``(topic, log time ns, ROS 2 CDR bytes)`` in log-time order (streaming)."""
         want = None if topics is None else set(topics)
         conns = [c for c in self._reader.connections if want is None or c.topic in want]
-        convs = {id(c): self._converter(c) for c in conns}
-        conns = [c for c in conns if convs[id(c)] is not None]
+        convs = {id(c): conv for c in conns if (conv := self._converter(c)) is not None}
+        conns = [c for c in conns if id(c) in convs]
         if not conns:
             return
         try:
             for c, t, raw in self._reader.messages(connections=conns, start=start_ns,
                                                    stop=stop_ns):
-                yield c.topic, t, convs[id(c)](raw)  # type: ignore[misc]
+                yield c.topic, t, convs[id(c)](raw)
         except BagError:
             raise
         except Exception as e:
