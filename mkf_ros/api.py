@@ -71,12 +71,12 @@ def _time_steps(n: int, dt: object, timestamps: object) -> np.ndarray:
     if bad.any():
         i = int(np.argmax(bad))
         raise ValueError(f"timestamps[{i}] is not finite: {t[i]}")
-    d = np.diff(t)
-    if (d <= 0).any():
-        i = int(np.argmax(d <= 0)) + 1
+    steps = np.diff(t)
+    if (steps <= 0).any():
+        i = int(np.argmax(steps <= 0)) + 1
         raise ValueError(f"timestamps must increase: timestamps[{i}] = {t[i]:g} is not after "
                          f"timestamps[{i - 1}] = {t[i - 1]:g}")
-    dts[1:] = d
+    dts[1:] = steps
     return dts
 
 
@@ -109,7 +109,8 @@ def estimate(
     if gyr is None and acc is None:
         raise ValueError("give at least one of gyr or acc")
     ref = gyr if gyr is not None else acc
-    n = int(np.shape(ref)[0]) if np.ndim(ref) >= 1 else -1
+    ref_shape = np.asarray(ref).shape  # what np.shape / np.ndim do with a non-array
+    n = int(ref_shape[0]) if len(ref_shape) >= 1 else -1
     g = _as_samples("gyr", gyr, None) if gyr is not None else None
     n = g.shape[0] if g is not None else n
     a = _as_samples("acc", acc, n) if acc is not None else np.full((n, 3), np.nan)

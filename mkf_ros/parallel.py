@@ -154,13 +154,14 @@ def run_in_order(executor: cf.Executor, fn: Callable[[T], R], items: Iterable[T]
     def fill() -> None:
         nonlocal go_on
         while go_on and len(running) < max(1, in_flight):
-            item = next(queue, _END)
-            if item is _END:
+            try:
+                item = next(queue)
+            except StopIteration:
                 return
             try:
-                running[executor.submit(fn, item)] = item  # type: ignore[arg-type]
+                running[executor.submit(fn, item)] = item
             except Exception as e:
-                go_on = on_error(item, e)  # type: ignore[arg-type]
+                go_on = on_error(item, e)
 
     try:
         fill()
@@ -178,9 +179,6 @@ def run_in_order(executor: cf.Executor, fn: Callable[[T], R], items: Iterable[T]
     finally:
         for f in running:
             f.cancel()
-
-
-_END = object()
 
 
 # --------------------------------------------------------------------------- Dask

@@ -514,7 +514,7 @@ class StreamAdapter:
     def process(self, imu_stamp: Any, gyr: Any, acc: Any, mag_stamp: Any = None,
                 mag: Any = None, *, imu_arrival: Any = None, mag_arrival: Any = None,
                 acc_stamp: Any = None, acc_arrival: Any = None,
-                progress: Callable[[int], None] | None = None,
+                progress: Callable[[int], object] | None = None,
                 chunk: int = 4096) -> StreamOutputs:
         """A whole recording, with the results of :meth:`on_imu` / :meth:`on_mag` (and
         :meth:`on_accel`) called message by message in arrival order (bit for bit), in

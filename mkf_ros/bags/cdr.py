@@ -135,7 +135,7 @@ def decode(raws: Sequence[bytes] | np.ndarray, layout: Layout, topic: str = "") 
     frames: list[str] = []
     for L in uniq:
         idx = np.flatnonzero(lens == L)
-        rows = np.frombuffer(b"".join([raws[i] for i in idx]), dtype=np.uint8).reshape(
+        rows = np.frombuffer(b"".join([raws[i] for i in idx.tolist()]), dtype=np.uint8).reshape(
             len(idx), int(L))
         st, fr, fs = _decode_rows(rows, layout, topic)
         stamp[idx] = st

@@ -13,6 +13,7 @@ endian, strings and byte arrays are prefixed by a ``uint32`` length.
 from __future__ import annotations
 
 import struct
+import sys
 import zlib
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -176,10 +177,10 @@ class McapFile:
         if len(data) != n:
             raise McapError(f"chunk at offset {c.offset} is truncated")
         if comp == "zstd":
-            try:
-                from compression import zstd  # type: ignore[import-not-found]
-            except ImportError:
-                from backports import zstd  # type: ignore[no-redef]
+            if sys.version_info >= (3, 14):
+                from compression import zstd
+            else:
+                from backports import zstd
             data = zstd.decompress(data)
         elif comp == "lz4":
             import lz4.frame
@@ -283,8 +284,8 @@ def _concat(parts: list[tuple[np.ndarray, np.ndarray | list[bytes]]]
     if not parts:
         return np.zeros(0, np.int64), []
     t = np.concatenate([p[0] for p in parts])
-    uniform = all(isinstance(p[1], np.ndarray) for p in parts) and len(
-        {p[1].shape[1] for p in parts}) == 1  # type: ignore[union-attr]
+    arrays = [p[1] for p in parts if isinstance(p[1], np.ndarray)]
+    uniform = len(arrays) == len(parts) and len({a.shape[1] for a in arrays}) == 1
     if uniform:
         data: np.ndarray | list[bytes] = (parts[0][1] if len(parts) == 1 else
                                           np.concatenate([p[1] for p in parts]))
@@ -458,10 +459,10 @@ class McapStorageWriter:
         ts = np.concatenate(ts_all)
         t0, t1 = int(ts.min()), int(ts.max())
         if self.compress:
-            try:
-                from compression import zstd  # type: ignore[import-not-found]
-            except ImportError:
-                from backports import zstd  # type: ignore[no-redef]
+            if sys.version_info >= (3, 14):
+                from compression import zstd
+            else:
+                from backports import zstd
             payload, comp = zstd.compress(records), "zstd"
         else:
             payload, comp = records, ""

@@ -86,7 +86,7 @@ def _decode(raws: np.ndarray | list[bytes], layout: cdr.Layout, topic: str,
 
 def run_stream(adapter: Any, imu: cdr.Decoded, imu_log: np.ndarray, mag: cdr.Decoded | None,
                mag_log: np.ndarray | None, node_params: Mapping[str, Any],
-               progress: Callable[[int], None] | None = None, accel: cdr.Decoded | None = None,
+               progress: Callable[[int], object] | None = None, accel: cdr.Decoded | None = None,
                accel_log: np.ndarray | None = None) -> Outputs:
     """Run ``adapter`` over the messages in recording order (by log time, the magnetometer
     first at equal times, as ``mkf synth`` writes); the ``imu/data`` fields it publishes.

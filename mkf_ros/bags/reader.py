@@ -244,20 +244,20 @@ class BagReader:
         """``(topic, log time ns, ROS 2 CDR bytes)`` in log-time order (streaming)."""
         want = None if topics is None else set(topics)
         conns = [c for c in self._reader.connections if want is None or c.topic in want]
-        convs = {id(c): self._converter(c) for c in conns}
-        conns = [c for c in conns if convs[id(c)] is not None]
+        convs = {id(c): conv for c in conns if (conv := self._converter(c)) is not None}
+        conns = [c for c in conns if id(c) in convs]
         if not conns:
             return
         try:
             for c, t, raw in self._reader.messages(connections=conns, start=start_ns,
                                                    stop=stop_ns):
-                yield c.topic, t, convs[id(c)](raw)  # type: ignore[misc]
+                yield c.topic, t, convs[id(c)](raw)
         except BagError:
             raise
         except Exception as e:
             raise BagError(f"cannot read bag {self.path}: {_reason(e)}") from None
 
-    def read(self, topics: Iterable[str], progress: Callable[[int], None] | None = None
+    def read(self, topics: Iterable[str], progress: Callable[[int], object] | None = None
              ) -> dict[str, Batch]:
         """Every message of ``topics`` at once (fast bulk path for MCAP and sqlite3 files).
 
@@ -282,7 +282,7 @@ class BagReader:
             return sum(f.stat().st_size for f in self._files)
         return sum(self.topics[t].count for t in topics if t in self.topics)
 
-    def _read_mcap(self, topics: list[str], progress: Callable[[int], None] | None
+    def _read_mcap(self, topics: list[str], progress: Callable[[int], object] | None
                    ) -> dict[str, Batch]:
         from mkf_ros.bags.mcap import McapError, McapFile, _concat
 
@@ -299,7 +299,7 @@ class BagReader:
                 parts[mf.channels[cid].topic].append((t, d))
         return {t: Batch(*_concat(p)) for t, p in parts.items()}
 
-    def _read_sqlite(self, topics: list[str], progress: Callable[[int], None] | None
+    def _read_sqlite(self, topics: list[str], progress: Callable[[int], object] | None
                      ) -> dict[str, Batch]:
         parts: dict[str, list[tuple[np.ndarray, list[bytes]]]] = {t: [] for t in topics}
         for f in self._files:
@@ -322,7 +322,7 @@ class BagReader:
                 db.close()
         return {t: _merge(p) for t, p in parts.items()}
 
-    def _read_generic(self, topics: list[str], progress: Callable[[int], None] | None
+    def _read_generic(self, topics: list[str], progress: Callable[[int], object] | None
                       ) -> dict[str, Batch]:
         ts: dict[str, list[int]] = {t: [] for t in topics}
         ds: dict[str, list[bytes]] = {t: [] for t in topics}

@@ -28,7 +28,7 @@ def _writer_class() -> type:
 
     from mkf_ros.bags.mcap import McapStorageWriter
 
-    class FastSqlite3Writer(Sqlite3Writer):  # type: ignore[misc]
+    class FastSqlite3Writer(Sqlite3Writer):
         """rosbags' sqlite3 storage plus one ``executemany`` per batch. No journal and no
         fsync: the bag is built under a temporary name and only renamed when complete."""
 
@@ -50,7 +50,7 @@ def _writer_class() -> type:
                 "INSERT INTO messages (topic_id, timestamp, data) VALUES(?, ?, ?)",
                 zip(np.asarray(cids).tolist(), np.asarray(ts).tolist(), raws, strict=True))
 
-    class BatchWriter(Writer):  # type: ignore[misc]
+    class BatchWriter(Writer):
         """rosbags' rosbag2 writer with the fast storage plugins and batch writes."""
 
         STORAGE_PLUGINS = {StoragePlugin.SQLITE3: FastSqlite3Writer,  # noqa: RUF012
@@ -58,7 +58,9 @@ def _writer_class() -> type:
 
         def write_batch(self, cids: np.ndarray, ts: np.ndarray,
                         data: np.ndarray | list[bytes]) -> None:
-            self.storage.write_batch(cids, ts, data)
+            storage = self.storage  # set by open(), one of STORAGE_PLUGINS
+            assert isinstance(storage, (FastSqlite3Writer, McapStorageWriter))
+            storage.write_batch(cids, ts, data)
             ids, counts = np.unique(np.asarray(cids), return_counts=True)
             for cid, cnt in zip(ids.tolist(), counts.tolist(), strict=True):
                 self.counts[cid] += cnt

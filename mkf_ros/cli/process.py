@@ -99,7 +99,7 @@ class _Bars:
         self.enabled = enabled
         self.bars: list[Any] = []
 
-    def __call__(self, desc: str, total: int) -> Callable[[int], None] | None:
+    def __call__(self, desc: str, total: int) -> Callable[[int], object] | None:
         if not self.enabled:
             return None
         from tqdm import tqdm

@@ -83,7 +83,8 @@ def _selection(args: argparse.Namespace) -> list:
         samp = cfg.validate([args.noise_sampling], (*cfg.SAMPLINGS, "both"), "noise sampling")[0]
     except ValueError as e:
         raise CliError(str(e)) from None
-    rs, rates = [], []
+    rs: list[float] = []
+    rates: list[float] = []
     for what, text, dest in (("R", args.rs, rs), ("rate", args.rates, rates)):
         for x in _list(text):
             try:

@@ -31,6 +31,7 @@ import sys
 import tempfile
 import warnings
 from pathlib import Path
+from types import FunctionType
 
 import numba
 from numba.core import caching
@@ -139,9 +140,9 @@ def kernel_cache_dir() -> Path:
 class KernelCacheLocator(caching._SourceFileBackedLocatorMixin, caching._CacheLocator):
     """numba cache locator for mkf_ros kernels (see the module docstring)."""
 
-    def __init__(self, py_func: object, py_file: str) -> None:
+    def __init__(self, py_func: FunctionType, py_file: str) -> None:
         self._py_file = py_file
-        self._lineno = py_func.__code__.co_firstlineno  # type: ignore[attr-defined]
+        self._lineno = py_func.__code__.co_firstlineno
         rel = Path(py_file).resolve().parent.relative_to(_PACKAGE_DIR)
         self._cache_path = str(kernel_cache_dir() / rel)
 
@@ -152,7 +153,7 @@ class KernelCacheLocator(caching._SourceFileBackedLocatorMixin, caching._CacheLo
         return KERNEL_HASH
 
     @classmethod
-    def from_function(cls, py_func: object, py_file: str) -> KernelCacheLocator | None:
+    def from_function(cls, py_func: FunctionType, py_file: str) -> KernelCacheLocator | None:
         if Path(py_file).resolve() not in _KERNEL_FILES:
             return None  # not hashed (not ours, or not using jit): numba's usual locators
 

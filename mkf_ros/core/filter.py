@@ -1519,9 +1519,9 @@ def _vec(v: object, name: str) -> np.ndarray:
     # a fresh C-contiguous, writable float64 array: anything else would make numba compile a
     # new specialisation of the kernels in the middle of a stream
     try:
-        a = np.array(v, dtype=np.float64, copy=True).reshape(-1)
+        a = np.array(v, dtype=np.float64, copy=True)
     except (TypeError, ValueError):
         raise ValueError(f"{name} must be 3 numbers or None, got {v!r}") from None
-    if a.shape != (3,):
-        raise ValueError(f"{name} must have 3 components, got shape {np.shape(v)}")
-    return a
+    if a.size != 3:
+        raise ValueError(f"{name} must have 3 components, got shape {a.shape}")
+    return a.reshape(-1)

@@ -257,10 +257,10 @@ def _joseph_projected(P: np.ndarray, nx: int, dx: np.ndarray, work: np.ndarray, 
     if _needs_joseph(P, nx, work):  # K = Π K₀, then the Joseph form as a product
         for g in range(ng):
             k = nx + 3 * g
-            for c in range(3):
-                ku = u[0] * work[k, c] + u[1] * work[k + 1, c] + u[2] * work[k + 2, c]
+            for col in range(3):
+                ku = u[0] * work[k, col] + u[1] * work[k + 1, col] + u[2] * work[k + 2, col]
                 for i in range(3):
-                    work[k + i, c] -= u[i] * ku
+                    work[k + i, col] -= u[i] * ku
         for i in range(nx):
             dx[i] += work[nx + i, 0] * r[0] + work[nx + i, 1] * r[1] + work[nx + i, 2] * r[2]
         _joseph(P, nx, work, H_VECTOR, vb)

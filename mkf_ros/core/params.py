@@ -69,34 +69,34 @@ class Param:
                     value = float(value) if self.type is float else int(value)
                 except (TypeError, ValueError):
                     raise ValueError(f"{n} must be a number, got {value!r}") from None
-            v = self.type(value)
-            if not math.isfinite(v):
+            num = self.type(value)
+            if not math.isfinite(num):
                 raise ValueError(f"{n} must be finite, got {value!r}")
-            if self.range and not (self.range[0] <= v <= self.range[1]):
+            if self.range and not (self.range[0] <= num <= self.range[1]):
                 raise ValueError(
                     f"{n} must be in [{_fmt(self.range[0])}, {_fmt(self.range[1])}]"
                     f"{' ' + self.unit if self.unit else ''}, got {value!r}"
                 )
-            return v
+            return num
         if self.type is list:
             # a string is iterable, but "123" is not [1, 2, 3]; nor is True a number
             if isinstance(value, (str, bytes)) or any(
                     isinstance(x, (bool, np.bool_, str, bytes)) for x in _iter(value)):
                 raise ValueError(f"{n} must be a list of numbers, got {value!r}")
             try:
-                v = [float(x) for x in value]
+                vals = [float(x) for x in value]
             except (TypeError, ValueError):
                 raise ValueError(f"{n} must be a list of numbers, got {value!r}") from None
-            if self.length is not None and len(v) != self.length:
-                raise ValueError(f"{n} must have {self.length} elements, got {len(v)}")
-            if not all(math.isfinite(x) for x in v):
+            if self.length is not None and len(vals) != self.length:
+                raise ValueError(f"{n} must have {self.length} elements, got {len(vals)}")
+            if not all(math.isfinite(x) for x in vals):
                 raise ValueError(f"{n} must contain finite numbers, got {value!r}")
-            if self.range and not all(self.range[0] <= x <= self.range[1] for x in v):
+            if self.range and not all(self.range[0] <= x <= self.range[1] for x in vals):
                 raise ValueError(
                     f"{n} elements must be in [{_fmt(self.range[0])}, {_fmt(self.range[1])}], "
                     f"got {value!r}"
                 )
-            return v
+            return vals
         raise TypeError(f"unsupported parameter type {self.type}")  # pragma: no cover
 
 

@@ -50,9 +50,11 @@ from rclpy.exceptions import (
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
+from rclpy.publisher import Publisher
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.qos_overriding_options import QoSOverridingOptions
 from rclpy.serialization import deserialize_message
+from rclpy.timer import Timer
 from rclpy.utilities import remove_ros_args
 from sensor_msgs.msg import Imu, MagneticField
 from std_msgs.msg import Header
@@ -158,14 +160,15 @@ class EstimatorNode(Node):
         self._diag = DiagnosticsTracker(f"{self.get_name()}: attitude estimator")
         self._srv_reset = self.create_service(Trigger, "~/reset", self._on_reset)
         self._steady = Clock(clock_type=ClockType.STEADY_TIME)
-        self._timer = None
+        self._timer: Timer | None = None
         # a ROS-time jump back (bag loop with /clock) or a switch to/from sim time resets
         self._jump_handle = self.get_clock().create_jump_callback(
             JumpThreshold(min_forward=None, min_backward=Duration(nanoseconds=-1),
                           on_clock_change=True),
             post_callback=self._on_time_jump)
-        self._tf = None
-        self._rpy_pub = self._bias_pub = None
+        self._tf: Any = None  # a tf2_ros.TransformBroadcaster once publish_tf is on
+        self._rpy_pub: Publisher | None = None
+        self._bias_pub: Publisher | None = None
         self._apply_node_side_effects()
 
         for name, hint in unknown_overrides(self).items():
@@ -330,11 +333,12 @@ class EstimatorNode(Node):
     def _extras(self, header: Header, out: Any, p: dict[str, Any]) -> None:
         """TF and debug topics (message objects; only when enabled)."""
         if self._tf is not None and p["publish_tf"]:
-            self._send_tf(header, out.quat_wxyz, p)
-        if self._rpy_pub is not None and p["publish_debug_topics"]:
-            self._send_debug(header, out)
+            self._send_tf(self._tf, header, out.quat_wxyz, p)
+        rpy_pub, bias_pub = self._rpy_pub, self._bias_pub  # created together
+        if rpy_pub is not None and bias_pub is not None and p["publish_debug_topics"]:
+            self._send_debug(rpy_pub, bias_pub, header, out)
 
-    def _send_tf(self, header: Header, q: Any, p: dict[str, Any]) -> None:
+    def _send_tf(self, tf: Any, header: Header, q: Any, p: dict[str, Any]) -> None:
         child = header.frame_id
         if not child:
             self._warn_once("tf-frame", "publish_tf: the IMU messages have no frame_id; "
@@ -344,15 +348,16 @@ class EstimatorNode(Node):
             t = convert.transform(header.stamp, child, p["fixed_frame"], qconj_np(q))
         else:
             t = convert.transform(header.stamp, p["fixed_frame"], child, q)
-        self._tf.sendTransform(t)
+        tf.sendTransform(t)
 
-    def _send_debug(self, header: Header, out: Any) -> None:
+    def _send_debug(self, rpy_pub: Publisher, bias_pub: Publisher, header: Header,
+                    out: Any) -> None:
         r = Vector3Stamped(header=header)
         r.vector.x, r.vector.y, r.vector.z = convert.rpy(out.quat_wxyz)
-        self._rpy_pub.publish(r)
+        rpy_pub.publish(r)
         b = Vector3Stamped(header=header)
         convert.set_vec(b.vector, out.bias)
-        self._bias_pub.publish(b)
+        bias_pub.publish(b)
 
     def _on_reset(self, request: Trigger.Request, response: Trigger.Response
                   ) -> Trigger.Response:

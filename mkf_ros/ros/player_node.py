@@ -263,7 +263,8 @@ class PlayerNode(Node):
         self._t_wait = time.monotonic()
         self._it: Iterator[tuple[str, int, bytes]] = iter(())
         self._next: tuple[str, int, bytes] | None = None
-        self._t0_wall = self._t0_bag = 0
+        self._t0_wall = 0.0  # monotonic s
+        self._t0_bag = 0  # bag ns
         self._last_clock = -1.0
         self._done_at = 0.0
         self._steady = Clock(clock_type=ClockType.STEADY_TIME)

@@ -184,7 +184,7 @@ def _slow_rates(rng: np.random.Generator, t: np.ndarray, scale: float = 1.0) -> 
 def _bursts(rng: np.random.Generator, duration: float, start: float, every: float,
             length: tuple[float, float]) -> list[tuple[float, float]]:
     """Non-overlapping intervals starting after ``start``, about one per ``every`` seconds."""
-    out = []
+    out: list[tuple[float, float]] = []
     t0 = start
     while True:
         t0 += rng.uniform(0.5, 1.5) * every

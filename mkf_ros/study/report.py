@@ -14,7 +14,7 @@ import shutil
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeGuard
 
 import numpy as np
 
@@ -349,9 +349,14 @@ def compare_paired(parts: runner.Parts, n_s: int, a: Cell,
     return paired_difference(xa["err"], xb["err"], xa["status"] == OK, xb["status"] == OK)
 
 
-def _finite(*rows: Row | None) -> bool:
-    """All rows exist and have a mean (a cell where no run converged has none)."""
-    return all(r is not None and np.isfinite(r.mu) for r in rows)
+def _finite(r: Row | None) -> TypeGuard[Row]:
+    """The row exists and has a mean (a cell where no run converged has none)."""
+    return r is not None and bool(np.isfinite(r.mu))
+
+
+def _all_finite(rows: Sequence[Row | None]) -> TypeGuard[Sequence[Row]]:
+    """:func:`_finite` for every row."""
+    return all(_finite(r) for r in rows)
 
 
 def _separated(a: Row, b: Row) -> int:
@@ -390,7 +395,7 @@ def q_charts(t: Table, parts: runner.Parts, n_s: int) -> Verdict | None:
     rel_sig: list[float] = []
     for f, s, u, r, rate in _paper_groups(cfg.UPDATES):
         rows = [t.get(f, c, u, r, rate, s) for c in cfg.CHARTS]
-        if not _finite(*rows):
+        if not _all_finite(rows):
             continue
         groups += 1
         mus = np.array([x.mu for x in rows])
@@ -439,7 +444,7 @@ def q_filters(t: Table, speed: dict | None) -> Verdict | None:
                     if rate < MIN_RATE:
                         continue
                     a, b = t.get("mekf", c, u, r, rate), t.get("mukf", c, u, r, rate, "published")
-                    if not _finite(a, b):
+                    if not (_finite(a) and _finite(b)):
                         continue
                     n += 1
                     s = _separated(a, b)
@@ -454,17 +459,18 @@ def q_filters(t: Table, speed: dict | None) -> Verdict | None:
           f"{mukf_better}, no difference in {n - mekf_better - mukf_better}."]
     hi = [t.get("mukf", "rp", "cu", 1e-2, rate, "published") for rate in (100.0, 500.0, 1000.0)]
     me = [t.get("mekf", "rp", "cu", 1e-2, rate) for rate in (100.0, 500.0, 1000.0)]
-    if _finite(*hi, *me):
+    if _all_finite(hi) and _all_finite(me):
         ev.append("MUKF plateau at R = 1e-2 (RP, CU, 100/500/1000 Hz): "
                   + "/".join(f"{x.mu:.1f}" for x in hi) + "° vs MEKF "
                   + "/".join(f"{x.mu:.2f}" for x in me) + "° (paper: ≈19° vs 3.5/1.5/1.1°).")
     if speed:
         ev.append(f"Speed on this machine: MEKF/MUKF = {speed['mekf_mukf_ratio']:.2f}× "
                   "(paper: about 3×).")
-    cons = [(r, rate, t.get("mukf", "rp", "cu", r, rate, "consistent"),
-             t.get("mukf", "rp", "cu", r, rate, "published"), t.get("mekf", "rp", "cu", r, rate))
-            for r in cfg.RS for rate in cfg.RATES_HZ if rate >= MIN_RATE]
-    cons = [x for x in cons if _finite(*x[2:])]
+    cells = [(r, rate, t.get("mukf", "rp", "cu", r, rate, "consistent"),
+              t.get("mukf", "rp", "cu", r, rate, "published"), t.get("mekf", "rp", "cu", r, rate))
+             for r in cfg.RS for rate in cfg.RATES_HZ if rate >= MIN_RATE]
+    cons = [(r, rate, c, p, m) for r, rate, c, p, m in cells
+            if _finite(c) and _finite(p) and _finite(m)]
     if cons:
         better = sum(_separated(c, p) == -1 for _, _, c, p, _ in cons)
         vs_mekf = sum(_separated(m, c) == -1 for _, _, c, _, m in cons)
@@ -481,7 +487,7 @@ def q_update(t: Table, parts: runner.Parts, n_s: int) -> Verdict | None:
     rel_sig: list[float] = []
     for f, s, c, r, rate in _paper_groups(cfg.CHARTS):
         a, b = t.get(f, c, "cu", r, rate, s), t.get(f, c, "reset", r, rate, s)
-        if not _finite(a, b):
+        if not (_finite(a) and _finite(b)):
             continue
         n += 1
         sep += _separated(a, b) != 0
@@ -573,7 +579,7 @@ def sampling_section(t: Table) -> list[str]:
         if c.sampling != "variance":
             continue
         s = t.get(c.filter, c.chart, c.update, c.r, c.rate_hz, c.mukf_scaling, "sigma")
-        if _finite(r, s):
+        if _finite(r) and _finite(s):
             pairs.append((s, r))
     if not pairs:
         return []
@@ -665,8 +671,9 @@ def summary_markdown(out: Path, figs: dict[str, Path | None], fig_prefix: str = 
                and r.cell.mukf_scaling in (cfg.NO_SCALING, "published")]
         if two:
             nc = sum(r.non_converged for r in two) / sum(r.n_s for r in two)
+            ratio = np.median([r.mu / r.pub for r in two if r.pub is not None])
             a(f"2 Hz (outside the target): {sum(r.agrees for r in two)} of {len(two)} agree; "
-              f"median ours/paper {np.median([r.mu / r.pub for r in two]):.2f}; "
+              f"median ours/paper {ratio:.2f}; "
               f"{100 * nc:.1f}% of the runs never reached 1° within the cap (excluded from μ, "
               f"counted in `non_converged`, included in `mu_all_deg`). The paper does not "
               f"describe this regime (§7.6).\n")
@@ -688,8 +695,9 @@ def summary_markdown(out: Path, figs: dict[str, Path | None], fig_prefix: str = 
     for key, title in (("fig5", "Fig. 5 — charts compared"), ("fig6", "Fig. 6 — MEKF vs MUKF"),
                        ("fig7", "Fig. 7 — chart update vs reset"),
                        ("fig4", "Fig. 4 analogue — speed")):
-        if figs.get(key) is not None:
-            a(f"![{title}]({fig_prefix}/{figs[key].name})\n")
+        fig = figs.get(key)
+        if fig is not None:
+            a(f"![{title}]({fig_prefix}/{fig.name})\n")
     # MEKF vs MUKF table (RP, CU)
     rp = [(r, rate) for r in cfg.RS for rate in cfg.RATES_HZ
           if t.get("mekf", "rp", "cu", r, rate) or t.get("mukf", "rp", "cu", r, rate)]
@@ -705,16 +713,16 @@ def summary_markdown(out: Path, figs: dict[str, Path | None], fig_prefix: str = 
             a(f"| {r:.0e} | {rate:g} | {_fmt_row(m)} | {m.pub if m else '–'} | {_fmt_row(p)} | "
               f"{p.pub if p else '–'} | {_fmt_row(c)} |")
         a("")
-    cons = [(r, rate, t.get("mukf", "rp", "cu", r, rate, "published"),
-             t.get("mukf", "rp", "cu", r, rate, "consistent"))
-            for r in cfg.RS for rate in cfg.RATES_HZ]
-    cons = [x for x in cons if _finite(x[2], x[3])]
+    cells = [(r, rate, t.get("mukf", "rp", "cu", r, rate, "published"),
+              t.get("mukf", "rp", "cu", r, rate, "consistent"))
+             for r in cfg.RS for rate in cfg.RATES_HZ]
+    cons = [(r, rate, p, c) for r, rate, p, c in cells if _finite(p) and _finite(c)]
     if cons:
         a("## MUKF: consistent Q_ω·Δt scaling vs the published Q_ω·Δt² (§8 item 3)\n")
         allc = [(p, c) for p in t.rows.values() for c in [t.get(
             "mukf", p.cell.chart, p.cell.update, p.cell.r, p.cell.rate_hz, "consistent",
             p.cell.sampling)] if p.cell.filter == "mukf" and p.cell.mukf_scaling == "published"
-            and _finite(p, c) and p.cell.rate_hz >= MIN_RATE]
+            and _finite(p) and _finite(c) and p.cell.rate_hz >= MIN_RATE]
         if allc:
             ratios = np.array([c.mu / p.mu for p, c in allc])
             better = sum(_separated(c, p) == -1 for p, c in allc)

@@ -140,7 +140,8 @@ def _sigint_noted() -> Iterator[list[int]]:
 
 def _save_npz(path: Path, **arrays: np.ndarray) -> None:
     tmp = path.with_name(f".{path.stem}.{os.getpid()}.tmp.npz")
-    np.savez(tmp, **arrays)
+    # numpy's stub types **kwds as if a key could be its `allow_pickle: bool` keyword
+    np.savez(tmp, **arrays)  # type: ignore[arg-type]
     os.replace(tmp, path)
 
 
