@@ -24,7 +24,7 @@ import numpy as np
 
 import mkf_ros
 from mkf_ros.core.params import ALGORITHMS
-from mkf_ros.metrics import orientation_errors
+from mkf_ros.evaluation.metrics import orientation_errors
 from mkf_ros.sim import simulate
 from mkf_ros.sim.motion import pitch_deg
 

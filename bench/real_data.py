@@ -5,13 +5,14 @@ Madgwick and Mahony, all on the same samples, in one run.
 
 e.g. ``./run bench real_data ../shared/eval-data/broad ../shared/eval-data/repoimu/TStick
 ../shared/eval-data/ese650``. Each folder's format is detected from its content
-(:mod:`mkf_ros.datasets`: BROAD ``NN_*.mat`` + ``trials.json``, RepoIMU T-stick CSV, ESE650 raw
-``.mat``). Prints per recording and per dataset the total / heading / inclination RMSE in degrees
-(BROAD metric, :mod:`mkf_ros.scoring`; BROAD on its ``movement`` samples, no alignment; RepoIMU
-after one constant global alignment applied identically to every algorithm; ESE650 inclination
+(:mod:`mkf_ros.evaluation.datasets`: BROAD ``NN_*.mat`` + ``trials.json``, RepoIMU T-stick CSV,
+ESE650 raw ``.mat``). Prints per recording and per dataset the total / heading / inclination RMSE
+in degrees (BROAD metric, :mod:`mkf_ros.evaluation.scoring`; BROAD on its ``movement`` samples, no
+alignment; RepoIMU after one constant global alignment applied identically to every algorithm;
+ESE650 inclination
 only), the 3σ tilt coverage of every column that publishes a covariance (ours:
-:func:`mkf_ros.scoring.tilt_coverage`, k = 3; peers publish none: "—"), for BROAD the mean
-RMSE per class of each category of ``trials.json`` (motion, speed, breaks, disturbance) and
+:func:`mkf_ros.evaluation.scoring.tilt_coverage`, k = 3; peers publish none: "—"), for BROAD the
+mean RMSE per class of each category of ``trials.json`` (motion, speed, breaks, disturbance) and
 VQF's per-trial figures next to the dataset README's, then a summary table and the targets
 (:data:`TARGETS_DOC`) with PASS/FAIL per line and a final count. The exit code is 0 whatever the
 targets say (it is a report). Our filters run with the defaults of
@@ -64,8 +65,8 @@ import numpy as np
 
 from mkf_ros.core.params import BY_NAME
 from mkf_ros.core.quaternion import qmul_np
-from mkf_ros.datasets import ALL_ERRORS, Recording, read_dataset
-from mkf_ros.scoring import dataset_mean, score_recording, tilt_coverage_counts
+from mkf_ros.evaluation.datasets import ALL_ERRORS, Recording, read_dataset
+from mkf_ros.evaluation.scoring import dataset_mean, score_recording, tilt_coverage_counts
 
 #: NWU → ENU: rotation by +90° about the up axis, prepended to a sensor → NWU quaternion.
 Q_ENU_FROM_NWU = np.array([math.cos(math.pi / 4), 0.0, 0.0, math.sin(math.pi / 4)])

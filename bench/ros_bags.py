@@ -10,8 +10,8 @@ never used by the tests). No ground truth: this checks behaviour, not accuracy.
 
 How: every ``*.bag`` in BAG_DIR goes through :func:`mkf_ros.bags.process.process_bag` (what
 ``mkf process`` runs: ROS 1 → CDR reading, the node's input conversions, the
-:class:`~mkf_ros.stream.StreamAdapter` time, gap and magnetometer rules) into a throw-away output
-bag, with the default parameters (``--set`` overrides them; ``estimate_gyro_bias`` is on by
+:class:`~mkf_ros.stream.adapter.StreamAdapter` time, gap and magnetometer rules) into a throw-away
+output bag, with the default parameters (``--set`` overrides them; ``estimate_gyro_bias`` is on by
 default), for ``algorithm`` mekf and mukf, without the magnetometer (6D) and, where the bag has a
 ``sensor_msgs/MagneticField`` topic, with ``use_mag`` true (9D). The IMU topic is the bag's one
 ``sensor_msgs/Imu`` topic. The same decoded messages also go once more through
@@ -25,8 +25,8 @@ One table row per (bag, algorithm, 6D/9D):
 * ``in`` / ``out``: IMU (+ magnetometer) messages in, orientations published;
 * ``max step``: the largest angle between consecutive published orientations (°);
 * ``jumps``: steps the gyro does not explain by more than 5°: ``angle − |ω|·Δt > 5°``
-  (:func:`mkf_ros.metrics.unexplained_steps`; ω the input gyro of the later message, Δt the
-  stamp difference), with the largest unexplained part and its time (s since the bag start).
+  (:func:`mkf_ros.evaluation.metrics.unexplained_steps`; ω the input gyro of the later message, Δt
+  the stamp difference), with the largest unexplained part and its time (s since the bag start).
   Excused, and shown apart as ``+N ok``: steps after a gap longer than ``max_dt`` (the filter
   re-aligns there by design) and the first step with the heading fixed by the magnetometer when
   the yaw variance published just before it was ≥ 1 rad² (the filter had said "heading unknown");
@@ -38,8 +38,9 @@ One table row per (bag, algorithm, 6D/9D):
   and the smallest yaw variance among them;
 * ``tilt vs own``: where the IMU topic carries the device's own orientation (a unit quaternion
   that changes: the robot_localization bags, the AR.Drone's), the RMS and max inclination
-  difference in degrees between ours and it (BROAD, :func:`mkf_ros.metrics.orientation_errors`;
-  independent of heading). A sanity check, not ground truth.
+  difference in degrees between ours and it (BROAD,
+  :func:`mkf_ros.evaluation.metrics.orientation_errors`; independent of heading). A sanity check,
+  not ground truth.
 
 Then PASS/FAIL per run against: (1) no jump > 5°; (2) the yaw variance never decreases during a
 jump; (3) 9D: no output with a yaw variance < 1 rad² before the magnetometer fixed the heading;
@@ -78,9 +79,9 @@ from typing import Any
 
 import numpy as np
 
-from mkf_ros import rep145
 from mkf_ros.bags import BagError, BagReader, cdr
-from mkf_ros.metrics import orientation_errors, step_angles, unexplained_steps
+from mkf_ros.evaluation.metrics import orientation_errors, step_angles, unexplained_steps
+from mkf_ros.stream import rep145
 
 ALGORITHMS = ("mekf", "mukf")
 JUMP_DEG = 5.0  #: a step the gyro does not explain by more than this is a jump
@@ -176,13 +177,13 @@ def read_bag(path: Path) -> BagData:
 
 # ------------------------------------------------------------------------------- running
 class RecordingAdapter:
-    """A :class:`~mkf_ros.stream.StreamAdapter` for :func:`~mkf_ros.bags.process.run_stream`
+    """A :class:`~mkf_ros.stream.adapter.StreamAdapter` for :func:`~mkf_ros.bags.process.run_stream`
     that processes one message at a time (``chunk=1``, same results bit for bit) and notes
     after each IMU message the filter's ``rest_updates`` counter; keeps the full
-    :class:`~mkf_ros.stream.StreamOutputs` (``heading_initialized``, bias, ...)."""
+    :class:`~mkf_ros.stream.adapter.StreamOutputs` (``heading_initialized``, bias, ...)."""
 
     def __init__(self, params: dict[str, Any]) -> None:
-        from mkf_ros.stream import StreamAdapter
+        from mkf_ros.stream.adapter import StreamAdapter
 
         self.adapter = StreamAdapter(params)
         self.params = self.adapter.params
@@ -395,7 +396,7 @@ def parse_set(items: list[str]) -> dict[str, Any]:
             raise ValueError(f"--set expects NAME=VALUE, got {it!r}")
         out[name.strip()] = val.strip()
     if out:
-        from mkf_ros.stream import StreamAdapter
+        from mkf_ros.stream.adapter import StreamAdapter
 
         StreamAdapter(out)  # validate (ValueError naming the parameter)
         out = {k: StreamAdapter(out).params[k] for k in out}

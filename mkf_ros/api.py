@@ -6,17 +6,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from mkf_ros.core.filter import (
-    COUNTER_NAMES,
-    F_SIZE,
-    K_SIZE,
-    NX_MAX,
-    S_QC,
-    S_SIZE,
-    build_cfg,
-    run_batch,
-)
-from mkf_ros.core.frames import FROM_ENU
+from mkf_ros.core.filter import AttitudeFilter
 from mkf_ros.core.params import FilterParams
 
 
@@ -126,23 +116,11 @@ def estimate(
         m = np.full((n, 3), np.nan)
     p = FilterParams(params)
     dts = _time_steps(n, dt, timestamps)
-    cfg = build_cfg(p)
-    st = np.zeros(S_SIZE)
-    st[S_QC] = 1.0
-    P = np.zeros((NX_MAX, NX_MAX))
-    fl = np.zeros(F_SIZE, dtype=np.int64)
-    cnt = np.zeros(K_SIZE, dtype=np.int64)
-    out_q = np.empty((n, 4))
-    out_cov = np.empty((n, 3, 3))
-    out_w = np.empty((n, 3))
-    out_b = np.empty((n, 3))
-    out_bvar = np.empty((n, 3))
-    out_init = np.empty(n, dtype=np.bool_)
-    run_batch(cfg, st, P, fl, cnt, dts, g, a, m, FROM_ENU[p.world_frame].copy(), out_q, out_cov,
-              out_w, out_b, out_bvar, out_init)
+    f = AttitudeFilter(p)
+    out = f.run(dts, g, a, m)
     return EstimateResult(
-        quat=out_q, cov=out_cov, omega=out_w, bias=out_b, bias_std=np.sqrt(out_bvar),
-        initialized=out_init, counters=dict(zip(COUNTER_NAMES, map(int, cnt), strict=True)),
+        quat=out.quat, cov=out.cov, omega=out.omega, bias=out.bias, bias_std=np.sqrt(out.bias_var),
+        initialized=out.initialized, counters=f.counter_dict(),
         params=p,
     )
 
@@ -165,8 +143,7 @@ def warmup(parts: tuple[str, ...] | list[str] = WARMUP_PARTS) -> None:
     :data:`WARMUP_PARTS`), so that the first real sample is not delayed. Loading takes well under
     a second; compiling (no cache of this version, e.g. an install without the install-time
     compile of :mod:`mkf_ros.core._jit`) takes :data:`FIRST_COMPILE_TIME` for all parts."""
-    from mkf_ros.core.filter import AttitudeFilter
-    from mkf_ros.stream import StreamAdapter
+    from mkf_ros.stream.adapter import StreamAdapter
 
     unknown = [p for p in parts if p not in WARMUP_PARTS]
     if unknown:

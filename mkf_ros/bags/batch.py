@@ -148,7 +148,7 @@ def plot_result(r: Any, bag: str | Path, path: str | Path) -> Path:
     """The accuracy plot of a scored :class:`~mkf_ros.bags.process.ProcessResult` (errors over
     time, intervals of a synthetic bag shaded), written atomically to ``path``."""
     from mkf_ros.bags.synth import read_description
-    from mkf_ros.plots import accuracy_figure
+    from mkf_ros.evaluation.plots import accuracy_figure
 
     s, p = r.scores, r.params
     desc = read_description(bag) or {}

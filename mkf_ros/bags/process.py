@@ -1,11 +1,11 @@
 """Offline estimation over a bag, without DDS: what ``mkf process`` runs.
 
 The IMU and magnetometer messages are fed, in the order they were recorded, to the same
-:class:`mkf_ros.stream.StreamAdapter` the ``estimator`` node wraps, with the node's conversions:
-a field whose covariance[0] is -1 is "not reported"; the output ``imu/data`` message keeps the
-input's header, carries the filter's orientation and covariance, and fills the angular velocity
-and linear acceleration like the node (``mkf_ros.ros.convert.fill_imu``). So a bag processed here
-and the same bag replayed through the node give the same messages.
+:class:`mkf_ros.stream.adapter.StreamAdapter` the ``estimator`` node wraps, with the node's
+conversions: a field whose covariance[0] is -1 is "not reported"; the output ``imu/data`` message
+keeps the input's header, carries the filter's orientation and covariance, and fills the angular
+velocity and linear acceleration like the node (``mkf_ros.ros.convert.fill_imu``). So a bag
+processed here and the same bag replayed through the node give the same messages.
 
 Bulk work (reading, decoding, encoding, writing) is vectorised (see :mod:`mkf_ros.bags.cdr`);
 the adapter runs the whole recording in compiled code (:meth:`StreamAdapter.process`, in chunks
@@ -23,10 +23,10 @@ from typing import Any
 
 import numpy as np
 
-from mkf_ros import rep145
 from mkf_ros.bags import cdr
 from mkf_ros.bags.reader import BagError, BagReader, normalize_topic
 from mkf_ros.bags.writer import BagWriter
+from mkf_ros.stream import rep145
 
 
 @dataclass
@@ -176,7 +176,7 @@ def score(q_est: np.ndarray, q_true_enu: np.ndarray, t: np.ndarray, world_frame:
     its heading matches the truth at the first sample (a constant alignment)."""
     from mkf_ros.core.frames import FROM_ENU
     from mkf_ros.core.quaternion import qconj_np, qmul_np
-    from mkf_ros.metrics import orientation_errors, rmse_deg
+    from mkf_ros.evaluation.metrics import orientation_errors, rmse_deg
 
     q_true = qmul_np(FROM_ENU[world_frame], q_true_enu)
     q_est = np.asarray(q_est, float)
@@ -233,7 +233,12 @@ def process_bag(bag: str | Path, out: str | Path, params: Mapping[str, Any] | No
     one message per gyro message.
     """
     from mkf_ros.bags.synth import read_description
-    from mkf_ros.stream import REJECTIONS, StreamAdapter, carries_orientation, orientation_note
+    from mkf_ros.stream.adapter import (
+        REJECTIONS,
+        StreamAdapter,
+        carries_orientation,
+        orientation_note,
+    )
 
     bag, out = Path(bag), Path(out)
     notes: list[str] = []

@@ -261,8 +261,8 @@ class _Demo:
                 np.array([r[3][1] for r in rows]), np.array([r[1] - r[3][0] for r in rows]))
 
     def _monitor(self, ex: Any, est: _Child, ply: _Child, t_start: float) -> int:
-        from mkf_ros.metrics import orientation_errors
-        from mkf_ros.plots import euler_deg
+        from mkf_ros.evaluation.metrics import orientation_errors
+        from mkf_ros.evaluation.plots import euler_deg
 
         a = self.a
         limit = t_start + STARTUP_TIMEOUT + a.duration * 1.5 + 10.0
@@ -305,8 +305,8 @@ class _Demo:
         return 1
 
     def _final(self, wall: float) -> int:
-        from mkf_ros.metrics import orientation_errors, rmse_deg
-        from mkf_ros.plots import accuracy_figure
+        from mkf_ros.evaluation.metrics import orientation_errors, rmse_deg
+        from mkf_ros.evaluation.plots import accuracy_figure
         from mkf_ros.sim import simulate
 
         a = self.a

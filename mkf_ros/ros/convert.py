@@ -13,9 +13,9 @@ from builtin_interfaces.msg import Time
 from geometry_msgs.msg import Quaternion, TransformStamped, Vector3
 from sensor_msgs.msg import Imu, MagneticField
 
-from mkf_ros import rep145
-from mkf_ros.metrics import roll_pitch_yaw
-from mkf_ros.stream import StreamOutput
+from mkf_ros.evaluation.metrics import roll_pitch_yaw
+from mkf_ros.stream import rep145
+from mkf_ros.stream.adapter import StreamOutput
 
 
 def stamp_to_sec(stamp: Time) -> float:
@@ -66,7 +66,7 @@ def fill_imu(out: Imu, inp: Imu, est: StreamOutput, angular_velocity_stddev: flo
              linear_acceleration_stddev: float) -> Imu:
     """Write the estimate into ``out`` (reused between calls): header of the input,
     orientation and its covariance from the filter, angular velocity per the chosen source,
-    linear acceleration passed through; covariances per :mod:`mkf_ros.rep145`."""
+    linear acceleration passed through; covariances per :mod:`mkf_ros.stream.rep145`."""
     out.header = inp.header
     set_quat(out.orientation, est.quat_wxyz)
     out.orientation_covariance = np.ascontiguousarray(est.orientation_cov, dtype=float).reshape(9)
@@ -83,7 +83,7 @@ def fill_imu(out: Imu, inp: Imu, est: StreamOutput, angular_velocity_stddev: flo
 
 def rpy(q_wxyz: np.ndarray) -> tuple[float, float, float]:
     """Roll, pitch, yaw (rad; fixed axes x-y-z, as tf2's getRPY) of ``[w, x, y, z]``
-    (:func:`mkf_ros.metrics.roll_pitch_yaw`)."""
+    (:func:`mkf_ros.evaluation.metrics.roll_pitch_yaw`)."""
     r, p, y = roll_pitch_yaw(q_wxyz).tolist()
     return r, p, y
 

@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
 
-from mkf_ros.stream import COUNTER_REASONS, GATED, REJECTIONS
+from mkf_ros.stream.adapter import COUNTER_REASONS, GATED, REJECTIONS
 
 OK, WARN, ERROR = DiagnosticStatus.OK, DiagnosticStatus.WARN, DiagnosticStatus.ERROR
 #: A plausible Earth field magnitude range (T); outside it the unit is probably not tesla.

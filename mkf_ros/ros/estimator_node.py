@@ -1,7 +1,7 @@
 """The ``estimator`` node: MEKF/MUKF attitude from ``imu/data_raw`` (+ ``imu/mag``) to ``imu/data``.
 
 A drop-in replacement for imu_filter_madgwick (same topics, same names for the parameters that
-mean the same thing) and a thin rclpy wrapper around :class:`mkf_ros.stream.StreamAdapter`,
+mean the same thing) and a thin rclpy wrapper around :class:`mkf_ros.stream.adapter.StreamAdapter`,
 which holds every rule about time and input.
 
 Topics (relative names: remap ``imu:=...`` to move them together, REP-145):
@@ -65,7 +65,7 @@ from mkf_ros.core.quaternion import qconj_np
 from mkf_ros.ros import convert, rawmsg
 from mkf_ros.ros.diagnostics import DiagnosticsTracker, Snapshot
 from mkf_ros.ros.parameters import UnknownParameter, declare_all, to_double, unknown_overrides
-from mkf_ros.stream import (
+from mkf_ros.stream.adapter import (
     INPUT_CHECK_MESSAGES,
     StreamAdapter,
     carries_orientation,

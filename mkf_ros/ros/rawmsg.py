@@ -19,9 +19,9 @@ import struct
 
 import numpy as np
 
-from mkf_ros import rep145
 from mkf_ros.bags import cdr
-from mkf_ros.stream import StreamOutput, covariance_out
+from mkf_ros.stream import rep145
+from mkf_ros.stream.adapter import StreamOutput, covariance_out
 
 _HEAD = struct.Struct("<iII")  # header.stamp.sec, header.stamp.nanosec, frame_id length
 _LE = cdr.CDR_LE[:2]

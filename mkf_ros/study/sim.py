@@ -203,6 +203,43 @@ def _step(kind: int, chart: int, cu: bool, pub: bool, qc: np.ndarray, eb: np.nda
 
 
 @jit
+def _filter_noise() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The filters' noise matrices of the study (§7.2): ``Q_ω``, ``Q_b = 0``, ``R_ω``, ``R_v``
+    (these two set per sensor grade by :func:`_set_grade`), ``Q_v``."""
+    Qw = np.zeros((3, 3))
+    Qb = np.zeros((3, 3))
+    Rw = np.zeros((3, 3))
+    Rv = np.zeros((1, 3, 3))
+    Qv = np.zeros((1, 3, 3))
+    for i in range(3):
+        Qw[i, i] = FILTER_QW
+        Qv[0, i, i] = FILTER_QV
+    return Qw, Qb, Rw, Rv, Qv
+
+
+@jit
+def _set_grade(Rw: np.ndarray, Rv: np.ndarray, r: float) -> None:
+    """Sensor grade ``r``: ``R_ω = R_v = r I`` (§7.2)."""
+    for i in range(3):
+        for j in range(3):
+            Rw[i, j] = r if i == j else 0.0
+            Rv[0, i, j] = Rw[i, j]
+
+
+@jit
+def _init_state(kind: int, qc: np.ndarray, eb: np.ndarray, w: np.ndarray,
+                P: np.ndarray) -> None:
+    """§7.1 initialisation: ``q̄ = (1, 0, 0, 0)``, ``ē = 0``, ``ω̄ = 0`` (MUKF:
+    :data:`MUKF_RATE0`), ``P = P0 I₆``."""
+    qc[0], qc[1], qc[2], qc[3] = 1.0, 0.0, 0.0, 0.0
+    eb[:] = 0.0
+    w[:] = MUKF_RATE0 if kind == MUKF else 0.0
+    P[:, :] = 0.0
+    for i in range(6):
+        P[i, i] = P0
+
+
+@jit
 def run_trajectory(
     specs: np.ndarray, rs: np.ndarray, dt: float, q0: np.ndarray, sigma_v: float,
     conv_seed: int, cap: int, q_true: np.ndarray, w_true: np.ndarray, vref: np.ndarray,
@@ -220,14 +257,7 @@ def run_trajectory(
     number of convergence updates, and the status code.
     """
     theta0 = np.deg2rad(THETA_E0_DEG)
-    Qw = np.zeros((3, 3))
-    Qb = np.zeros((3, 3))
-    Rw = np.zeros((3, 3))
-    Rv = np.zeros((1, 3, 3))
-    Qv = np.zeros((1, 3, 3))
-    for i in range(3):
-        Qw[i, i] = FILTER_QW
-        Qv[0, i, i] = FILTER_QV
+    Qw, Qb, Rw, Rv, Qv = _filter_noise()
     use_v = np.ones(1, dtype=np.bool_)
     vm = np.empty((1, 3))
     vr = np.empty((1, 3))
@@ -246,17 +276,8 @@ def run_trajectory(
         for ir in range(rs.shape[0]):
             r = rs[ir]
             sr = np.sqrt(r)
-            for i in range(3):
-                for j in range(3):
-                    Rw[i, j] = r if i == j else 0.0
-                    Rv[0, i, j] = Rw[i, j]
-            # §7.1 initialisation
-            qc[0], qc[1], qc[2], qc[3] = 1.0, 0.0, 0.0, 0.0
-            eb[:] = 0.0
-            w[:] = MUKF_RATE0 if kind == MUKF else 0.0
-            P[:, :] = 0.0
-            for i in range(6):
-                P[i, i] = P0
+            _set_grade(Rw, Rv, r)
+            _init_state(kind, qc, eb, w, P)
             # §7.2 step 2: convergence phase
             np.random.seed(conv_seed)
             status = NON_CONVERGED
@@ -321,28 +342,18 @@ def run_updates(spec: np.ndarray, r: float, dt: float, vref: np.ndarray, vbody: 
     kind, chart = spec[0], spec[1]
     cu, pub = spec[2] != 0, spec[3] != 0
     sr = np.sqrt(r)
-    Qw = np.zeros((3, 3))
-    Qb = np.zeros((3, 3))
-    Rw = np.zeros((3, 3))
-    Rv = np.zeros((1, 3, 3))
-    Qv = np.zeros((1, 3, 3))
-    for i in range(3):
-        Qw[i, i] = FILTER_QW
-        Qv[0, i, i] = FILTER_QV
-        Rw[i, i] = r
-        Rv[0, i, i] = r
+    Qw, Qb, Rw, Rv, Qv = _filter_noise()
+    _set_grade(Rw, Rv, r)
     use_v = np.ones(1, dtype=np.bool_)
     vm = np.empty((1, 3))
     vr = np.empty((1, 3))
     wm = np.empty(3)
-    qc = np.array((1.0, 0.0, 0.0, 0.0))
+    qc = np.empty(4)
     eb = np.zeros(3)
     w = np.zeros(3)
-    w[:] = MUKF_RATE0 if kind == MUKF else 0.0
     b = np.zeros(3)
     P = np.zeros((9, 9))
-    for i in range(6):
-        P[i, i] = P0
+    _init_state(kind, qc, eb, w, P)
     qhat = np.empty(4)
     for n in range(vref.shape[0]):
         for i in range(3):

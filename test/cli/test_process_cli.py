@@ -15,7 +15,7 @@ from mkf_ros.bags.synth import write_bag
 from mkf_ros.cli.main import main
 from mkf_ros.core.frames import FROM_ENU
 from mkf_ros.core.quaternion import qmul_np
-from mkf_ros.metrics import orientation_errors, rmse_deg
+from mkf_ros.evaluation.metrics import orientation_errors, rmse_deg
 from mkf_ros.sim import simulate
 
 IMU = "sensor_msgs/msg/Imu"
@@ -120,7 +120,7 @@ def test_output_is_what_the_node_publishes(tmp_path: Path) -> None:
     from sensor_msgs.msg import Imu, MagneticField
 
     from mkf_ros.ros import convert
-    from mkf_ros.stream import StreamAdapter
+    from mkf_ros.stream.adapter import StreamAdapter
 
     sim = simulate("gyro_bias", duration=4.0, rate=100.0, mag_rate=25.0, seed=4)
     from mkf_ros.bags.synth import sim_streams

@@ -30,7 +30,7 @@ from mkf_ros.core.baselines import (
 from mkf_ros.core.filter import AttitudeFilter
 from mkf_ros.core.params import ALGORITHMS
 from mkf_ros.core.quaternion import angle_between, q_from_rotvec, qmul, rotmat
-from mkf_ros.metrics import orientation_errors
+from mkf_ros.evaluation.metrics import orientation_errors
 from mkf_ros.sim import MAG_FIELD_ENU, simulate
 from mkf_ros.sim.motion import pitch_deg
 

@@ -26,7 +26,7 @@ import pytest
 import mkf_ros
 from mkf_ros.core.frames import align_tilt, align_triad
 from mkf_ros.core.quaternion import qconj_np, qmul_np
-from mkf_ros.metrics import orientation_errors, rmse_deg
+from mkf_ros.evaluation.metrics import orientation_errors, rmse_deg
 from mkf_ros.sim import simulate
 
 SIGMA = 0.01  # R = 1e-4

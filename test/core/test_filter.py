@@ -9,7 +9,7 @@ import pytest
 from mkf_ros.core.filter import AttitudeFilter
 from mkf_ros.core.frames import FROM_ENU
 from mkf_ros.core.quaternion import angle_between, q_from_rotvec, qmul, rotmat
-from mkf_ros.metrics import orientation_errors
+from mkf_ros.evaluation.metrics import orientation_errors
 from mkf_ros.sim import simulate
 
 G = 9.80665

@@ -9,9 +9,10 @@ import numpy as np
 import pytest
 
 import mkf_ros
-from mkf_ros.core.filter import S_ALPHA, AttitudeFilter
+from mkf_ros.core.filter import AttitudeFilter
 from mkf_ros.core.params import ALGORITHMS
 from mkf_ros.core.quaternion import angle_between, rotmat
+from mkf_ros.core.state import S_ALPHA
 from mkf_ros.sim import simulate
 
 G = 9.80665
@@ -172,7 +173,7 @@ def test_step_counts_an_implausible_reading_as_invalid(algorithm: str) -> None:
 
 def test_the_node_and_the_library_share_one_limit() -> None:
     """The stream adapter (the node's rules) counts the same readings as invalid."""
-    from mkf_ros.stream import StreamAdapter
+    from mkf_ros.stream.adapter import StreamAdapter
 
     n = 300
     g, a = SIM.gyr[:n].copy(), SIM.acc[:n].copy()
@@ -201,7 +202,7 @@ def psd_violation(P: np.ndarray) -> float:
 def test_node_never_publishes_nan_with_a_very_precise_rest_detector(algorithm: str) -> None:
     """Issue 14 item 3: these settings made the bias variance negative at the first rest
     update, and its square root NaN in every angular_velocity_covariance."""
-    from mkf_ros.stream import StreamAdapter
+    from mkf_ros.stream.adapter import StreamAdapter
 
     sim = simulate("static", duration=5, rate=100, seed=1)
     s = StreamAdapter(algorithm=algorithm, gyro_noise=1e-6, rate_process_noise=1e9,

@@ -20,7 +20,7 @@ from hypothesis import strategies as st
 import mkf_ros
 from mkf_ros.core.filter import AttitudeFilter
 from mkf_ros.core.params import ALGORITHMS, BY_NAME, WORLD_FRAMES
-from mkf_ros.metrics import orientation_errors
+from mkf_ros.evaluation.metrics import orientation_errors
 from mkf_ros.sim import simulate
 
 PROFILE = os.environ.get("MKF_PROPERTY_PROFILE", "ci")

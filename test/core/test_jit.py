@@ -167,7 +167,7 @@ before = compiled()
 from mkf_ros import estimate
 from mkf_ros.core.filter import AttitudeFilter
 from mkf_ros.sim import simulate
-from mkf_ros.stream import StreamAdapter
+from mkf_ros.stream.adapter import StreamAdapter
 r = simulate("slow_rotation", duration=0.3, rate=100.0, seed=1, mag_rate=50.0)
 for algo in ("mekf", "mukf"):
     for mag in (r.mag, None):
@@ -202,7 +202,7 @@ def test_warmup_leaves_nothing_to_compile_for_the_filters() -> None:
 
 PROBE = """
 import numpy as np
-from mkf_ros.stream import StreamAdapter
+from mkf_ros.stream.adapter import StreamAdapter
 from mkf_ros.core._jit import kernel_cache_dir
 s = StreamAdapter(algorithm="mekf", use_mag=False)
 for k in range(20):

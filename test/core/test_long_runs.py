@@ -10,7 +10,10 @@ import numba
 import numpy as np
 import pytest
 
-from mkf_ros.core.filter import (
+from mkf_ros.core.linalg import cholesky
+from mkf_ros.core.params import FilterParams
+from mkf_ros.core.sensor import sensor_step
+from mkf_ros.core.state import (
     F_SIZE,
     K_SIZE,
     NX_MAX,
@@ -18,10 +21,7 @@ from mkf_ros.core.filter import (
     S_SIZE,
     build_cfg,
     build_noise,
-    sensor_step,
 )
-from mkf_ros.core.linalg import cholesky
-from mkf_ros.core.params import FilterParams
 from mkf_ros.sim import simulate
 
 

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 import mkf_ros
-from mkf_ros.metrics import orientation_errors, rmse_deg
+from mkf_ros.evaluation.metrics import orientation_errors, rmse_deg
 from mkf_ros.sim import simulate
 
 ALGOS = ["mekf", "mukf"]
@@ -295,8 +295,9 @@ def test_an_upset_is_recovered(algorithm: str) -> None:
     """The estimate knocked 60° off (as by a gyro glitch the gate could not tell from motion):
     the gates must not lock the truth out (issue 13: the MUKF stayed 63° off after 30 s at
     rest). Within 10 s at rest the inclination is back within 2°."""
-    from mkf_ros.core.filter import S_QC, AttitudeFilter
+    from mkf_ros.core.filter import AttitudeFilter
     from mkf_ros.core.quaternion import q_from_rotvec, qmul
+    from mkf_ros.core.state import S_QC
 
     sim = simulate("static", duration=20, rate=100, seed=5)
     f = AttitudeFilter(algorithm=algorithm)

@@ -202,8 +202,8 @@ def _stamp(m: Any) -> float:
 
 
 def reference_outputs(adapter: Any, sent: Sequence[Any], kinds: Sequence[str]) -> list[Any]:
-    """Feed ``adapter`` (a fresh :class:`~mkf_ros.stream.StreamAdapter`) the messages the test
-    sent, read field by field from the message objects (what went on the wire), in the node's
+    """Feed ``adapter`` (a fresh :class:`~mkf_ros.stream.adapter.StreamAdapter`) the messages the
+    test sent, read field by field from the message objects (what went on the wire), in the node's
     arrival order ``kinds`` (each topic in its own publishing order); returns the output of
     every IMU message (None where nothing was published)."""
     imus = iter([m for m in sent if isinstance(m, Imu)])

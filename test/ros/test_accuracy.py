@@ -29,9 +29,9 @@ from sensor_msgs.msg import Imu
 
 from mkf_ros.core.frames import FROM_ENU
 from mkf_ros.core.quaternion import qconj_np, qmul_np
-from mkf_ros.metrics import orientation_errors, rmse_deg
+from mkf_ros.evaluation.metrics import orientation_errors, rmse_deg
 from mkf_ros.sim import simulate
-from mkf_ros.stream import StreamAdapter
+from mkf_ros.stream.adapter import StreamAdapter
 
 T0 = 100.0
 pytestmark = pytest.mark.ros

@@ -7,7 +7,7 @@ import pytest
 
 from mkf_ros.core.params import PARAMS
 from mkf_ros.ros.diagnostics import DiagnosticsTracker, Snapshot
-from mkf_ros.stream import COUNTER_REASONS
+from mkf_ros.stream.adapter import COUNTER_REASONS
 
 pytestmark = pytest.mark.ros
 OK, WARN, ERROR = b"\x00", b"\x01", b"\x02"
@@ -77,7 +77,7 @@ def test_exceptions_are_errors() -> None:
 def test_filter_gates_warn_when_they_reject_most_samples() -> None:
     """Magnetometer gate rejections (a magnetic disturbance) warn only when they hit most of
     the period's magnetometer samples."""
-    from mkf_ros.stream import GATED
+    from mkf_ros.stream.adapter import GATED
 
     mag_gates = [k for k, ref in GATED.items() if ref == "mag_received"]
     if not mag_gates:

@@ -17,7 +17,7 @@ from sensor_msgs.msg import Imu
 
 from mkf_ros.core.quaternion import qconj_np
 from mkf_ros.ros.convert import quat_wxyz
-from mkf_ros.stream import INPUT_CHECK_MESSAGES
+from mkf_ros.stream.adapter import INPUT_CHECK_MESSAGES
 
 pytestmark = pytest.mark.ros
 T0 = 100.0
@@ -258,7 +258,7 @@ def test_big_endian_input_takes_the_message_path(harness) -> None:
     from rosharness import record_arrival, recording_messages, reference_outputs
 
     from mkf_ros.sim import simulate
-    from mkf_ros.stream import StreamAdapter
+    from mkf_ros.stream.adapter import StreamAdapter
 
     ts = get_typestore(Stores.ROS2_JAZZY)
 

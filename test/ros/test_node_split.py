@@ -10,7 +10,7 @@ from rosharness import QOS, imu_msg, quat
 from sensor_msgs.msg import Imu
 
 from mkf_ros.ros.convert import quat_wxyz
-from mkf_ros.stream import StreamAdapter
+from mkf_ros.stream.adapter import StreamAdapter
 
 SPLIT = {
     "input_mode": "split",

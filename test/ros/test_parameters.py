@@ -20,7 +20,7 @@ from mkf_ros.core.params import BY_NAME, PARAMS, Param
 from mkf_ros.core.quaternion import angle_between
 from mkf_ros.ros.estimator_node import EstimatorNode, ParameterError
 from mkf_ros.sim import simulate
-from mkf_ros.stream import StreamAdapter
+from mkf_ros.stream.adapter import StreamAdapter
 
 pytestmark = pytest.mark.ros
 T0 = 100.0

@@ -30,7 +30,7 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import Imu
 
 from mkf_ros.cli.main import main as mkf
-from mkf_ros.metrics import orientation_errors, rmse_deg
+from mkf_ros.evaluation.metrics import orientation_errors, rmse_deg
 from mkf_ros.ros.estimator_node import EstimatorNode
 from mkf_ros.ros.player_node import PlayerNode
 

@@ -11,7 +11,7 @@ from rosharness import imu_msg
 from sensor_msgs.msg import Imu, MagneticField
 
 from mkf_ros.ros import convert, rawmsg
-from mkf_ros.stream import StreamAdapter
+from mkf_ros.stream.adapter import StreamAdapter
 
 pytestmark = pytest.mark.ros
 

@@ -10,7 +10,7 @@ import pytest
 from rosharness import imu_msg, mag_msg, quat
 from sensor_msgs.msg import Imu
 
-from mkf_ros.metrics import orientation_errors
+from mkf_ros.evaluation.metrics import orientation_errors
 from mkf_ros.sim import simulate
 
 pytestmark = pytest.mark.ros

@@ -1,6 +1,6 @@
 """Scoring of orientation estimates against an optical reference (real-data benchmark).
 
-The metric is BROAD's (:func:`mkf_ros.metrics.orientation_errors`): with
+The metric is BROAD's (:func:`mkf_ros.evaluation.metrics.orientation_errors`): with
 ``e = q_est ⊗ q_ref⁻¹``, total ``2 acos|e_w|``, heading ``2 atan|e_z/e_w|``, inclination
 ``2 acos √(e_w² + e_z²)``; per recording the RMSE over the valid samples in degrees, per dataset
 the plain mean over the recordings that are not excluded.
@@ -10,7 +10,7 @@ is relative to the start pose), the estimate is first aligned with one constant 
 ``G``, the quaternion average (Markley's eigenvector method) of ``q_ref ⊗ q_est⁻¹`` over the
 scored samples, and ``G ⊗ q_est`` is compared with ``q_ref``. The same procedure is applied to
 every algorithm. Each recording says which alignment and which error kinds apply
-(:class:`mkf_ros.datasets.Recording`).
+(:class:`mkf_ros.evaluation.datasets.Recording`).
 
 :func:`tilt_coverage` checks a published covariance against the same errors: the fraction of
 the scored samples whose inclination error lies within k σ of the tilt block of the covariance
@@ -24,8 +24,8 @@ from collections.abc import Iterable, Mapping, Sequence
 import numpy as np
 
 from mkf_ros.core.quaternion import qconj_np, qmul_np, rotmat_np
-from mkf_ros.datasets import ALL_ERRORS, Recording
-from mkf_ros.metrics import orientation_errors
+from mkf_ros.evaluation.datasets import ALL_ERRORS, Recording
+from mkf_ros.evaluation.metrics import orientation_errors
 
 ALIGNMENTS = ("none", "constant_global")
 

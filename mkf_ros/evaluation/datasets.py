@@ -3,7 +3,7 @@
 Each reader takes a dataset folder and returns a list of :class:`Recording`: the sensor arrays
 in the units :func:`mkf_ros.estimate` expects (s, rad/s, m/s², magnetometer in any unit), the
 reference orientation as [w, x, y, z] sensor → world quaternions (NaN rows where the reference
-is invalid or missing) and how the recording must be scored (see :mod:`mkf_ros.scoring`).
+is invalid or missing) and how the recording must be scored (see :mod:`mkf_ros.evaluation.scoring`).
 Adding a format is one function ``read_xxx(folder) -> list[Recording]`` in :data:`READERS` and,
 optionally, a content test in :func:`detect_format`.
 

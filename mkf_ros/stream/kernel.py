@@ -1,4 +1,4 @@
-"""Compiled event loop of :class:`mkf_ros.stream.StreamAdapter`: every time and input rule.
+"""Compiled event loop of :class:`mkf_ros.stream.adapter.StreamAdapter`: every time and input rule.
 
 The adapter's rules (see :mod:`mkf_ros.stream` for what they are) are implemented once, here,
 as kernels over a merged sequence of IMU and magnetometer events. The per-message methods
@@ -21,20 +21,21 @@ import numpy as np
 
 from mkf_ros.core._jit import jit, jit_inline
 from mkf_ros.core.filter import (
-    C_GRAVITY,
-    C_MAXDT,
-    C_NX,
-    C_USE_MAG,
-    F_HEADING,
-    F_INIT,
-    K_GAPS,
     MAX_ACC_G,
     MAX_GYRO_RATE,
     MAX_MAG,
-    S_B,
-    S_W,
+    bias,
+    bias_variance,
     classify_reading,
+    gap_count,
+    gravity,
+    heading_fixed,
+    is_initialized,
+    max_dt,
+    rate,
+    rate_covariance,
     sensor_step,
+    uses_mag,
     world_output,
 )
 from mkf_ros.core.quaternion import q_from_rotvec, qmul, rotate_inv, rotmat
@@ -149,7 +150,7 @@ def rotate_back(v: np.ndarray, rotvec: np.ndarray) -> np.ndarray:
 @jit
 def covariance_rows(c: np.ndarray, stddev: float, add: np.ndarray) -> None:
     """Published covariances from the input's, in place (rows of 9, see
-    :func:`mkf_ros.stream.covariance_out`); ``add`` has one row per row of ``c``, one for
+    :func:`mkf_ros.stream.adapter.covariance_out`); ``add`` has one row per row of ``c``, one for
     all, or none."""
     for i in range(c.shape[0]):
         row = c[i]
@@ -204,10 +205,10 @@ def fuse_now(cfg: np.ndarray, nz: np.ndarray, st: np.ndarray, P: np.ndarray,
              age: float, nan3: np.ndarray, is_acc: bool = False) -> None:
     """Fuse a magnetometer (or accelerometer) sample at the filter's current time, rotated
     forward over its ``age`` (s): both measure a world-fixed vector in body axes."""
-    if age > 0.0 and fl[F_INIT] > 0 and np.isfinite(v[0] + v[1] + v[2]):
+    if age > 0.0 and is_initialized(fl) and np.isfinite(v[0] + v[1] + v[2]):
         w = np.empty(3)
         for i in range(3):
-            w[i] = st[S_W + i] * age
+            w[i] = rate(st, i) * age
         v = rotate_back(v, w)
     if is_acc:
         sensor_step(cfg, nz, st, P, fl, fcnt, MIN_STEP, nan3, v, nan3)
@@ -215,14 +216,6 @@ def fuse_now(cfg: np.ndarray, nz: np.ndarray, st: np.ndarray, P: np.ndarray,
     else:
         sensor_step(cfg, nz, st, P, fl, fcnt, MIN_STEP, nan3, nan3, v)
         acnt[A_MAG_FUSED] += 1
-
-
-@jit
-def fuse_mag_now(cfg: np.ndarray, nz: np.ndarray, st: np.ndarray, P: np.ndarray,
-                 fl: np.ndarray, fcnt: np.ndarray, acnt: np.ndarray, m: np.ndarray,
-                 age: float, nan3: np.ndarray) -> None:
-    """Fuse at the filter's current time, ``m`` rotated forward over its ``age`` (s)."""
-    fuse_now(cfg, nz, st, P, fl, fcnt, acnt, m, age, nan3, False)
 
 
 @jit
@@ -280,7 +273,7 @@ def take_pending(cfg: np.ndarray, nz: np.ndarray, st: np.ndarray, P: np.ndarray,
                                                   True):
             r |= 2
         return r
-    if dt > cfg[C_MAXDT]:  # a gap: the held samples cannot be placed
+    if dt > max_dt(cfg):  # a gap: the held samples cannot be placed
         for is_acc in (False, True):
             buf = pacc if is_acc else pend
             ni = T_NPEND_ACC if is_acc else T_NPEND
@@ -328,12 +321,47 @@ def take_pending(cfg: np.ndarray, nz: np.ndarray, st: np.ndarray, P: np.ndarray,
 
 
 @jit_inline
+def fuse_untimed(cfg: np.ndarray, nz: np.ndarray, st: np.ndarray, P: np.ndarray,
+                 fl: np.ndarray, fcnt: np.ndarray, ts: np.ndarray, buf: np.ndarray,
+                 acnt: np.ndarray, v: np.ndarray, nan3: np.ndarray, is_acc: bool) -> None:
+    """A magnetometer or (split input) accelerometer sample when stamps are not trusted
+    (``use_constant_dt``): fused at the current time; before the first IMU sample kept as the
+    one held sample."""
+    if ts[T_VALID] == 0:
+        buf[0, 0] = 0.0
+        buf[0, 1:4] = v
+        ts[T_NPEND_ACC if is_acc else T_NPEND] = 1
+    else:
+        fuse_now(cfg, nz, st, P, fl, fcnt, acnt, v, 0.0, nan3, is_acc)
+
+
+@jit_inline
+def place(cfg: np.ndarray, nz: np.ndarray, st: np.ndarray, P: np.ndarray, fl: np.ndarray,
+          fcnt: np.ndarray, npar: np.ndarray, ts: np.ndarray, buf: np.ndarray,
+          acnt: np.ndarray, stamp: float, v: np.ndarray, nan3: np.ndarray,
+          is_acc: bool) -> None:
+    """A checked, stamped magnetometer or (split input) accelerometer sample: held while ahead
+    of the IMU (gyro) stream (before its first sample, the latest few), dropped when more than
+    ``max_dt`` ahead, else fused now if recent enough (:func:`fuse_late`)."""
+    if ts[T_VALID] == 0:  # before the first IMU sample: keep the latest few
+        hold(ts, buf, acnt, stamp, v, is_acc)
+        return
+    d = stamp - ts[T_T]
+    if d > max_dt(cfg):
+        acnt[A_ACC_AHEAD if is_acc else A_MAG_AHEAD] += 1
+    elif d > SAME_STAMP:
+        hold(ts, buf, acnt, stamp, v, is_acc)
+    else:
+        fuse_late(cfg, nz, st, P, fl, fcnt, npar, ts, acnt, stamp, v, nan3, is_acc)
+
+
+@jit_inline
 def mag_event(cfg: np.ndarray, nz: np.ndarray, st: np.ndarray, P: np.ndarray, fl: np.ndarray,
               fcnt: np.ndarray, npar: np.ndarray, ts: np.ndarray, pend: np.ndarray,
               acnt: np.ndarray, stamp: float, mag: np.ndarray, nan3: np.ndarray) -> None:
     """One magnetometer sample: fused now (late), held (ahead of the IMU) or dropped."""
     acnt[A_MAG_RECEIVED] += 1
-    if cfg[C_USE_MAG] <= 0:
+    if not uses_mag(cfg):
         acnt[A_MAG_UNUSED] += 1
         return
     if not check_input(acnt, mag, A_MAG_MISSING, True, MAX_MAG):
@@ -348,27 +376,14 @@ def mag_event(cfg: np.ndarray, nz: np.ndarray, st: np.ndarray, P: np.ndarray, fl
     # the raw field goes to the filter: it calibrates it and checks magnitude and dip
     ts[T_LAST_MAG] = stamp
     if npar[P_CONST_DT] > 0.0:  # stamps are not trusted: fuse at the current time
-        if ts[T_VALID] == 0:
-            pend[0, 0] = 0.0
-            pend[0, 1:4] = m
-            ts[T_NPEND] = 1
-        else:
-            fuse_mag_now(cfg, nz, st, P, fl, fcnt, acnt, m, 0.0, nan3)
+        fuse_untimed(cfg, nz, st, P, fl, fcnt, ts, pend, acnt, m, nan3, False)
         return
     if not np.isfinite(stamp):
         acnt[A_MAG_INVALID] += 1
         return
-    if ts[T_VALID] == 0:  # before the first IMU sample: keep the latest few
-        hold(ts, pend, acnt, stamp, m)
-        return
-    d = stamp - ts[T_T]
-    ts[T_MAG_OFFSET] = d
-    if d > cfg[C_MAXDT]:
-        acnt[A_MAG_AHEAD] += 1
-    elif d > SAME_STAMP:
-        hold(ts, pend, acnt, stamp, m)
-    else:
-        fuse_late(cfg, nz, st, P, fl, fcnt, npar, ts, acnt, stamp, m, nan3)
+    if ts[T_VALID] != 0:
+        ts[T_MAG_OFFSET] = stamp - ts[T_T]
+    place(cfg, nz, st, P, fl, fcnt, npar, ts, pend, acnt, stamp, m, nan3, False)
 
 
 @jit_inline
@@ -381,37 +396,23 @@ def acc_event(cfg: np.ndarray, nz: np.ndarray, st: np.ndarray, P: np.ndarray, fl
     forward by the estimated rate), dropped if older. The same checks as the accelerometer of
     a combined message: a missing, invalid or implausible sample is counted and not fused."""
     acnt[A_ACC_RECEIVED] += 1
-    if input_class(acnt, acc, A_ACC_MISSING, True, MAX_ACC_G * cfg[C_GRAVITY]) != 0:
+    if input_class(acnt, acc, A_ACC_MISSING, True, MAX_ACC_G * gravity(cfg)) != 0:
         return
     norm = norm3(acc)
     ts[T_ACC_NORM] = norm
-    if abs(norm / cfg[C_GRAVITY] - 1.0) > npar[P_ACC_TOL]:
+    if abs(norm / gravity(cfg) - 1.0) > npar[P_ACC_TOL]:
         acnt[A_ACC_IMPLAUSIBLE] += 1
         return
     ts[T_ACC_SEEN] = 1.0
     a = acc.copy()
     if npar[P_CONST_DT] > 0.0:  # stamps are not trusted: fuse at the current time
-        if ts[T_VALID] == 0:
-            pacc[0, 0] = 0.0
-            pacc[0, 1:4] = a
-            ts[T_NPEND_ACC] = 1
-        else:
-            fuse_now(cfg, nz, st, P, fl, fcnt, acnt, a, 0.0, nan3, True)
+        fuse_untimed(cfg, nz, st, P, fl, fcnt, ts, pacc, acnt, a, nan3, True)
         return
     if not np.isfinite(stamp) or stamp == 0.0:
         acnt[A_ACC_INVALID] += 1
         return
     ts[T_LAST_ACC] = stamp
-    if ts[T_VALID] == 0:  # before the first gyro sample: keep the latest few
-        hold(ts, pacc, acnt, stamp, a, True)
-        return
-    d = stamp - ts[T_T]
-    if d > cfg[C_MAXDT]:
-        acnt[A_ACC_AHEAD] += 1
-    elif d > SAME_STAMP:
-        hold(ts, pacc, acnt, stamp, a, True)
-    else:
-        fuse_late(cfg, nz, st, P, fl, fcnt, npar, ts, acnt, stamp, a, nan3, True)
+    place(cfg, nz, st, P, fl, fcnt, npar, ts, pacc, acnt, stamp, a, nan3, True)
 
 
 @jit_inline
@@ -458,13 +459,13 @@ def imu_event(cfg: np.ndarray, nz: np.ndarray, st: np.ndarray, P: np.ndarray, fl
         ts[T_GYR_SEEN] = 1.0
     split = npar[P_SPLIT] > 0.0
     a_cls = 1 if split else input_class(acnt, acc, A_ACC_MISSING, True,
-                                        MAX_ACC_G * cfg[C_GRAVITY])
+                                        MAX_ACC_G * gravity(cfg))
     has_a_in = a_cls == 0
     has_a = has_a_in
     if has_a:
         norm = norm3(acc)
         ts[T_ACC_NORM] = norm
-        if abs(norm / cfg[C_GRAVITY] - 1.0) > npar[P_ACC_TOL]:
+        if abs(norm / gravity(cfg) - 1.0) > npar[P_ACC_TOL]:
             acnt[A_ACC_IMPLAUSIBLE] += 1
             has_a = False
         else:
@@ -487,12 +488,12 @@ def imu_event(cfg: np.ndarray, nz: np.ndarray, st: np.ndarray, P: np.ndarray, fl
         if r & 2:
             a_in = a_same
             a_held = True
-    gaps = fcnt[K_GAPS]
+    gaps = gap_count(fcnt)
     step = dt if not valid or npar[P_CONST_DT] > 0.0 else t_new - ts[T_T]
     sensor_step(cfg, nz, st, P, fl, fcnt, step,
                 gyr if has_g else nan3, a_in,
                 mag if has_m else nan3)
-    if fcnt[K_GAPS] != gaps:
+    if gap_count(fcnt) != gaps:
         ts[T_YAW_LOST] = 1.0
     if has_m:
         acnt[A_MAG_FUSED] += 1
@@ -509,12 +510,14 @@ def output(cfg: np.ndarray, st: np.ndarray, P: np.ndarray, fl: np.ndarray,
            g: np.ndarray, has_g: bool, a: np.ndarray, has_a: bool, out: np.ndarray) -> int:
     """The estimate as published (``out``, one ``O_*`` row): nothing before initialisation,
     never NaN (a non-finite estimate asks for a reset), then the output options."""
-    if fl[F_INIT] == 0:
+    if not is_initialized(fl):
         return _NONE
     q = np.empty(4)
     cov = np.empty((3, 3))
     world_output(cfg, st, P, q_from_enu, q, cov)
-    tot = q.sum() + cov.sum() + st[S_W:S_W + 3].sum() + st[S_B:S_B + 3].sum()
+    tot = q.sum() + cov.sum()
+    for i in range(3):
+        tot += rate(st, i) + bias(st, i)
     if not np.isfinite(tot):
         acnt[A_OUTPUT_NONFINITE] += 1
         return R_NONFINITE
@@ -532,7 +535,7 @@ def output(cfg: np.ndarray, st: np.ndarray, P: np.ndarray, fl: np.ndarray,
                              + rc[i, 2] * R[3 * j + 2])
         if q[0] < 0.0:
             q = -q
-    heading = fl[F_HEADING] > 0 and cfg[C_USE_MAG] > 0
+    heading = heading_fixed(cfg, fl)
     if ts[T_YAW_LOST] > 0:
         if heading:
             ts[T_YAW_LOST] = 0.0
@@ -543,7 +546,6 @@ def output(cfg: np.ndarray, st: np.ndarray, P: np.ndarray, fl: np.ndarray,
         cov[:, :] = 0.0
         for i in range(3):
             cov[i, i] = sd * sd
-    nx = int(cfg[C_NX])
     flags = OF_PUB | (OF_HEADING if heading else 0)
     for i in range(4):
         out[O_Q + i] = q[i]
@@ -551,21 +553,21 @@ def output(cfg: np.ndarray, st: np.ndarray, P: np.ndarray, fl: np.ndarray,
         for j in range(3):
             out[O_COV + 3 * i + j] = cov[i, j]
     for i in range(3):
-        out[O_OMEGA + i] = st[S_W + i]
-        out[O_BIAS + i] = st[S_B + i]
-        out[O_BSTD + i] = np.sqrt(P[6 + i, 6 + i]) if nx == 9 else 0.0
+        out[O_OMEGA + i] = rate(st, i)
+        out[O_BIAS + i] = bias(st, i)
+        out[O_BSTD + i] = np.sqrt(bias_variance(cfg, P, i))
     out[O_W:O_LIN + 3] = np.nan  # the optional fields, absent unless written below
     src = int(npar[P_AV_SRC])
     if src == AV_ESTIMATE:
         flags |= OF_W | OF_WCOV
         for i in range(3):
-            out[O_W + i] = st[S_W + i]
+            out[O_W + i] = rate(st, i)
             for j in range(3):
-                out[O_WCOV + 3 * i + j] = P[3 + i, 3 + j]
+                out[O_WCOV + 3 * i + j] = rate_covariance(P, i, j)
     elif has_g:
         flags |= OF_W
         for i in range(3):
-            out[O_W + i] = g[i] - st[S_B + i] if src == AV_BIAS_CORRECTED else g[i]
+            out[O_W + i] = g[i] - bias(st, i) if src == AV_BIAS_CORRECTED else g[i]
         if src == AV_BIAS_CORRECTED:
             flags |= OF_WADD
             for i in range(3):
@@ -579,7 +581,7 @@ def output(cfg: np.ndarray, st: np.ndarray, P: np.ndarray, fl: np.ndarray,
             up = npar[P_UP_W:P_UP_W + 3]
             for i in range(3):
                 up_b = Rq[0, i] * up[0] + Rq[1, i] * up[1] + Rq[2, i] * up[2]
-                out[O_LIN + i] = a[i] - cfg[C_GRAVITY] * up_b
+                out[O_LIN + i] = a[i] - gravity(cfg) * up_b
     out[O_FLAGS] = flags
     return _OUT
 

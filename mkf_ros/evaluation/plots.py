@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mkf_ros.metrics import roll_pitch_yaw
+from mkf_ros.evaluation.metrics import roll_pitch_yaw
 
 #: shading of the disturbance intervals a synthetic recording reports
 INTERVAL_STYLE = {
@@ -27,7 +27,7 @@ MAX_POINTS = 20_000
 
 
 def euler_deg(q_wxyz: np.ndarray) -> np.ndarray:
-    """(N, 3) roll, pitch, yaw in degrees (:func:`mkf_ros.metrics.roll_pitch_yaw`)."""
+    """(N, 3) roll, pitch, yaw in degrees (:func:`mkf_ros.evaluation.metrics.roll_pitch_yaw`)."""
     return np.degrees(roll_pitch_yaw(q_wxyz))
 
 

@@ -4,7 +4,7 @@ Input: a field whose covariance[0] is -1 is "not reported" and reaches the filte
 (None for one message, a NaN row in a stack). Output (``imu/data``): a field without a value
 is published as zeros with covariance[0] = -1 (:data:`NOT_REPORTED`); a field with a value
 carries the filter's own covariance when it has one, and otherwise the input's covariance,
-filled by :func:`mkf_ros.stream.covariance_out` (all zeros "unknown" → ``stddev²`` on the
+filled by :func:`mkf_ros.stream.adapter.covariance_out` (all zeros "unknown" → ``stddev²`` on the
 diagonal, plus the filter's ``add``).
 
 The node's message path (:mod:`mkf_ros.ros.convert`), its CDR fast path
@@ -47,7 +47,7 @@ def input_rows(values: Any, cov0: np.ndarray) -> np.ndarray:
 
 
 def _covariance_out(input_cov: Any, stddev: float, add: Any = None) -> np.ndarray:
-    from mkf_ros.stream import covariance_out  # compiled kernels: load on first use
+    from mkf_ros.stream.adapter import covariance_out  # compiled kernels: load on first use
     return covariance_out(input_cov, stddev, add)
 
 
@@ -56,7 +56,7 @@ def published_covariance(value: np.ndarray | None, filter_cov: np.ndarray | None
                          fill: Fill | None = None) -> np.ndarray:
     """The 9 published covariance values of one output field: :data:`NOT_REPORTED` without
     a value; the filter's own ``filter_cov`` (3×3) when given; else the input's filled
-    (``fill``, default :func:`mkf_ros.stream.covariance_out`, called as
+    (``fill``, default :func:`mkf_ros.stream.adapter.covariance_out`, called as
     ``fill(input_cov, stddev, add)``)."""
     if value is None:
         return NOT_REPORTED.copy()

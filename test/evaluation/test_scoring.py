@@ -1,5 +1,5 @@
-"""Scoring against an optical reference (mkf_ros.scoring): the BROAD error metric with the
-constant global alignment, and the covariance honesty check :func:`tilt_coverage`, against
+"""Scoring against an optical reference (mkf_ros.evaluation.scoring): the BROAD error metric with
+the constant global alignment, and the covariance honesty check :func:`tilt_coverage`, against
 independent constructions (known errors built from rotation vectors, no real data)."""
 
 from __future__ import annotations
@@ -11,9 +11,9 @@ import pytest
 from quat_helpers import canon, quat_z, random_quats
 
 from mkf_ros.core.quaternion import qconj_np, qmul_np
-from mkf_ros.datasets import Recording
-from mkf_ros.metrics import orientation_errors
-from mkf_ros.scoring import (
+from mkf_ros.evaluation.datasets import Recording
+from mkf_ros.evaluation.metrics import orientation_errors
+from mkf_ros.evaluation.scoring import (
     dataset_mean,
     error_series,
     global_alignment,

@@ -13,9 +13,9 @@ import pytest
 
 from mkf_ros.core.frames import FROM_ENU
 from mkf_ros.core.quaternion import qconj_np, qmul_np, rotmat_np
-from mkf_ros.metrics import orientation_errors, rmse_deg
+from mkf_ros.evaluation.metrics import orientation_errors, rmse_deg
 from mkf_ros.sim import simulate
-from mkf_ros.stream import (
+from mkf_ros.stream.adapter import (
     COUNTER_REASONS,
     MAX_BACKWARDS,
     StreamAdapter,
@@ -24,7 +24,7 @@ from mkf_ros.stream import (
     covariance_out,
     validate_param,
 )
-from mkf_ros.stream_kernel import MAX_PENDING_MAG, rotate_back
+from mkf_ros.stream.kernel import MAX_PENDING_MAG, rotate_back
 
 G = [0.0, 0.0, 9.80665]
 Z = [0.0, 0.0, 0.0]

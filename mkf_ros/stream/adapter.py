@@ -4,7 +4,7 @@
 about time and input that a live sensor stream or a recorded bag needs. It works on arrays and
 stamps in seconds and never imports ROS: the ``estimator`` node is a thin rclpy wrapper around
 it, and offline bag processing drives the same class, so both give identical results. The
-rules below run compiled (:mod:`mkf_ros.stream_kernel`), one message at a time
+rules below run compiled (:mod:`mkf_ros.stream.kernel`), one message at a time
 (:meth:`StreamAdapter.on_imu`, :meth:`StreamAdapter.on_mag`) or over a whole recording
 (:meth:`StreamAdapter.process`), with the same results either way.
 
@@ -59,24 +59,23 @@ from typing import Any
 
 import numpy as np
 
-from mkf_ros import rep145
-from mkf_ros import stream_kernel as sk
+from mkf_ros.core.filter import COUNTER_NAMES as FILTER_COUNTERS
 from mkf_ros.core.filter import (
-    C_REST_SPLIT,
     MAX_ACC_G,
     MAX_GYRO_RATE,
     MAX_MAG,
     AttitudeFilter,
     build_cfg,
 )
-from mkf_ros.core.filter import COUNTER_NAMES as FILTER_COUNTERS
 from mkf_ros.core.frames import FROM_ENU
 from mkf_ros.core.params import BY_NAME, PARAMS, FilterParams, Param
 from mkf_ros.core.quaternion import qconj_np, qmul_np, rotmat_np
+from mkf_ros.stream import kernel as sk
+from mkf_ros.stream import rep145
 
 # constants of the rules above, defined with the rules in stream_kernel
-from mkf_ros.stream_kernel import MAX_BACKWARDS as MAX_BACKWARDS
-from mkf_ros.stream_kernel import YAW_UNKNOWN_VAR as YAW_UNKNOWN_VAR
+from mkf_ros.stream.kernel import MAX_BACKWARDS as MAX_BACKWARDS
+from mkf_ros.stream.kernel import YAW_UNKNOWN_VAR as YAW_UNKNOWN_VAR
 
 #: Reasons a sample (or part of one) was dropped, rejected or caused a reset; see module doc.
 COUNTER_REASONS: dict[str, str] = {
@@ -280,7 +279,7 @@ class StreamAdapter:
     >>> res = s.process(t, gyr, acc, t_mag, mag)         # a whole recording: arrays of outputs
 
     Parameters are every entry of :data:`mkf_ros.core.params.PARAMS` (filter and node scope).
-    The state is a few arrays that the compiled rules (:mod:`mkf_ros.stream_kernel`) update
+    The state is a few arrays that the compiled rules (:mod:`mkf_ros.stream.kernel`) update
     in place: the filter's, the time state ``_ts``, the held magnetometer samples ``_pend``,
     the adapter's counters ``_acnt`` and the node parameters ``_npar``.
     """
@@ -362,9 +361,7 @@ class StreamAdapter:
         p[sk.P_SPLIT] = n["input_mode"] == "split"
         p[sk.P_ACC_DELAY] = n["acc_max_delay"]
         self._npar = p
-        # the filter's rest test: gyro and accelerometer come in separate samples (the filter
-        # rebuilds its configuration on set_params, which is followed by this)
-        self.filter._cfg[C_REST_SPLIT] = float(p[sk.P_SPLIT])
+        self.filter.set_split_input(self.split)
 
     # --- state -----------------------------------------------------------------------------
     def reset(self, reason: str = "requested") -> None:
@@ -582,10 +579,9 @@ class StreamAdapter:
         filter gets new state arrays, then the loop resumes."""
         resume = False
         while True:
-            f = self.filter
-            k, why = sk.run_events(f._cfg, f._nz, f._st, f._P, f._fl, f.counters,
-                                   f._q_from_enu, self._npar, self._ts, self._pend,
-                                   self._acnt, ev_f, ev_i, out, k0, k1, resume, self._pacc)
+            k, why = sk.run_events(*self.filter.kernel_arrays(), self._npar, self._ts,
+                                   self._pend, self._acnt, ev_f, ev_i, out, k0, k1, resume,
+                                   self._pacc)
             if why == sk.R_DONE:
                 return
             if why == sk.R_TIME_JUMP:  # the same sample again, re-initialising from it

@@ -1,5 +1,5 @@
-"""Real-data readers (mkf_ros.datasets) and the benchmark (bench/real_data.py) on tiny synthetic
-files written in each format from simulated truth. No real data are needed. SciPy (for the
+"""Real-data readers (mkf_ros.evaluation.datasets) and the benchmark (bench/real_data.py) on tiny
+synthetic files written in each format from simulated truth. No real data are needed. SciPy (for the
 ``.mat`` formats) is a test dependency (requirements/dev.txt): a missing SciPy fails here.
 Scoring itself is tested in test_scoring.py."""
 
@@ -19,7 +19,7 @@ from scipy.io import savemat
 
 import mkf_ros
 from mkf_ros.core.quaternion import qconj_np, qmul_np, rotmat_np
-from mkf_ros.datasets import (
+from mkf_ros.evaluation.datasets import (
     ALL_ERRORS,
     ESE650_ACC_ZERO,
     G0,
@@ -33,7 +33,7 @@ from mkf_ros.datasets import (
     read_dataset,
     read_repoimu,
 )
-from mkf_ros.scoring import (
+from mkf_ros.evaluation.scoring import (
     global_alignment,
     score_recording,
 )

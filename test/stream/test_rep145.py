@@ -6,7 +6,7 @@ import math
 
 import numpy as np
 
-from mkf_ros import rep145
+from mkf_ros.stream import rep145
 
 MARKER = [-1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]  # REP-145: covariance[0] = -1
 

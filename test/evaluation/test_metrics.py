@@ -1,4 +1,4 @@
-"""mkf_ros.metrics: step angles and the steps the gyro does not explain."""
+"""mkf_ros.evaluation.metrics: step angles and the steps the gyro does not explain."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from mkf_ros.metrics import step_angles, unexplained_steps
+from mkf_ros.evaluation.metrics import step_angles, unexplained_steps
 
 
 def _about_z(angles: np.ndarray) -> np.ndarray:
@@ -49,7 +49,7 @@ def _axis(i: int, angle: float) -> np.ndarray:
 def test_roll_pitch_yaw_inverts_z_y_x_composition():
     """q = q_z(yaw) ⊗ q_y(pitch) ⊗ q_x(roll) (tf2's setRPY) gives back (roll, pitch, yaw)."""
     from mkf_ros.core.quaternion import qmul_np
-    from mkf_ros.metrics import roll_pitch_yaw
+    from mkf_ros.evaluation.metrics import roll_pitch_yaw
 
     rng = np.random.default_rng(5)
     angles = np.column_stack([rng.uniform(-3.1, 3.1, 50), rng.uniform(-1.5, 1.5, 50),
