@@ -338,16 +338,10 @@ def verdicts(run: Run, c: Checks) -> dict[str, str]:
 
 # ------------------------------------------------------------------------------- printing
 def _code_state() -> str:
-    """The commit, whether the tree has changes, and a hash of the kernel sources imported (the
-    filter's numbers change with them)."""
-    import hashlib
+    """The commit, whether the tree has changes, and the hash of the kernel sources imported
+    (:data:`mkf_ros.core._jit.KERNEL_HASH`: the filter's numbers change with them)."""
+    from mkf_ros.core._jit import KERNEL_HASH
 
-    import mkf_ros
-
-    pkg = Path(mkf_ros.__file__).parent
-    h = hashlib.sha256()
-    for f in sorted([*pkg.glob("core/*.py"), pkg / "stream_kernel.py"]):
-        h.update(f.read_bytes())
     try:
         def git(*a: str) -> str:
             return subprocess.run(["git", *a], cwd=Path(__file__).parent, capture_output=True,
@@ -356,7 +350,7 @@ def _code_state() -> str:
         state = git("rev-parse", "--short", "HEAD") + (" + uncommitted changes" if dirty else "")
     except (OSError, subprocess.CalledProcessError):
         state = "unknown commit"
-    return f"{state}, kernel sources sha256 {h.hexdigest()[:12]}"
+    return f"{state}, kernels {KERNEL_HASH}"
 
 
 def _g(x: float, fmt: str = ".3g") -> str:

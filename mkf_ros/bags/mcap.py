@@ -78,9 +78,6 @@ class _Buf:
         self.p += n
         return s.decode("utf-8", "replace")
 
-    def skip_sized(self, fmt: str = "<I") -> None:
-        self.p += self.take(fmt)
-
 
 def _records(data: bytes, start: int, end: int) -> Iterator[tuple[int, int, int]]:
     """(opcode, content start, content end) of the records in ``data[start:end]``."""
@@ -528,12 +525,6 @@ class McapStorageWriter:
 
     def abort(self) -> None:
         self.bio.close()
-
-
-def read_bytes_header(path: Path) -> bytes:
-    """First 8 bytes of a file (to recognise MCAP / SQLite / ROS 1 bag by content)."""
-    with path.open("rb") as f:
-        return f.read(16)
 
 
 

@@ -73,7 +73,7 @@ from mkf_ros.core.quaternion import qconj_np, qmul_np, rotmat_np
 from mkf_ros.stream import kernel as sk
 from mkf_ros.stream import rep145
 
-# constants of the rules above, defined with the rules in stream_kernel
+# constants of the rules above, defined with the rules in stream/kernel.py
 from mkf_ros.stream.kernel import MAX_BACKWARDS as MAX_BACKWARDS
 from mkf_ros.stream.kernel import YAW_UNKNOWN_VAR as YAW_UNKNOWN_VAR
 

@@ -1,4 +1,4 @@
-"""StreamAdapter (mkf_ros/stream.py): time rules, asynchronous magnetometer, input checks.
+"""StreamAdapter (mkf_ros/stream/adapter.py): time rules, asynchronous magnetometer, input checks.
 
 No ROS here: the adapter is driven with arrays, exactly as the node and offline bag
 processing drive it.
