@@ -1,36 +1,16 @@
-"""The real-sensor layer (mkf_ros.core.filter): alignment, frames, covariance, bad samples,
-gaps and runtime reconfiguration."""
+"""AttitudeFilter (mkf_ros.core.filter): output frames and covariance, runtime reconfiguration,
+and the interface of compiled front ends."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
+from rest_readings import reading
 
 from mkf_ros.core.filter import AttitudeFilter
 from mkf_ros.core.frames import FROM_ENU
-from mkf_ros.core.quaternion import angle_between, q_from_rotvec, qmul, rotmat
-from mkf_ros.evaluation.metrics import orientation_errors
+from mkf_ros.core.quaternion import angle_between, q_from_rotvec, qmul
 from mkf_ros.sim import simulate
-
-G = 9.80665
-MAG_ENU = np.array([0.0, 20e-6, -40e-6])  # north and down
-
-
-def reading(q_enu: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Noise-free accelerometer and magnetometer readings of a body at rest with attitude q."""
-    R = rotmat(q_enu)
-    return R.T @ np.array([0.0, 0.0, G]), R.T @ MAG_ENU
-
-
-@pytest.mark.parametrize("algorithm", ["mekf", "mukf"])
-def test_alignment_is_exact_on_the_first_sample(algorithm: str) -> None:
-    q = q_from_rotvec(np.array([0.4, -0.7, 2.0]))
-    acc, mag = reading(q)
-    f = AttitudeFilter(algorithm=algorithm, use_mag=True)
-    assert not f.initialized
-    f.step(0.0, gyr=np.zeros(3), acc=acc, mag=mag)
-    assert f.initialized and f.heading_initialized
-    assert np.degrees(angle_between(f.quaternion, q)) < 1e-6
 
 
 def test_world_frames() -> None:
@@ -85,46 +65,6 @@ def test_covariance_before_initialisation_is_unknown_not_zero() -> None:
     assert f.counter_dict()["before_init"] == 1
 
 
-@pytest.mark.parametrize("algorithm", ["mekf", "mukf"])
-def test_bad_samples_are_skipped_and_counted(algorithm: str) -> None:
-    sim = simulate("slow_rotation", duration=5, rate=100, seed=1)
-    f = AttitudeFilter(algorithm=algorithm, use_mag=True)
-    bad = {10: ("acc", [np.nan, 1, 2]), 11: ("acc", [0, 0, 0]), 12: ("gyr", [np.inf, 0, 0]),
-           13: ("mag", [0, 0, 0]), 14: ("mag", [np.nan] * 3), 15: ("acc", [1e308, 1e308, 1])}
-    for k in range(sim.t.size):
-        s = {"gyr": sim.gyr[k], "acc": sim.acc[k], "mag": sim.mag[k]}
-        if k in bad:
-            s[bad[k][0]] = np.array(bad[k][1], dtype=float)
-        f.step(0.01 if k else 0.0, **s)
-        assert np.all(np.isfinite(f.quaternion)) and np.all(np.isfinite(f.covariance))
-    c = f.counter_dict()
-    # 1e308 is beyond the plausibility limit (issue 14): invalid, like the NaN and zero rows
-    assert c["acc_invalid"] == 3 and c["gyr_invalid"] == 1
-    assert c["mag_invalid"] == 1 and c["mag_missing"] == 1
-    err = orientation_errors(f.quaternion[None], sim.quat[-1][None])
-    assert np.degrees(err["total"][0]) < 2.0
-
-
-@pytest.mark.parametrize("algorithm", ["mekf", "mukf"])
-def test_gap_realigns_and_keeps_heading(algorithm: str) -> None:
-    """A gap longer than max_dt re-aligns roll and pitch from the next accelerometer sample
-    instead of integrating a stale rate; without a magnetometer the heading is kept."""
-    q0 = q_from_rotvec(np.array([0.0, 0.0, 1.0]))
-    acc, _ = reading(q0)
-    f = AttitudeFilter(algorithm=algorithm, max_dt=0.5)
-    f.step(0.0, np.zeros(3), acc)
-    for _ in range(50):
-        f.step(0.01, np.array([0.0, 0.0, 0.3]), acc)  # spinning about the vertical
-    yaw_before = f.quaternion
-    q1 = qmul(q_from_rotvec(np.array([0.0, 0.0, 0.0])), q_from_rotvec(np.array([0.5, 0, 0])))
-    acc1, _ = reading(qmul(yaw_before, q1))
-    f.step(10.0, np.zeros(3), acc1)  # 10 s later, tilted by 0.5 rad
-    assert f.counter_dict()["gaps"] == 1
-    err = orientation_errors(f.quaternion[None], qmul(yaw_before, q1)[None])
-    assert np.degrees(err["inclination"][0]) < 1e-5
-    assert np.degrees(err["heading"][0]) < 1e-5
-
-
 @pytest.mark.parametrize("old,new", [({"algorithm": "mukf"}, {"algorithm": "mekf"}),
                                      ({"algorithm": "mekf"}, {"algorithm": "mukf"}),
                                      ({"chart": "rv"}, {"chart": "o"}),
@@ -163,79 +103,58 @@ def test_invalid_parameter_change_changes_nothing() -> None:
     assert f.params.chart == "mrp" and f.params.gyro_noise == 0.01
 
 
-def test_magnetometer_arriving_late_sets_heading() -> None:
-    q = q_from_rotvec(np.array([0.1, 0.2, -2.5]))
-    acc, mag = reading(q)
-    f = AttitudeFilter(use_mag=True)
-    for k in range(20):
-        f.step(0.01 if k else 0.0, np.zeros(3), acc)  # no magnetometer yet: heading arbitrary
-    assert not f.heading_initialized
-    f.step(0.01, np.zeros(3), acc, mag)
-    assert f.heading_initialized
-    assert np.degrees(angle_between(f.quaternion, q)) < 0.05
+def test_run_advances_the_filter_like_step_calls() -> None:
+    """``run`` (the batch loop of estimate()) and one ``step`` per sample give the same
+    orientations and leave the filter in the same state (counters included)."""
+    s = simulate("wiener", duration=3.0, rate=100.0, mag_rate=25.0, seed=3)
+    dt = 0.01
+    dts = np.full(len(s.gyr), dt)
+    batch, single = (AttitudeFilter(use_mag=True, estimate_gyro_bias=True) for _ in range(2))
+    out = batch.run(dts, s.gyr, s.acc, s.mag)
+    for k in range(len(dts)):
+        single.step(dt, s.gyr[k], s.acc[k], s.mag[k])
+        np.testing.assert_allclose(out.quat[k], single.quaternion, atol=1e-12)
+        np.testing.assert_allclose(out.cov[k], single.covariance, atol=1e-12)
+    assert batch.counter_dict() == single.counter_dict()
+    np.testing.assert_allclose(batch.bias, single.bias, atol=1e-12)
 
 
-def test_given_mag_reference_defines_north() -> None:
-    """With a given reference the heading follows it; here a 10° declination east."""
-    dec = np.radians(10)
-    ref = np.array([np.sin(dec) * 20e-6, np.cos(dec) * 20e-6, -40e-6])
-    q = q_from_rotvec(np.array([0.0, 0.0, 0.3]))
-    R = rotmat(q)
-    acc, mag = R.T @ np.array([0, 0, G]), R.T @ ref
-    f = AttitudeFilter(use_mag=True, mag_reference=list(ref))
-    f.step(0.0, np.zeros(3), acc, mag)
-    assert np.degrees(angle_between(f.quaternion, q)) < 1e-6
+def test_kernel_interface_reads_what_the_properties_say() -> None:
+    """The accessors a compiled front end uses (mkf_ros.stream.kernel) read the same values as
+    the filter's public properties and parameters."""
+    from mkf_ros.core import filter as kf
+
+    s = simulate("wiener", duration=3.0, rate=100.0, mag_rate=25.0, seed=5)
+    f = AttitudeFilter(use_mag=True, estimate_gyro_bias=True, max_dt=0.2, gravity=9.79)
+    assert not kf.is_initialized(f.kernel_arrays().fl)
+    for k in range(len(s.gyr)):
+        f.step(0.01 if k != 150 else 0.5, s.gyr[k], s.acc[k], s.mag[k])  # one gap
+    cfg, _, st, P, fl, cnt, _ = f.kernel_arrays()
+    assert kf.gravity(cfg) == 9.79 and kf.max_dt(cfg) == 0.2 and kf.uses_mag(cfg)
+    assert kf.is_initialized(fl) == f.initialized is True
+    assert kf.heading_fixed(cfg, fl) == f.heading_initialized is True
+    assert kf.gap_count(cnt) == f.counter_dict()["gaps"] == 1
+    np.testing.assert_array_equal([kf.rate(st, i) for i in range(3)], f.omega)
+    np.testing.assert_array_equal([kf.bias(st, i) for i in range(3)], f.bias)
+    np.testing.assert_allclose(np.sqrt([kf.bias_variance(cfg, P, i) for i in range(3)]),
+                               f.bias_stddev, rtol=1e-15)
+    np.testing.assert_array_equal(
+        [[kf.rate_covariance(P, i, j) for j in range(3)] for i in range(3)],
+        f.state_covariance[3:6, 3:6])
+    f.set_params(estimate_gyro_bias=False)
+    cfg, _, st, P, *_ = f.kernel_arrays()
+    assert [kf.bias_variance(cfg, P, i) for i in range(3)] == [0.0, 0.0, 0.0]
 
 
-def test_paper_initialisation_converges() -> None:
-    sim = simulate("static", duration=20, rate=100, seed=5)
-    f = AttitudeFilter(init_mode="paper", use_mag=True,
-                       mag_reference=[0.0, np.cos(np.radians(60)), -np.sin(np.radians(60))])
-    assert f.initialized is False
-    for k in range(sim.t.size):
-        f.step(0.01, sim.gyr[k], sim.acc[k], sim.mag[k])
-    assert np.degrees(angle_between(f.quaternion, sim.quat[-1])) < 1.0
+def test_split_input_is_kept_across_parameter_changes() -> None:
+    """The rest test's split-input flag (set by the stream adapter) survives set_params, which
+    rebuilds the configuration."""
+    from mkf_ros.core.state import C_REST_SPLIT
 
-
-def test_paper_init_with_mag_needs_a_reference() -> None:
-    with pytest.raises(ValueError, match="needs mag_reference"):
-        AttitudeFilter(init_mode="paper", use_mag=True)
-
-
-@pytest.mark.parametrize("algorithm", ["mekf", "mukf"])
-def test_magnetometer_in_its_own_step_equals_joint(algorithm: str) -> None:
-    """An asynchronous magnetometer (fused in a step of its own, as the streaming adapter does)
-    is as accurate as the same sample fused with the IMU; a regression test for the MUKF, whose
-    vector blocks were once indexed by count instead of by sensor (the magnetometer then got the
-    accelerometer's gate and tilt-only projection)."""
-    sim = simulate("slow_rotation", duration=20, rate=100, seed=1)
-    joint = AttitudeFilter(algorithm=algorithm, use_mag=True)
-    split = AttitudeFilter(algorithm=algorithm, use_mag=True)
-    ej, es = [], []
-    for k in range(sim.t.size):
-        joint.step(0.01 if k else 0.0, sim.gyr[k], sim.acc[k], sim.mag[k])
-        split.step(0.01 if k else 0.0, sim.gyr[k], sim.acc[k])
-        split.step(1e-9, None, None, sim.mag[k])
-        ej.append(angle_between(joint.quaternion, sim.quat[k]))
-        es.append(angle_between(split.quaternion, sim.quat[k]))
-    rj, rs = np.degrees(np.sqrt(np.mean(np.square(ej[100:])))), np.degrees(
-        np.sqrt(np.mean(np.square(es[100:]))))
-    assert rs < 1.2 * rj + 0.02, (rs, rj)
-
-
-@pytest.mark.parametrize("algorithm", ["mekf", "mukf"])
-def test_zero_length_step_and_heading_after_gap(algorithm: str) -> None:
-    """A zero-length step (a magnetometer fused at the IMU's time) is a plain update; after a
-    gap without a magnetometer the kept heading is reported as unknown (σ of a uniform angle)."""
-    sim = simulate("slow_rotation", duration=3, rate=100, seed=2)
-    f = AttitudeFilter(algorithm=algorithm, use_mag=True)
-    for k in range(sim.t.size):
-        f.step(0.01 if k else 0.0, sim.gyr[k], sim.acc[k])
-        f.step(0.0, None, None, sim.mag[k])
-    assert f.counter_dict()["update_failed"] == 0
-    assert np.degrees(angle_between(f.quaternion, sim.quat[-1])) < 1.0
-    g = AttitudeFilter(algorithm=algorithm)
-    g.step(0.0, sim.gyr[0], sim.acc[0])
-    assert g.covariance[2, 2] < 1e-4
-    g.step(5.0, sim.gyr[1], sim.acc[1])  # a 5 s gap
-    assert g.covariance[2, 2] == pytest.approx(np.pi**2 / 3, rel=1e-3)
+    f = AttitudeFilter()
+    f.set_split_input(True)
+    f.set_params(gyro_noise=0.02)
+    assert f.kernel_arrays().cfg[C_REST_SPLIT] == 1.0
+    f.set_split_input(False)
+    f.set_params(gyro_noise=0.03)
+    assert f.kernel_arrays().cfg[C_REST_SPLIT] == 0.0

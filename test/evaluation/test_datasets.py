@@ -39,7 +39,7 @@ from mkf_ros.evaluation.scoring import (
 )
 from mkf_ros.sim import simulate
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 HEADER = ("Time (s);Vicon Orientation;;;;IMU Acceleration;;;IMU Gyroscope;;;"
           "IMU Magnetometer;;;\n;W;X;Y;Z;X;Y;Z;X;Y;Z;X;Y;Z;\n")
 ACC_SCALE = 3300.0 / 1023.0 / 330.0  # g per count
