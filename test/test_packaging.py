@@ -197,42 +197,41 @@ def test_colcon_build_produces_ros_layout(colcon_install: Path) -> None:
         assert not (site / excluded).exists(), f"{excluded}/ must not be installed as a package"
 
 
+def _installed_env(prefix: Path) -> dict[str, str]:
+    """The environment ``. install/setup.sh`` would set for the colcon install ``prefix``."""
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join(
+        filter(None, [str(_site_packages(prefix)), env.get("PYTHONPATH")]))
+    env["AMENT_PREFIX_PATH"] = os.pathsep.join(
+        filter(None, [str(prefix), env.get("AMENT_PREFIX_PATH")]))
+    return env
+
+
+def _run_installed(cmd: list[str], prefix: Path, timeout: float = 120
+                   ) -> subprocess.CompletedProcess[str]:
+    """``cmd`` run in the colcon install's environment, from ``prefix`` (not the repo: ``-c``
+    puts the cwd first on sys.path)."""
+    return subprocess.run(cmd, cwd=prefix, env=_installed_env(prefix), capture_output=True,
+                          text=True, timeout=timeout, check=False)
+
+
+def _assert_imported_from_install(module: str, prefix: Path) -> None:
+    """``module`` is imported from the colcon install's site-packages, not from the repo."""
+    site = _site_packages(prefix)
+    where = _run_installed([sys.executable, "-c", f"import {module} as m; print(m.__file__)"],
+                           prefix)
+    assert where.returncode == 0, where.stderr
+    assert Path(where.stdout.strip()).resolve().is_relative_to(site.resolve()), (
+        f"{module} imported from {where.stdout.strip()}, not from the colcon install {site}"
+    )
+
+
 def test_installed_mkf_runs_help(colcon_install: Path) -> None:
     if not _source_module_exists(f"{PKG}.cli.main"):
         pytest.skip(f"{PKG}/cli/main.py does not exist yet")
     prefix = colcon_install
-    site = _site_packages(prefix)
-    # What `. install/setup.sh` would set.
-    env = dict(os.environ)
-    env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(site), env.get("PYTHONPATH")]))
-    env["AMENT_PREFIX_PATH"] = os.pathsep.join(
-        filter(None, [str(prefix), env.get("AMENT_PREFIX_PATH")])
-    )
-
-    where = subprocess.run(
-        [sys.executable, "-c", f"import {PKG}; print({PKG}.__file__)"],
-        # cwd: not the repo, `-c` puts the cwd first on sys.path
-        cwd=prefix,
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=120,
-        check=False,
-    )
-    assert where.returncode == 0, where.stderr
-    assert Path(where.stdout.strip()).resolve().is_relative_to(site.resolve()), (
-        f"{PKG} imported from {where.stdout.strip()}, not from the colcon install {site}"
-    )
-
-    proc = subprocess.run(
-        [str(prefix / "lib" / PKG / "mkf"), "--help"],
-        cwd=prefix,
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=120,
-        check=False,
-    )
+    _assert_imported_from_install(PKG, prefix)
+    proc = _run_installed([str(prefix / "lib" / PKG / "mkf"), "--help"], prefix)
     assert proc.returncode == 0, f"mkf --help: rc {proc.returncode}\n{proc.stdout}\n{proc.stderr}"
     assert proc.stdout.strip(), "mkf --help printed nothing"
 
@@ -241,51 +240,25 @@ def test_installed_mkf_runs_help(colcon_install: Path) -> None:
 @pytest.mark.ros
 def test_installed_estimator_runs(colcon_install: Path) -> None:
     """``ros2 run mkf_ros estimator``: the colcon-installed executable starts, is driven by a
-    separate client process (topics, SetParameters, ~/reset) and stops cleanly on SIGINT.
+    separate client process (topics, SetParameters, ~/reset) and stops cleanly on SIGINT:
+    the same session and checks as the editable install's (test/ros/test_process.py).
 
     The compiled kernels come from the per-user numba cache shared with the source tree
     (mkf_ros/core/_jit.py keys it on the kernel sources), so this is seconds, not the ~1 min
     of a cold compile, unless the kernels changed since the last run.
     """
-    import json
-    import signal
+    from proc_session import SESSION_ROS_ARGS, check_session, run_node_and_client
 
     prefix = colcon_install
     exe = prefix / "lib" / PKG / "estimator"
-    site = _site_packages(prefix)
-    env = dict(os.environ)  # what `. install/setup.sh` would set
-    env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(site), env.get("PYTHONPATH")]))
-    env["AMENT_PREFIX_PATH"] = os.pathsep.join(
-        filter(None, [str(prefix), env.get("AMENT_PREFIX_PATH")]))
-    help_ = subprocess.run([str(exe), "--help"], cwd=prefix, env=env, capture_output=True,
-                           text=True, timeout=120, check=False)
+    help_ = _run_installed([str(exe), "--help"], prefix)
     assert help_.returncode == 0 and "imu/data_raw" in help_.stdout, help_.stderr
-    node = subprocess.Popen(
-        [str(exe), "--ros-args", "-r", "__node:=colcon_estimator", "-p", "use_mag:=true",
-         "-p", "qos_overrides./imu/data_raw.subscription.reliability:=reliable",
-         "-p", "qos_overrides./imu/mag.subscription.reliability:=reliable"],
-        cwd=prefix, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    try:
-        client = subprocess.run(
-            [sys.executable, str(REPO / "test" / "ros" / "proc_client.py"), "/colcon_estimator",
-             "--seconds", "1.0", "--timeout", "200"],
-            cwd=prefix, env=env, capture_output=True, text=True, timeout=240, check=False)
-    finally:
-        node.send_signal(signal.SIGINT)
-        try:
-            _, err = node.communicate(timeout=30)
-        except subprocess.TimeoutExpired:
-            node.kill()
-            _, err = node.communicate()
-    lines = [ln for ln in client.stdout.splitlines() if ln.startswith("{")]
-    assert lines, f"client: {client.stdout}\n{client.stderr}\nestimator: {err[-3000:]}"
-    res = json.loads(lines[-1])
-    assert res["ok"] and res["received"] == res["sent"], f"{res}\n{err[-3000:]}"
-    assert res["set_algorithm"] == [True, ""] and res["reset"][0]
-    assert node.returncode == 0 and "Traceback" not in err, err[-3000:]
-    assert f"{site}" in subprocess.run(
-        [sys.executable, "-c", "import mkf_ros.ros.estimator_node as m; print(m.__file__)"],
-        cwd=prefix, env=env, capture_output=True, text=True, timeout=60).stdout
+    res, err, rc = run_node_and_client(
+        [str(exe), "--ros-args", "-r", "__node:=colcon_estimator", *SESSION_ROS_ARGS],
+        _installed_env(prefix), "/colcon_estimator", cwd=prefix,
+        client_args=("--timeout", "200"))
+    check_session(res, err, rc)
+    _assert_imported_from_install("mkf_ros.ros.estimator_node", prefix)
 
 
 # ---------------------------------------------------------------- (b) package.xml

@@ -1,4 +1,8 @@
-"""CLI flags generated from the single parameter definition (:mod:`mkf_ros.core.params`)."""
+"""CLI flags generated from the single parameter definition (:mod:`mkf_ros.core.params`).
+
+The one generator of ``--name`` flags from :class:`~mkf_ros.core.params.Param` definitions and
+the one reader of the values the user set: ``mkf demo`` (the filter parameters) and
+``mkf process`` (the filter's and the node's offline ones) both use it."""
 
 from __future__ import annotations
 
@@ -36,6 +40,12 @@ def add_param_flags(parser: argparse.ArgumentParser, params: Iterable[Param],
             g.add_argument(flag(p), type=p.type, metavar=p.unit.upper() or "X", **kw)
 
 
+def param_overrides(args: argparse.Namespace, params: Iterable[Param]) -> dict[str, Any]:
+    """The parameters of ``params`` the user set explicitly (flags of :func:`add_param_flags`)."""
+    return {p.name: getattr(args, p.name) for p in params
+            if getattr(args, p.name, None) is not None}
+
+
 def add_filter_options(parser: argparse.ArgumentParser) -> None:
     """One ``--name`` flag per filter parameter; unset flags keep the parameter's default."""
     add_param_flags(parser, filter_params(), "filter parameters")
@@ -43,5 +53,4 @@ def add_filter_options(parser: argparse.ArgumentParser) -> None:
 
 def filter_overrides(args: argparse.Namespace) -> dict[str, Any]:
     """The filter parameters the user set explicitly on the command line."""
-    return {p.name: getattr(args, p.name) for p in filter_params()
-            if getattr(args, p.name, None) is not None}
+    return param_overrides(args, filter_params())

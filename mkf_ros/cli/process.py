@@ -10,7 +10,10 @@ import contextlib
 import sys
 from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from mkf_ros.core.params import Param
 
 HELP = "run the estimator over a bag (no DDS), write imu/data, score against ground truth"
 
@@ -18,12 +21,13 @@ HELP = "run the estimator over a bag (no DDS), write imu/data, score against gro
 PROGRESS_MIN = 100_000
 
 
-def add_param_options(parser: argparse.ArgumentParser, names: list[str], title: str) -> None:
-    """One ``--name`` flag per parameter in ``names`` (generated from PARAMS)."""
-    from mkf_ros.cli.options import add_param_flags
+def _stream_params() -> list[Param]:
+    """The parameters ``mkf process`` takes as flags
+    (:func:`~mkf_ros.bags.process.stream_param_names`)."""
+    from mkf_ros.bags.process import stream_param_names
     from mkf_ros.core.params import BY_NAME
 
-    add_param_flags(parser, [BY_NAME[n] for n in names], title)
+    return [BY_NAME[n] for n in stream_param_names()]
 
 
 class Once(argparse.Action):
@@ -42,7 +46,7 @@ class Once(argparse.Action):
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from mkf_ros.bags.process import stream_param_names
+    from mkf_ros.cli.options import add_param_flags
 
     parser.add_argument("bags", nargs="+", metavar="BAG", help="input bag: rosbag2 directory, "
                         ".mcap, .db3 or ROS 1 .bag; several bags or a folder of bags are "
@@ -83,13 +87,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                    help="process the bags on the Dask cluster of this scheduler "
                         "(tcp://HOST:8786; paths must be the same on every worker, "
                         "docs/bags.md)")
-    add_param_options(parser, stream_param_names(), "estimator parameters (as the node's)")
+    add_param_flags(parser, _stream_params(), "estimator parameters (as the node's)")
 
 
 def _overrides(args: argparse.Namespace) -> dict[str, Any]:
-    from mkf_ros.bags.process import stream_param_names
+    """The estimator parameters set on the command line."""
+    from mkf_ros.cli.options import param_overrides
 
-    return {n: getattr(args, n) for n in stream_param_names() if getattr(args, n) is not None}
+    return param_overrides(args, _stream_params())
 
 
 class _Bars:

@@ -265,6 +265,7 @@ class PlayerNode(Node):
         self._next: tuple[str, int, bytes] | None = None
         self._t0_wall = 0.0  # monotonic s
         self._t0_bag = 0  # bag ns
+        self._t_taken = 0  # bag ns of the last message taken
         self._last_clock = -1.0
         self._done_at = 0.0
         self._steady = Clock(clock_type=ClockType.STEADY_TIME)
@@ -302,6 +303,7 @@ class PlayerNode(Node):
             return
         self._t0_wall = now
         self._t0_bag = self._next[1]
+        self._t_taken = self._t0_bag
         self._last_clock = -1.0
         self.state = "playing"
 
@@ -312,8 +314,9 @@ class PlayerNode(Node):
         if self._clock_pub is None:
             return
         if force or now - self._last_clock >= 1.0 / self.p["clock_frequency"]:
-            t = self._bag_now(now) if self._next is None else min(self._bag_now(now),
-                                                                 self._next[1])
+            # never ahead of the next message, nor (a late tick) past the end of the recording
+            t = min(self._bag_now(now),
+                    self._t_taken if self._next is None else self._next[1])
             self._clock_pub.publish(cdr.clock_message(t))
             self._last_clock = now
 
@@ -353,6 +356,7 @@ class PlayerNode(Node):
                 if pub is not None:
                     pub.publish(raw)
                     self.published[topic] += 1
+                self._t_taken = t
                 self._next = next(self._it, None)
             self._publish_clock(now)
             if self._next is None:

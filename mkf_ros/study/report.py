@@ -193,10 +193,11 @@ def _r_label(r: float) -> str:
     return f"R = 1e{round(np.log10(r))}"
 
 
-def _variant_grid(t: Table, update: str, sampling: str, row_height: float
-                  ) -> tuple[list[tuple[str, str]], list, Any, Any] | None:
+def _variant_panels(t: Table, update: str, sampling: str, row_height: float, ylabel: str
+                    ) -> tuple[Any, list[tuple[Any, str, str, float]]] | None:
     """One panel per filter variant (MEKF; MUKF with each Q scaling) with results for
-    ``update`` × R (largest first): ``(variants, rs, fig, axs)``, None without results."""
+    ``update`` × R (largest first), axis labels on the grid's edges: ``(fig, panels)`` with
+    ``panels`` the ``(ax, filter, scaling, r)`` of each, row by row; None without results."""
     filters = [(f, s) for f in cfg.FILTERS
                for s in ((cfg.NO_SCALING,) if f == "mekf" else ("published", "consistent"))
                if t.values(filter=f, mukf_scaling=s, update=update, sampling=sampling)]
@@ -205,28 +206,30 @@ def _variant_grid(t: Table, update: str, sampling: str, row_height: float
         return None
     fig, axs = _plt().subplots(len(filters), len(rs), squeeze=False, sharex=True,
                                figsize=(3.6 * len(rs), row_height * len(filters)))
-    return filters, rs, fig, axs
+    panels = []
+    for i, (f, s) in enumerate(filters):
+        for j, r in enumerate(rs):
+            _edge_labels(axs[i][j], i, j, len(filters), ylabel)
+            panels.append((axs[i][j], f, s, r))
+    return fig, panels
 
 
 def fig_charts(t: Table, path: Path, sampling: str = "sigma") -> Path | None:
     """Fig. 5: the four charts compared (chart update), one panel per filter × R."""
-    grid = _variant_grid(t, "cu", sampling, 2.9)
+    grid = _variant_panels(t, "cu", sampling, 2.9, "mean error (deg)")
     if grid is None:
         return None
-    filters, rs, fig, axs = grid
-    for i, (f, s) in enumerate(filters):
-        for j, r in enumerate(rs):
-            ax = axs[i][j]
-            for c in cfg.CHARTS:
-                rows = t.values(filter=f, mukf_scaling=s, update="cu", r=r, chart=c,
-                                sampling=sampling)
-                _errbar(ax, rows, color=CHART_COLORS[c], marker="o", label=f"{c.upper()} (ours)")
-                if s != "consistent":
-                    _published(ax, rows, color=CHART_COLORS[c], label=f"{c.upper()} (paper)")
-            name = f.upper() + ("" if s == cfg.NO_SCALING else f" ({s} scaling)")
-            _axes(ax, f"{name}, {_r_label(r)}")
-            _edge_labels(ax, i, j, len(filters), "mean error (deg)")
-    axs[0][0].legend(fontsize=6, ncol=2)
+    fig, panels = grid
+    for ax, f, s, r in panels:
+        for c in cfg.CHARTS:
+            rows = t.values(filter=f, mukf_scaling=s, update="cu", r=r, chart=c,
+                            sampling=sampling)
+            _errbar(ax, rows, color=CHART_COLORS[c], marker="o", label=f"{c.upper()} (ours)")
+            if s != "consistent":
+                _published(ax, rows, color=CHART_COLORS[c], label=f"{c.upper()} (paper)")
+        name = f.upper() + ("" if s == cfg.NO_SCALING else f" ({s} scaling)")
+        _axes(ax, f"{name}, {_r_label(r)}")
+    panels[0][0].legend(fontsize=6, ncol=2)
     fig.suptitle("Fig. 5 - charts compared (chart update); bars: mu +- 3 sigma/sqrt(N_s); "
                  "dashed x: published", fontsize=9)
     return _save(fig, path)
@@ -263,42 +266,39 @@ def fig_update(t: Table, parts: runner.Parts, n_s: int, path: Path,
                sampling: str = "sigma") -> Path | None:
     """Fig. 7: chart update vs reset, as the relative difference (reset − CU)/CU with the
     paired (common-random-number) confidence bar; published difference as open markers."""
-    grid = _variant_grid(t, "reset", sampling, 2.7)
+    grid = _variant_panels(t, "reset", sampling, 2.7, "(reset - CU) / CU  (%)")
     if grid is None:
         return None
-    filters, rs, fig, axs = grid
-    for i, (f, s) in enumerate(filters):
-        for j, r in enumerate(rs):
-            ax = axs[i][j]
-            for k, c in enumerate(cfg.CHARTS):
-                xs, ys, es, px, py = [], [], [], [], []
-                for rate in t.axis("rate_hz", filter=f, chart=c, r=r, sampling=sampling):
-                    a = t.get(f, c, "reset", r, rate, s, sampling)
-                    b = t.get(f, c, "cu", r, rate, s, sampling)
-                    if a is None or b is None:
-                        continue
-                    d = compare_paired(parts, n_s, a.cell, b.cell)
-                    if d is None:
-                        continue
-                    x = rate * (1.0 + 0.06 * (k - 1.5))
-                    xs.append(x)
-                    ys.append(100 * d[0] / b.mu)
-                    es.append(100 * d[1] / b.mu)
-                    if a.pub is not None and b.pub is not None:
-                        px.append(x)
-                        py.append(100 * (a.pub - b.pub) / b.pub)
-                col = CHART_COLORS[c]
-                if xs:
-                    ax.errorbar(xs, ys, yerr=es, color=col, marker="o", ms=3.5, lw=1.0,
-                                capsize=2, label=f"{c.upper()} (ours)")
-                if px:
-                    ax.plot(px, py, ls="none", marker="o", mfc="none", color=col, ms=5,
-                            label=f"{c.upper()} (paper)")
-            ax.axhline(0.0, color="k", lw=0.6)
-            name = f.upper() + ("" if s == cfg.NO_SCALING else f" ({s})")
-            _axes(ax, f"{name}, {_r_label(r)}", ylog=False)
-            _edge_labels(ax, i, j, len(filters), "(reset - CU) / CU  (%)")
-    axs[0][0].legend(fontsize=6, ncol=2)
+    fig, panels = grid
+    for ax, f, s, r in panels:
+        for k, c in enumerate(cfg.CHARTS):
+            xs, ys, es, px, py = [], [], [], [], []
+            for rate in t.axis("rate_hz", filter=f, chart=c, r=r, sampling=sampling):
+                a = t.get(f, c, "reset", r, rate, s, sampling)
+                b = t.get(f, c, "cu", r, rate, s, sampling)
+                if a is None or b is None:
+                    continue
+                d = compare_paired(parts, n_s, a.cell, b.cell)
+                if d is None:
+                    continue
+                x = rate * (1.0 + 0.06 * (k - 1.5))
+                xs.append(x)
+                ys.append(100 * d[0] / b.mu)
+                es.append(100 * d[1] / b.mu)
+                if a.pub is not None and b.pub is not None:
+                    px.append(x)
+                    py.append(100 * (a.pub - b.pub) / b.pub)
+            col = CHART_COLORS[c]
+            if xs:
+                ax.errorbar(xs, ys, yerr=es, color=col, marker="o", ms=3.5, lw=1.0,
+                            capsize=2, label=f"{c.upper()} (ours)")
+            if px:
+                ax.plot(px, py, ls="none", marker="o", mfc="none", color=col, ms=5,
+                        label=f"{c.upper()} (paper)")
+        ax.axhline(0.0, color="k", lw=0.6)
+        name = f.upper() + ("" if s == cfg.NO_SCALING else f" ({s})")
+        _axes(ax, f"{name}, {_r_label(r)}", ylog=False)
+    panels[0][0].legend(fontsize=6, ncol=2)
     fig.suptitle("Fig. 7 - chart update vs reset: relative difference of the mean error; "
                  "bars: paired 3-SE (same trajectories)", fontsize=9)
     return _save(fig, path)

@@ -2,23 +2,15 @@
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable, Iterator
 from typing import Any
 
 import pytest
-from rosharness import Harness
+from rosharness import Harness, closing_factory
 
 
 @pytest.fixture
 def harness(ros_context: Any) -> Iterator[Callable[..., Harness]]:
     """Factory: ``harness(params, reliable=True, namespace=None)``; closed after the test."""
-    made: list[Harness] = []
-
-    def make(params: dict[str, Any] | None = None, **kw: Any) -> Harness:
-        h = Harness(ros_context, params, **kw)
-        made.append(h)
-        return h
-
-    yield make
-    for h in made:
-        h.close()
+    yield from closing_factory(functools.partial(Harness, ros_context))

@@ -3,7 +3,8 @@
 
     python proc_client.py NODE_FQN [--imu-rate HZ] [--seconds S]
 
-Used by test_process.py and by test_packaging.py (colcon-installed executable).
+Run by test/proc_session.py, for test_process.py and test_packaging.py (the colcon-installed
+executable).
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.parameter_client import AsyncParameterClient
 from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rosharness import spin_until
 from sensor_msgs.msg import Imu, MagneticField
 from std_srvs.srv import Trigger
 
@@ -48,23 +50,19 @@ def main() -> int:
     end = time.monotonic() + a.timeout
     result: dict = {}
 
-    def spin_until(cond) -> bool:
-        while not cond():
-            if time.monotonic() > end:
-                return False
-            ex.spin_once(timeout_sec=0.02)
-        return True
+    def wait(cond) -> bool:  # every wait shares the one deadline
+        return spin_until(ex, cond, end - time.monotonic())
 
     def call(fut):
-        assert spin_until(fut.done), "service call timed out"
+        assert wait(fut.done), "service call timed out"
         return fut.result()
 
     try:
         assert params.wait_for_services(timeout_sec=a.timeout), "no parameter services"
-        assert spin_until(lambda: pub.get_subscription_count() > 0
+        assert wait(lambda: pub.get_subscription_count() > 0
                           and pub_mag.get_subscription_count() > 0
                           and pub.get_subscription_count() > 0), "estimator not subscribed"
-        assert spin_until(lambda: node.count_publishers("imu/data") > 0), "no imu/data"
+        assert wait(lambda: node.count_publishers("imu/data") > 0), "no imu/data"
         rec = simulate("slow_rotation", duration=a.seconds, rate=a.imu_rate, seed=2,
                        mag_rate=a.imu_rate / 2)
         t0 = 1000.0
@@ -98,7 +96,7 @@ def main() -> int:
         r = call(reset.call_async(Trigger.Request()))
         result["reset"] = [r.success, r.message]
         stream(half, len(rec.t))
-        spin_until(lambda: len(out) >= len(rec.t))
+        wait(lambda: len(out) >= len(rec.t))
         result["sent"] = len(rec.t)
         result["received"] = len(out)
         result["frame_id"] = out[-1].header.frame_id if out else ""

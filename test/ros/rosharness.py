@@ -7,12 +7,12 @@ from __future__ import annotations
 import math
 import os
 import time
-from collections.abc import Callable, Sequence
-from typing import Any
+from collections.abc import Callable, Iterator, Sequence
+from typing import Any, Protocol, TypeVar
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
-from rclpy.executors import SingleThreadedExecutor
+from rclpy.executors import Executor, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter, parameter_value_to_python
 from rclpy.parameter_client import AsyncParameterClient
@@ -30,6 +30,39 @@ RELIABLE_IN = {
     "qos_overrides./imu/mag.subscription.depth": 2000,
 }
 QOS = QoSProfile(depth=2000, reliability=ReliabilityPolicy.RELIABLE)
+
+
+def spin_until(ex: Executor, cond: Callable[[], bool], timeout: float) -> bool:
+    """Spin ``ex`` until ``cond()`` holds (True) or ``timeout`` seconds have passed (False);
+    ``cond=lambda: False`` spins for ``timeout`` seconds, taking what is in flight."""
+    end = time.monotonic() + timeout
+    while not cond():
+        if time.monotonic() > end:
+            return False
+        ex.spin_once(timeout_sec=0.01)
+    return True
+
+
+class _Closable(Protocol):
+    def close(self) -> None: ...
+
+
+C = TypeVar("C", bound=_Closable)
+
+
+def closing_factory(make: Callable[..., C]) -> Iterator[Callable[..., C]]:
+    """The body of a factory fixture (``yield from closing_factory(...)``): yields ``make``,
+    remembering what it made, and closes every one of them after the test."""
+    made: list[C] = []
+
+    def tracked(*args: Any, **kwargs: Any) -> C:
+        obj = make(*args, **kwargs)
+        made.append(obj)
+        return obj
+
+    yield tracked
+    for obj in made:
+        obj.close()
 
 
 def imu_msg(stamp: float, gyr: Sequence[float] | None, acc: Sequence[float] | None,
@@ -96,17 +129,10 @@ class Harness:
 
     # --- spinning ----------------------------------------------------------------------------
     def spin_until(self, cond: Callable[[], bool], timeout: float = 5.0) -> bool:
-        end = time.monotonic() + timeout
-        while not cond():
-            if time.monotonic() > end:
-                return False
-            self.ex.spin_once(timeout_sec=0.02)
-        return True
+        return spin_until(self.ex, cond, timeout)
 
     def spin_for(self, seconds: float) -> None:
-        end = time.monotonic() + seconds
-        while time.monotonic() < end:
-            self.ex.spin_once(timeout_sec=0.02)
+        spin_until(self.ex, lambda: False, seconds)
 
     def received(self) -> int:
         return self.est.received_imu + self.est.received_mag

@@ -4,11 +4,12 @@ the cross-process path is covered by test_player_roundtrip.py and the demo test.
 
 from __future__ import annotations
 
+import functools
 import os
 import subprocess
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -20,6 +21,7 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock
+from rosharness import closing_factory, spin_until
 from sensor_msgs.msg import Imu, MagneticField
 
 from mkf_ros.bags import cdr
@@ -43,30 +45,29 @@ class Probe:
                                  parameter_overrides=[Parameter(k, value=v)
                                                       for k, v in params.items()])
         self.node = Node("probe", context=ctx, namespace=probe_ns)
-        self.got: dict[str, list[tuple[float, bytes]]] = {}
+        #: the raw (CDR) messages received on each topic, in order
+        self.got: dict[str, list[bytes]] = {}
         for topic, cls in (topics or TYPES).items():
             self.got[topic] = []
-            self.node.create_subscription(
-                cls, topic, lambda m, t=topic: self.got[t].append((time.monotonic(), m)),
-                RELIABLE, raw=True)
+            self.node.create_subscription(cls, topic, self.got[topic].append, RELIABLE, raw=True)
         self.ex = SingleThreadedExecutor(context=ctx)
         self.ex.add_node(self.player)
         self.ex.add_node(self.node)
 
     def spin_until(self, cond: Callable[[], bool], timeout: float = 20.0) -> bool:
-        end = time.monotonic() + timeout
-        while not cond():
-            if time.monotonic() > end:
-                return False
-            self.ex.spin_once(timeout_sec=0.01)
-        return True
+        return spin_until(self.ex, cond, timeout)
 
     def play(self, timeout: float = 20.0) -> None:
+        """Until the player is done and every message it published on a probed topic has
+        arrived (event-driven: nothing is assumed to arrive within a fixed time)."""
         assert self.spin_until(lambda: self.player.done, timeout), "player did not finish"
-        self.spin_until(lambda: False, 0.2)  # take what is still in flight
+        sent = {self.player.pubs[t].topic_name: n for t, n in self.player.published.items()}
+        assert self.spin_until(lambda: all(len(self.got[k]) >= n for k, n in sent.items()
+                                           if k in self.got), timeout), (
+            f"probe got {({k: len(v) for k, v in self.got.items()})} of {sent}")
 
     def raws(self, topic: str) -> list[bytes]:
-        return [m for _, m in self.got[topic]]
+        return list(self.got[topic])
 
     def close(self) -> None:
         self.ex.shutdown()
@@ -75,17 +76,9 @@ class Probe:
 
 
 @pytest.fixture
-def probe(ros_context: Any):
-    made: list[Probe] = []
-
-    def make(params: dict[str, Any], **kw: Any) -> Probe:
-        p = Probe(ros_context, params, **kw)
-        made.append(p)
-        return p
-
-    yield make
-    for p in made:
-        p.close()
+def probe(ros_context: Any) -> Iterator[Callable[..., Probe]]:
+    """Factory: ``probe(params, topics=None, ...)``; closed after the test."""
+    yield from closing_factory(functools.partial(Probe, ros_context))
 
 
 WAIT = {"wait_for_subscribers": 1, "start_delay": 0.2}
@@ -178,6 +171,30 @@ def test_relative_topics_follow_the_namespace(probe: Callable[..., Probe], bag: 
     assert len(p.got["/robot/imu/mag"]) == 75
 
 
+def clock_ns(raws: list[bytes]) -> np.ndarray:
+    """rosgraph_msgs/Clock messages (CDR: 4-byte header, int32 sec, uint32 nanosec) → ns."""
+    return np.array([int.from_bytes(m[4:8], "little", signed=True) * 10**9
+                     + int.from_bytes(m[8:12], "little") for m in raws])
+
+
+def test_clock_stops_at_the_end_of_the_recording(probe: Callable[..., Probe],
+                                                 tmp_path: Path) -> None:
+    """Event-driven (the test steps the player): a timer tick that comes late, as on a busy
+    machine, publishes every message then due and a /clock that stays within the recording
+    (0.5 s: its last stamp), not the playback time the late tick reads."""
+    path = tmp_path / "short"
+    write_bag(simulate("static", duration=0.5, rate=50.0, mag_rate=10.0), path, "sqlite3")
+    p = probe(dict(bag=str(path), rate=2.0, publish_clock=True, topics=["/imu/data_raw"],
+                   wait_for_subscribers=0, start_delay=0.0),
+              topics={"/clock": Clock, "/imu/data_raw": Imu})
+    p.player._timer.cancel()
+    p.player._step(1000.0)  # starts the playback at the first stamp
+    p.player._step(1010.0)  # 10 s late: all 26 messages are due (0.25 s at rate 2)
+    assert p.spin_until(lambda: len(p.got["/clock"]) == 2 and len(p.got["/imu/data_raw"]) == 26)
+    np.testing.assert_array_equal(clock_ns(p.raws("/clock")),
+                                  [DEFAULT_START_NS, DEFAULT_START_NS + 500_000_000])
+
+
 def test_loop_and_clock(probe: Callable[..., Probe], tmp_path: Path) -> None:
     path = tmp_path / "short"
     write_bag(simulate("static", duration=0.5, rate=50.0, mag_rate=10.0), path, "sqlite3")
@@ -185,15 +202,17 @@ def test_loop_and_clock(probe: Callable[..., Probe], tmp_path: Path) -> None:
                    clock_frequency=50.0, topics=["/imu/data_raw"]),
               topics={"/clock": Clock, "/imu/data_raw": Imu})
     assert p.spin_until(lambda: p.player.loops >= 2, 10.0)
-    p.spin_until(lambda: False, 0.1)  # the clock of the second loop is in flight
-    clocks = np.array([int.from_bytes(m[4:8], "little", signed=True) * 10**9
-                       + int.from_bytes(m[8:12], "little") for m in p.raws("/clock")])
-    d = np.diff(clocks)
-    jumps = np.flatnonzero(d < 0)
-    assert len(jumps) >= 2  # one per loop
+
+    def backward_jumps() -> int:  # of the /clock received so far
+        return int(np.count_nonzero(np.diff(clock_ns(p.raws("/clock"))) < 0))
+
+    # one jump per loop; both passes' IMU messages in
+    assert p.spin_until(lambda: backward_jumps() >= 2 and len(p.got["/imu/data_raw"]) >= 2 * 26,
+                        10.0)
+    clocks = clock_ns(p.raws("/clock"))
+    jumps = np.flatnonzero(np.diff(clocks) < 0)
     assert clocks[jumps[0] + 1] == DEFAULT_START_NS  # back to the start of the bag
     assert clocks.min() >= DEFAULT_START_NS and clocks.max() <= DEFAULT_START_NS + 0.5e9
-    assert len(p.got["/imu/data_raw"]) >= 2 * 26
     assert not p.player.done
 
 

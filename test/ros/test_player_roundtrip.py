@@ -14,9 +14,9 @@ total RMSE after the first second < 1.22°. Measured about 0.2–0.3°.
 
 from __future__ import annotations
 
+import functools
 import math
-import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -27,6 +27,7 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rosharness import closing_factory, spin_until
 from sensor_msgs.msg import Imu
 
 from mkf_ros.cli.main import main as mkf
@@ -67,12 +68,7 @@ class Pipeline:
             self.ex.add_node(n)
 
     def spin_until(self, cond: Callable[[], bool], timeout: float) -> bool:
-        end = time.monotonic() + timeout
-        while not cond():
-            if time.monotonic() > end:
-                return False
-            self.ex.spin_once(timeout_sec=0.01)
-        return True
+        return spin_until(self.ex, cond, timeout)
 
     def scored(self) -> tuple[np.ndarray, dict[str, np.ndarray], np.ndarray]:
         """(receive index of each output, errors, output stamps) for outputs with a truth of
@@ -102,17 +98,9 @@ class Pipeline:
 
 
 @pytest.fixture
-def pipeline(ros_context: Any):
-    made: list[Pipeline] = []
-
-    def make(player: dict[str, Any], estimator: dict[str, Any]) -> Pipeline:
-        p = Pipeline(ros_context, player, estimator)
-        made.append(p)
-        return p
-
-    yield make
-    for p in made:
-        p.close()
+def pipeline(ros_context: Any) -> Iterator[Callable[..., Pipeline]]:
+    """Factory: ``pipeline(player_params, estimator_params)``; closed after the test."""
+    yield from closing_factory(functools.partial(Pipeline, ros_context))
 
 
 #: the estimator's input made reliable (its QoS overrides), so that nothing may be lost
@@ -162,7 +150,13 @@ def test_loop_with_clock_resets_cleanly(tmp_path: Path,
     p = pipeline(dict(bag=str(bag), rate=2.0, loop=True, publish_clock=True),
                  dict(use_mag=True, use_sim_time=True))
     assert p.spin_until(lambda: p.player.loops >= 2, 30.0)
-    p.spin_until(lambda: False, 0.6)  # into the third pass
+
+    def into_third_pass() -> bool:  # estimates 1 s (of recording) into the third pass
+        s = np.array([stamp_ns(m) for m in p.out])
+        j = np.flatnonzero(np.diff(s) < 0) + 1
+        return len(j) >= 2 and s[-1] >= s[j[1]] + 1_000_000_000
+
+    assert p.spin_until(into_third_pass, 30.0)
     c = p.est.stream.all_counters()
     assert c["resets"] >= 2, c
     assert "back" in p.est.stream.last_reset_reason or "time" in p.est.stream.last_reset_reason
@@ -195,7 +189,9 @@ def test_synth_split_topics_feed_a_split_estimator(pipeline: Callable[..., Pipel
                  dict(use_mag=True, input_mode="split", **reliable))
     assert set(p.player.pubs) == {"imu/accel", "imu/gyro", "imu/mag", "imu/ground_truth"}
     assert p.spin_until(lambda: p.player.done, 30.0)
-    p.spin_until(lambda: len(p.out) >= 301, 3.0)
+    # event-driven: the (reliable) input all taken, every estimate published has arrived
+    assert p.spin_until(lambda: p.est.received_imu == 301 and p.est.received_acc == 76
+                        and len(p.out) >= p.est._published, 30.0)
     # every gyro message answered, but the first may come before the accelerometer message
     # of its stamp (two topics: DDS keeps no order between them), with nothing to start from
     assert len(p.truth) == 301 and len(p.out) >= 300
