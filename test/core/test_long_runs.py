@@ -10,28 +10,15 @@ import numba
 import numpy as np
 import pytest
 
+from mkf_ros.core.filter import AttitudeFilter
 from mkf_ros.core.linalg import cholesky
-from mkf_ros.core.params import FilterParams
 from mkf_ros.core.sensor import sensor_step
-from mkf_ros.core.state import (
-    F_SIZE,
-    K_SIZE,
-    NX_MAX,
-    S_QC,
-    S_SIZE,
-    build_cfg,
-    build_noise,
-)
+from mkf_ros.core.state import S_QC
 from mkf_ros.sim import simulate
 
 
 @numba.njit(cache=False)
-def _run_checked(cfg, nz, dts, gyr, acc, mag):
-    st = np.zeros(S_SIZE)
-    st[S_QC] = 1.0
-    P = np.zeros((NX_MAX, NX_MAX))
-    fl = np.zeros(F_SIZE, dtype=np.int64)
-    cnt = np.zeros(K_SIZE, dtype=np.int64)
+def _run_checked(cfg, nz, st, P, fl, cnt, dts, gyr, acc, mag):
     nx = int(cfg[4])
     worst_norm = 0.0
     worst_asym = 0.0
@@ -64,10 +51,11 @@ def stream():
 def test_long_run_invariants(stream, algorithm: str, chart: str, cu: bool) -> None:
     n = stream.t.size
     assert n >= 100_000
-    cfg = build_cfg(FilterParams(algorithm=algorithm, chart=chart, chart_update=cu, use_mag=True,
-                                 estimate_gyro_bias=True, rate_process_noise=1.0))
+    f = AttitudeFilter(algorithm=algorithm, chart=chart, chart_update=cu, use_mag=True,
+                       estimate_gyro_bias=True, rate_process_noise=1.0)
+    cfg, nz, st, P, fl, cnt, _ = f.kernel_arrays()
     dts = np.r_[0.0, np.diff(stream.t)]
-    bad, worst_norm, worst_asym, cnt = _run_checked(cfg, build_noise(cfg), dts, stream.gyr,
+    bad, worst_norm, worst_asym, cnt = _run_checked(cfg, nz, st, P, fl, cnt, dts, stream.gyr,
                                                     stream.acc, stream.mag)
     assert bad == -1, f"P lost positive definiteness or became non-finite at step {bad}"
     assert worst_norm < 1e-12
