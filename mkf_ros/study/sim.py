@@ -227,6 +227,15 @@ def _set_grade(Rw: np.ndarray, Rv: np.ndarray, r: float) -> None:
 
 
 @jit
+def _buffers() -> tuple:
+    """One run's buffers: the measurement in use (one vector), the measured and reference
+    vector, the measured rate, the filter state ``q̄_c, ē, ω̄, b̄, P`` (set by
+    :func:`_init_state`) and the estimate ``q̂``."""
+    return (np.ones(1, dtype=np.bool_), np.empty((1, 3)), np.empty((1, 3)), np.empty(3),
+            np.empty(4), np.zeros(3), np.zeros(3), np.zeros(3), np.zeros((9, 9)), np.empty(4))
+
+
+@jit
 def _init_state(kind: int, qc: np.ndarray, eb: np.ndarray, w: np.ndarray,
                 P: np.ndarray) -> None:
     """§7.1 initialisation: ``q̄ = (1, 0, 0, 0)``, ``ē = 0``, ``ω̄ = 0`` (MUKF:
@@ -258,16 +267,7 @@ def run_trajectory(
     """
     theta0 = np.deg2rad(THETA_E0_DEG)
     Qw, Qb, Rw, Rv, Qv = _filter_noise()
-    use_v = np.ones(1, dtype=np.bool_)
-    vm = np.empty((1, 3))
-    vr = np.empty((1, 3))
-    wm = np.empty(3)
-    qc = np.empty(4)
-    eb = np.zeros(3)
-    w = np.zeros(3)
-    b = np.zeros(3)
-    P = np.zeros((9, 9))
-    qhat = np.empty(4)
+    use_v, vm, vr, wm, qc, eb, w, b, P, qhat = _buffers()
     d = np.empty(3)
     n_est = q_true.shape[0]
     for iv in range(specs.shape[0]):
@@ -344,17 +344,8 @@ def run_updates(spec: np.ndarray, r: float, dt: float, vref: np.ndarray, vbody: 
     sr = np.sqrt(r)
     Qw, Qb, Rw, Rv, Qv = _filter_noise()
     _set_grade(Rw, Rv, r)
-    use_v = np.ones(1, dtype=np.bool_)
-    vm = np.empty((1, 3))
-    vr = np.empty((1, 3))
-    wm = np.empty(3)
-    qc = np.empty(4)
-    eb = np.zeros(3)
-    w = np.zeros(3)
-    b = np.zeros(3)
-    P = np.zeros((9, 9))
+    use_v, vm, vr, wm, qc, eb, w, b, P, qhat = _buffers()
     _init_state(kind, qc, eb, w, P)
-    qhat = np.empty(4)
     for n in range(vref.shape[0]):
         for i in range(3):
             vr[0, i] = vref[n, i]
