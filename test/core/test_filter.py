@@ -141,9 +141,11 @@ def test_kernel_interface_reads_what_the_properties_say() -> None:
     np.testing.assert_array_equal(
         [[kf.rate_covariance(P, i, j) for j in range(3)] for i in range(3)],
         f.state_covariance[3:6, 3:6])
-    f.set_params(estimate_gyro_bias=False)
-    cfg, _, st, P, *_ = f.kernel_arrays()
+    f.set_params(estimate_gyro_bias=False, use_mag=False)
+    cfg, _, st, P, fl, *_ = f.kernel_arrays()
     assert [kf.bias_variance(cfg, P, i) for i in range(3)] == [0.0, 0.0, 0.0]
+    assert not kf.uses_mag(cfg)
+    assert kf.heading_fixed(cfg, fl) == f.heading_initialized is False
 
 
 def test_split_input_is_kept_across_parameter_changes() -> None:
