@@ -672,3 +672,27 @@ def test_split_input_detects_rest_as_the_combined_stream(offset: float) -> None:
                            rc.quat_wxyz[np.searchsorted(rc.index, common)])
     # the first tilt corrections differ (a quarter of the accelerometer samples), then agree
     assert rmse_deg(e["total"]) < 0.05 and np.degrees(e["total"][-2000:]).max() < 0.05
+
+
+def test_split_samples_ahead_held_or_untimed_follow_their_own_sensor() -> None:
+    """Split input: an accelerometer or magnetometer sample further ahead of the gyro stream
+    than ``max_dt`` is dropped and counted for its own sensor; one arriving before the first
+    gyro sample is held for that sensor and fused with the first gyro sample — also with
+    ``constant_dt`` (stamps not trusted), where it is kept as the one held sample."""
+    up, field = np.array(G), np.array([0.0, 2e-5, -4e-5])
+    for constant_dt in (0.0, 0.01):
+        a = StreamAdapter(input_mode="split", use_mag=True, constant_dt=constant_dt)
+        a.on_accel(T0, up)
+        a.on_mag(T0, field)
+        out = a.on_gyro(T0, np.zeros(3))
+        c = a.counters
+        assert out is not None and a.initialized, constant_dt
+        assert (c["acc_fused"], c["mag_fused"]) == (1, 1), (constant_dt, c)
+    a = StreamAdapter(input_mode="split", use_mag=True)
+    a.on_accel(T0, up)
+    a.on_gyro(T0, np.zeros(3))
+    far = T0 + 10.0 * a.params["max_dt"]
+    a.on_accel(far, up)
+    assert (a.counters["acc_ahead"], a.counters["mag_ahead"]) == (1, 0)
+    a.on_mag(far, field)
+    assert (a.counters["acc_ahead"], a.counters["mag_ahead"]) == (1, 1)
