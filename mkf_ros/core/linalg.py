@@ -75,14 +75,13 @@ def cho_solve(L: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 @jit_inline
-def symmetrize(p: np.ndarray) -> None:
-    """``P ← ½(P + Pᵀ)`` in place."""
-    n = p.shape[0]
+def symmetrize_leading(P: np.ndarray, n: int) -> None:
+    """``P ← ½(P + Pᵀ)`` on the leading ``n × n`` block, in place."""
     for i in range(n):
         for j in range(i + 1, n):
-            s = 0.5 * (p[i, j] + p[j, i])
-            p[i, j] = s
-            p[j, i] = s
+            s = 0.5 * (P[i, j] + P[j, i])
+            P[i, j] = s
+            P[j, i] = s
 
 
 @jit
