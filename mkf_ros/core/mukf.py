@@ -241,15 +241,14 @@ def mukf_step_t(
     as computed (step 0's re-centring, the bias noise added to ``P``). Speed: no allocation,
     no views; every small input a tuple (no reference counting).
 
-    The steps of §6, in order: 0. reset (:func:`_reset`), process noise outside the sigma points
-    (:func:`_add_process_noise`), 1.–2. the augmented factor and the weights
-    (:func:`_augmented_factor`, :func:`_weights`), 2.–3. every sigma point drawn
-    (:func:`_sigma_point`), propagated (:func:`_propagate_point`) and measured
-    (:func:`_predict_measurement`), 4. :func:`_align_hemispheres`, 5. :func:`_means`, 6. the
-    points in the chart of the new mean (:func:`_to_chart_of_mean`) and the covariances
-    (:func:`_sigma_covariances`, :func:`_linear_covariances`, :func:`_noise_and_innovation`),
-    the χ² gate (:func:`_chi2_gate`, :func:`_keep_rows`), 7. :func:`_update` and
-    :func:`_new_state`."""
+    The steps of §6, in order: 0. reset (:func:`_reset`), the process noise outside the sigma
+    points (:func:`_add_process_noise`), 1.–2. the augmented factor and the weights
+    (:func:`_augmented_factor`, :func:`_weights`), 2. :func:`_sigma_points`, 3.
+    :func:`_propagate` and :func:`_predict_measurements`, 4. :func:`_align_hemispheres`, 5.
+    :func:`_means`, 6. the points in the chart of the new mean (:func:`_to_chart_of_mean`) and
+    the covariances (:func:`_sigma_covariances`, :func:`_linear_covariances`,
+    :func:`_noise_and_innovation`), the χ² gate (:func:`_chi2_gate`, :func:`_keep_rows`),
+    7. :func:`_update` and :func:`_new_state`."""
     qc, ebar, w, b = x
     nis = (0.0, 0.0, 0.0, 0.0)
     if not chart_update:
@@ -261,12 +260,10 @@ def mukf_step_t(
     if not _augmented_factor(P, L, nx, Qw, qa):
         return False, qc, ebar, w, b, nis
     c, wj, w_0 = _weights(w0, nx, nvec)
-    ns = 2 * _NDA + 1
-    q_mid = qnormalize_t(qmul_t(qc, from_chart_t(chart, saturate_t(chart, ebar))))  # X_0's q
-    for s in range(ns):
-        j, nw = _sigma_point(X, s, L, ebar, c, nx)
-        qj = _propagate_point(X, s, j, nw, chart, qc, q_mid, w, dt, noise_mode)
-        _predict_measurement(X, s, qj, first, vref, use_h, hm, href, row_h)
+    _sigma_points(X, L, ebar, c, nx)
+    _propagate(X, chart, qc, ebar, w, dt, noise_mode, nx)
+    _predict_measurements(X, first, vref, use_h, hm, href, row_h)
+    ns = 2 * _NDA + 1  # the points' rows; row ns: means, row ns + 1: update and innovation
     _align_hemispheres(X, ns)
     qm = _means(X, ns, w_0, wj, w, b, row_g, row_z, use_w, use_z)
     _to_chart_of_mean(X, ns, chart, qm, row_g)
@@ -389,75 +386,86 @@ def _weights(w0: float, nx: int, nvec: int) -> tuple:
 
 
 @jit_inline
-def _sigma_point(X: np.ndarray, s: int, L: np.ndarray, ebar: tuple, c: float, nx: int) -> tuple:
-    """Step 2: sigma point ``s`` (``X_0 = x̄ᵃ``, ``X_j, X_{N+j} = x̄ᵃ ± c L[:, j]``) into row
-    ``s`` of ``X``: ``e_s`` and the offset ``Δz_s`` of ``(ω_s⁻, b_s)`` (the rate noise included).
-    Points ``1 … 9`` go along ``+`` the directions (L's columns 0–5, attitude and rate, and
-    ``nx … nx + 2``, rate noise), points ``10 … 18`` along ``−``. Returns ``(j, n_ω)``: the
-    column of L (−1 for ``X_0``) and the rate-noise offset."""
+def _direction(s: int, nx: int) -> int:
+    """The column of L that sigma point ``s > 0`` moves along (step 2): points ``1 … 9`` go
+    along ``+`` the directions (L's columns 0–5, attitude and rate, then ``nx … nx + 2``, rate
+    noise), points ``10 … 18`` along ``−`` the same."""
     d = s - 1 if s <= _NDA else s - 1 - _NDA
-    j = d if d < 6 else d + nx - 6  # direction: column of L
-    step = c if s <= _NDA else -c
-    for i in range(3):
-        X[s, _CX + i] = ebar[i]
-    for i in range(3, nx):
-        X[s, _CX + i] = 0.0
-    nw0 = nw1 = nw2 = 0.0
-    if s > 0:
-        if j < nx:  # a state direction (L is lower triangular: rows j … nx − 1)
-            for i in range(j, nx):
-                X[s, _CX + i] += step * L[i, j]
-        else:  # a rate-noise direction
-            nw0, nw1, nw2 = step * L[nx, j], step * L[nx + 1, j], step * L[nx + 2, j]
-            X[s, _CX + 3], X[s, _CX + 4], X[s, _CX + 5] = nw0, nw1, nw2
-    return j, (nw0, nw1, nw2)
+    return d if d < 6 else d + nx - 6
 
 
 @jit_inline
-def _propagate_point(X: np.ndarray, s: int, j: int, nw: tuple, chart: int, qc: tuple,
-                     q_mid: tuple, w: tuple, dt: float, noise_mode: int) -> tuple:
-    """Step 3, to the manifold and propagated: ``q_j = q̄_c * φ⁻¹(sat(e_j))``,
-    ``ω_j⁻ = ω_j + n_ω``, ``q_j⁻ = q_j * q_ω(ω_j⁻, Δt)`` (with ``NOISE_INTEGRATED`` the step
-    rotates with the mean rate ``ω_j + n_ω/2``), stored in row ``s`` of ``X`` and returned.
-    ``q_mid`` is ``X_0``'s ``q_j``, shared by every point that does not move e (normalised
-    once, at the end: the scale factors out of the product)."""
-    if noise_mode == NOISE_INTEGRATED:
-        wstep = (w[0] + (X[s, _CX + 3] - 0.5 * nw[0]), w[1] + (X[s, _CX + 4] - 0.5 * nw[1]),
-                 w[2] + (X[s, _CX + 5] - 0.5 * nw[2]))
-    else:
-        wstep = (w[0] + X[s, _CX + 3], w[1] + X[s, _CX + 4], w[2] + X[s, _CX + 5])
-    qj = q_mid
-    if s > 0 and j < 3:
-        qj = qmul_t(qc, from_chart_t(chart, saturate_t(
-            chart, (X[s, _CX], X[s, _CX + 1], X[s, _CX + 2]))))
-    qj = qnormalize_t(qmul_t(qj, q_omega_t(wstep, dt)))
-    for i in range(4):
-        X[s, _CQ + i] = qj[i]
-    return qj
+def _sigma_points(X: np.ndarray, L: np.ndarray, ebar: tuple, c: float, nx: int) -> None:
+    """Step 2: ``X_0 = x̄ᵃ``, ``X_j, X_{N+j} = x̄ᵃ ± c L[:, j]`` for the propagated directions
+    (:func:`_direction`), row ``s`` of ``X`` for point ``s``: ``e_s`` and the offset ``Δz_s`` of
+    ``(ω_s⁻, b_s)``, the rate noise ``n_ω`` included."""
+    for s in range(2 * _NDA + 1):
+        j = _direction(s, nx)
+        step = c if s <= _NDA else -c
+        for i in range(3):
+            X[s, _CX + i] = ebar[i]
+        for i in range(3, nx):
+            X[s, _CX + i] = 0.0
+        if s > 0:
+            if j < nx:  # a state direction (L is lower triangular: rows j … nx − 1)
+                for i in range(j, nx):
+                    X[s, _CX + i] += step * L[i, j]
+            else:  # a rate-noise direction
+                X[s, _CX + 3], X[s, _CX + 4], X[s, _CX + 5] = (
+                    step * L[nx, j], step * L[nx + 1, j], step * L[nx + 2, j])
 
 
 @jit_inline
-def _predict_measurement(X: np.ndarray, s: int, qj: tuple, first: tuple, vref: tuple,
-                         use_h: bool, hm: tuple, href: tuple, row_h: int) -> None:
-    """Step 3, the predicted measurement of point ``s`` into its row of ``X``: the vectors
+def _propagate(X: np.ndarray, chart: int, qc: tuple, ebar: tuple, w: tuple, dt: float,
+               noise_mode: int, nx: int) -> None:
+    """Step 3, to the manifold and propagated, ``q_j⁻`` into row ``j`` of ``X``:
+    ``q_j = q̄_c * φ⁻¹(sat(e_j))``, ``ω_j⁻ = ω_j + n_ω``, ``q_j⁻ = q_j * q_ω(ω_j⁻, Δt)``; with
+    ``NOISE_INTEGRATED`` the step rotates with the mean rate ``ω_j + n_ω/2``. Every point that
+    does not move e shares ``X_0``'s ``q_j`` (normalised once, at the end: the scale factors
+    out of the product)."""
+    q_mid = qnormalize_t(qmul_t(qc, from_chart_t(chart, saturate_t(chart, ebar))))
+    for s in range(2 * _NDA + 1):
+        j = _direction(s, nx)
+        dw = (X[s, _CX + 3], X[s, _CX + 4], X[s, _CX + 5])  # ω_j − ω̄ + n_ω
+        if noise_mode == NOISE_INTEGRATED:
+            nw = dw if s > 0 and j >= nx else (0.0, 0.0, 0.0)  # n_ω
+            wstep = (w[0] + (dw[0] - 0.5 * nw[0]), w[1] + (dw[1] - 0.5 * nw[1]),
+                     w[2] + (dw[2] - 0.5 * nw[2]))
+        else:
+            wstep = (w[0] + dw[0], w[1] + dw[1], w[2] + dw[2])
+        qj = q_mid
+        if s > 0 and j < 3:
+            qj = qmul_t(qc, from_chart_t(chart, saturate_t(
+                chart, (X[s, _CX], X[s, _CX + 1], X[s, _CX + 2]))))
+        qj = qnormalize_t(qmul_t(qj, q_omega_t(wstep, dt)))
+        for i in range(4):
+            X[s, _CQ + i] = qj[i]
+
+
+@jit_inline
+def _predict_measurements(X: np.ndarray, first: tuple, vref: tuple, use_h: bool, hm: tuple,
+                          href: tuple, row_h: int) -> None:
+    """Step 3, the predicted measurement of every point into its row of ``X``: the vectors
     ``y = R(q_j⁻)ᵀ v`` (``w̄_v = 0``; their spread is added to ``P_yy`` in
     :func:`_noise_and_innovation`) and the heading residual ``ψ(q_j⁻)``, unwrapped around the
     central point's. The gyro, ``ω_j⁻ + b_j``, and the zero rate, ``ω_j⁻``, are linear in the
     state: see :func:`_linear_covariances`."""
-    for k in range(2):
-        if first[k] >= 0:
-            y = rotate_inv_t(qj, vref[k])
-            for i in range(3):
-                X[s, _CY + first[k] + i] = y[i]
-    if use_h:
-        psi, _ = heading_residual_t(rotmat_t(qj), hm, href)
-        if s > 0:  # both in [−π, π]: one turn at most brings the difference into it
-            d_psi = psi - X[0, _CY + row_h]
-            if d_psi > np.pi:
-                psi -= 2.0 * np.pi
-            elif d_psi < -np.pi:
-                psi += 2.0 * np.pi
-        X[s, _CY + row_h] = psi
+    for s in range(2 * _NDA + 1):
+        qj = (X[s, _CQ], X[s, _CQ + 1], X[s, _CQ + 2], X[s, _CQ + 3])
+        for k in range(2):
+            if first[k] >= 0:
+                y = rotate_inv_t(qj, vref[k])
+                for i in range(3):
+                    X[s, _CY + first[k] + i] = y[i]
+        if use_h:
+            psi, _ = heading_residual_t(rotmat_t(qj), hm, href)
+            if s > 0:  # both in [−π, π]: one turn at most brings the difference into it
+                d_psi = psi - X[0, _CY + row_h]
+                if d_psi > np.pi:
+                    psi -= 2.0 * np.pi
+                elif d_psi < -np.pi:
+                    psi += 2.0 * np.pi
+            X[s, _CY + row_h] = psi
 
 
 @jit_inline
