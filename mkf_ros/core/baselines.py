@@ -53,7 +53,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from mkf_ros.core._jit import jit
+from mkf_ros.core._jit import jit, jit_inline
 from mkf_ros.core.linalg import cho_solve, cholesky, congruence, symmetrize_leading
 
 #: Floor of |cos θ| in sec θ and tan θ (θ within 0.06° of ±90°): keeps eq. (7) finite.
@@ -450,7 +450,7 @@ def gain_nis(S: np.ndarray, r: np.ndarray) -> float:
     return nis if ok else -1.0
 
 
-@jit
+@jit_inline
 def _solve_nis(S: np.ndarray, r: np.ndarray) -> tuple[bool, np.ndarray, np.ndarray, float]:
     """``(ok, L, S⁻¹ r, rᵀ S⁻¹ r)`` with ``S = L Lᵀ`` (``S⁻¹ r`` as an m×1 column); ``ok`` is
     False if ``S`` is not positive definite (the rest then not computed)."""

@@ -84,7 +84,7 @@ def symmetrize_leading(P: np.ndarray, n: int) -> None:
             P[j, i] = s
 
 
-@jit
+@jit_inline
 def mm(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """``a @ b`` for small dense matrices."""
     n, k = a.shape
@@ -99,7 +99,7 @@ def mm(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return c
 
 
-@jit
+@jit_inline
 def mmt(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """``a @ bᵀ`` for small dense matrices."""
     n, k = a.shape
@@ -139,7 +139,7 @@ def mtv(a: np.ndarray, v: np.ndarray) -> np.ndarray:
     return r
 
 
-@jit
+@jit_inline
 def congruence(a: np.ndarray, p: np.ndarray) -> np.ndarray:
     """``a p aᵀ``."""
     return mmt(mm(a, p), a)
