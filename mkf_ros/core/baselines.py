@@ -53,8 +53,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from mkf_ros.core._jit import jit
-from mkf_ros.core.linalg import cho_solve, cholesky, symmetrize
+from mkf_ros.core._jit import jit, jit_inline
+from mkf_ros.core.linalg import cho_solve, cholesky, congruence, symmetrize_leading
 
 #: Floor of |cos θ| in sec θ and tan θ (θ within 0.06° of ±90°): keeps eq. (7) finite.
 COS_MIN = 1e-3
@@ -177,7 +177,9 @@ def euler_cov_to_body(x: np.ndarray, S: np.ndarray, n: int) -> np.ndarray:
     A[0:3, 0:3] = E
     for i in range(3, n):
         A[i, i] = 1.0
-    return _congruence(A, S[0:n, 0:n])
+    out = congruence(A, S[0:n, 0:n])
+    symmetrize_leading(out, n)
+    return out
 
 
 @jit
@@ -188,27 +190,8 @@ def body_cov_to_euler(x: np.ndarray, C: np.ndarray, n: int) -> np.ndarray:
     A[0:3, 0:3] = W
     for i in range(3, n):
         A[i, i] = 1.0
-    return _congruence(A, C[0:n, 0:n])
-
-
-@jit
-def _congruence(A: np.ndarray, S: np.ndarray) -> np.ndarray:
-    n = A.shape[0]
-    AS = np.zeros((n, n))
-    for i in range(n):
-        for k in range(n):
-            a = A[i, k]
-            if a != 0.0:
-                for j in range(n):
-                    AS[i, j] += a * S[k, j]
-    out = np.zeros((n, n))
-    for i in range(n):
-        for j in range(n):
-            s = 0.0
-            for k in range(n):
-                s += AS[i, k] * A[j, k]
-            out[i, j] = s
-    symmetrize(out)
+    out = congruence(A, C[0:n, 0:n])
+    symmetrize_leading(out, n)
     return out
 
 
@@ -219,16 +202,9 @@ def gain_update(x: np.ndarray, P: np.ndarray, n: int, C: np.ndarray, S: np.ndarr
     ``C = Σ̄ Cᵀ_t``, eqs. (37)–(39) with ``C = Σ_xz``. Returns the NIS ``rᵀ S⁻¹ r``; −1 if ``S``
     is not positive definite; nothing changes if the NIS exceeds ``gate``."""
     m = r.shape[0]
-    L, ok = cholesky(S)
+    ok, L, sr, nis = _solve_nis(S, r)
     if not ok:
         return -1.0
-    rr = np.empty((m, 1))
-    for k in range(m):
-        rr[k, 0] = r[k]
-    sr = cho_solve(L, rr)
-    nis = 0.0
-    for k in range(m):
-        nis += r[k] * sr[k, 0]
     if nis > gate:
         return nis
     Ct = np.empty((m, n))
@@ -247,7 +223,7 @@ def gain_update(x: np.ndarray, P: np.ndarray, n: int, C: np.ndarray, S: np.ndarr
             for k in range(m):
                 s += C[i, k] * SiCt[k, j]
             P[i, j] -= s
-    symmetrize(P[0:n, 0:n])
+    symmetrize_leading(P, n)
     return nis
 
 
@@ -470,18 +446,26 @@ def euler_ukf_update(x: np.ndarray, P: np.ndarray, use: np.ndarray, z: np.ndarra
 @jit
 def gain_nis(S: np.ndarray, r: np.ndarray) -> float:
     """``rᵀ S⁻¹ r``; −1 if ``S`` is not positive definite."""
+    ok, _, _, nis = _solve_nis(S, r)
+    return nis if ok else -1.0
+
+
+@jit_inline
+def _solve_nis(S: np.ndarray, r: np.ndarray) -> tuple[bool, np.ndarray, np.ndarray, float]:
+    """``(ok, L, S⁻¹ r, rᵀ S⁻¹ r)`` with ``S = L Lᵀ`` (``S⁻¹ r`` as an m×1 column); ``ok`` is
+    False if ``S`` is not positive definite (the rest then not computed)."""
     m = r.shape[0]
     L, ok = cholesky(S)
-    if not ok:
-        return -1.0
     rr = np.empty((m, 1))
+    if not ok:
+        return False, L, rr, 0.0
     for k in range(m):
         rr[k, 0] = r[k]
     sr = cho_solve(L, rr)
     s = 0.0
     for k in range(m):
         s += r[k] * sr[k, 0]
-    return s
+    return True, L, sr, s
 
 
 # ------------------------------------------------------------------------------ Madgwick

@@ -237,12 +237,6 @@ def transition(chart: int, dbar: np.ndarray, e: np.ndarray) -> np.ndarray:
 
 
 @jit
-def to_chart_at(chart: int, qbar: np.ndarray, q: np.ndarray) -> np.ndarray:
-    """``φ_q̄(q) = φ(q̄* * q)``: chart centred at ``q̄`` (§2.3, eq. 11)."""
-    return to_chart(chart, qconj_mul(qbar, q))
-
-
-@jit
 def from_chart_at_t(chart: int, qbar: tuple, e: tuple) -> tuple:
     """``φ_q̄⁻¹(e) = q̄ * φ⁻¹(e)`` (§2.3, eq. 12), normalised."""
     q = qmul_t(qbar, from_chart_t(chart, e))

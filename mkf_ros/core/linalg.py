@@ -75,17 +75,16 @@ def cho_solve(L: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 @jit_inline
-def symmetrize(p: np.ndarray) -> None:
-    """``P ← ½(P + Pᵀ)`` in place."""
-    n = p.shape[0]
+def symmetrize_leading(P: np.ndarray, n: int) -> None:
+    """``P ← ½(P + Pᵀ)`` on the leading ``n × n`` block, in place."""
     for i in range(n):
         for j in range(i + 1, n):
-            s = 0.5 * (p[i, j] + p[j, i])
-            p[i, j] = s
-            p[j, i] = s
+            s = 0.5 * (P[i, j] + P[j, i])
+            P[i, j] = s
+            P[j, i] = s
 
 
-@jit
+@jit_inline
 def mm(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """``a @ b`` for small dense matrices."""
     n, k = a.shape
@@ -100,7 +99,7 @@ def mm(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return c
 
 
-@jit
+@jit_inline
 def mmt(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """``a @ bᵀ`` for small dense matrices."""
     n, k = a.shape
@@ -140,7 +139,7 @@ def mtv(a: np.ndarray, v: np.ndarray) -> np.ndarray:
     return r
 
 
-@jit
+@jit_inline
 def congruence(a: np.ndarray, p: np.ndarray) -> np.ndarray:
     """``a p aᵀ``."""
     return mmt(mm(a, p), a)

@@ -22,6 +22,7 @@ import numpy as np
 
 from mkf_ros.core._jit import jit, jit_inline
 from mkf_ros.core.charts import from_chart_t, saturate_t, t_matrix_t
+from mkf_ros.core.linalg import symmetrize_leading
 from mkf_ros.core.quaternion import q_omega_t, qmul_t, qnormalize_t, rotmat_t, t3, t4, t33
 
 # Speed (the arithmetic of a 6-state update is a few hundred flops): 3-vectors, quaternions and
@@ -361,7 +362,10 @@ def mekf_rate_update_t(
     P: np.ndarray, nx: int, dx: np.ndarray, w: tuple, b: tuple, wm: tuple, Rw: tuple,
     with_bias: bool, gate: float, work: np.ndarray, frozen: int = 0,
 ) -> float:
-    """:func:`mekf_rate_update` on tuples (``Rw`` a tuple of rows) with scratch ``work``."""
+    """A rate measurement (``Rw`` a tuple of rows, scratch ``work``): the gyro (eq. 23,
+    ``ȳ = ω̄⁻ + b̄``, ``H = [0, I, I]``, or ``[0, I]`` without bias) or, with
+    ``with_bias=False``, the zero-rate pseudo-measurement of rest detection (``ȳ = ω̄⁻``,
+    ``H = [0, I, 0]``)."""
     bias = with_bias and nx == 9
     r0 = wm[0] - w[0] - dx[3] - ((b[0] + dx[6]) if bias else (b[0] if with_bias else 0.0))
     r1 = wm[1] - w[1] - dx[4] - ((b[1] + dx[7]) if bias else (b[1] if with_bias else 0.0))
@@ -376,18 +380,6 @@ def mekf_rate_update_t(
             work[s0 + 9 + i, j] = Rw[i][j]
     return _block_update(P, nx, dx, work, (r0, r1, r2), gate,
                          H_RATE_BIAS if bias else H_RATE, (0.0, 0.0, 0.0), frozen)
-
-
-@jit
-def mekf_rate_update(
-    P: np.ndarray, nx: int, dx: np.ndarray, w: np.ndarray, b: np.ndarray, wm: np.ndarray,
-    Rw: np.ndarray, with_bias: bool, gate: float,
-) -> float:
-    """A rate measurement: the gyro (eq. 23, ``ȳ = ω̄⁻ + b̄``, ``H = [0, I, I]``, or ``[0, I]``
-    without bias) or, with ``with_bias=False``, the zero-rate pseudo-measurement of rest
-    detection (``ȳ = ω̄⁻``, ``H = [0, I, 0]``)."""
-    return mekf_rate_update_t(P, nx, dx, t3(w), t3(b), t3(wm), t33(Rw), with_bias, gate,
-                              mekf_scratch(nx))
 
 
 @jit
@@ -529,16 +521,6 @@ def mekf_apply(chart: int, chart_update: bool, qc: np.ndarray, w: np.ndarray, b:
     for i in range(3):
         w[i] = w1[i]
         b[i] = b1[i]
-
-
-@jit_inline
-def symmetrize_leading(P: np.ndarray, nx: int) -> None:
-    """``P ← ½(P + Pᵀ)`` on the leading ``nx × nx`` block."""
-    for i in range(nx):
-        for j in range(i + 1, nx):
-            s = 0.5 * (P[i, j] + P[j, i])
-            P[i, j] = s
-            P[j, i] = s
 
 
 @jit_inline

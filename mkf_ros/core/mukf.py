@@ -2,11 +2,18 @@
 
 Carried state: the chart centre ``q̄_c`` (the predicted mean of the previous step), the mean ``ē``
 of the distribution in that chart (not zero in general), ``ω̄``, the gyro bias ``b̄`` (extension)
-and ``P`` about ``(ē, ω̄[, b̄])`` in the ``q̄_c``-chart. The estimate is ``q̂ = q̄_c * φ⁻¹(ē)``.
+and ``P`` about ``(ē, ω̄[, b̄])`` in the ``q̄_c``-chart. The estimate is ``q̂ = q̄_c * φ⁻¹(ē)``
+(:func:`mkf_ros.core.charts.from_chart_at`).
 
 The chart update is implicit (§6, "How the MUKF does the chart update"): sigma points drawn in the
 old chart are re-expressed exactly in the chart of the new mean. The reset variant (step 0)
 re-centres at ``q̂`` and keeps ``P``.
+
+:func:`mukf_step_t` is the step; it calls one function per step of §6 (those are inlined into it:
+a call between compiled functions costs reference counting on every array argument, more than
+the arithmetic of most of these steps). The sigma points live in one table ``X`` (the spec's
+``X_j``, one row per point; not to be confused with the T-matrices of §3.2, which the MUKF does
+not need).
 """
 
 from __future__ import annotations
@@ -14,7 +21,7 @@ from __future__ import annotations
 import numpy as np
 
 from mkf_ros.core._jit import jit, jit_inline
-from mkf_ros.core.charts import from_chart_at, from_chart_at_t, from_chart_t, saturate_t, to_chart_t
+from mkf_ros.core.charts import from_chart_at_t, from_chart_t, saturate_t, to_chart_t
 from mkf_ros.core.linalg import cho_solve_into, cholesky_into, congruence33_t, transpose33_t
 from mkf_ros.core.mekf import heading_residual_t
 from mkf_ros.core.quaternion import (
@@ -59,9 +66,9 @@ def mukf_step(
     Returns False (state untouched) if a factorisation fails.
     """
     none = qc[:0]  # no heading sensor (hm, href unused), no gates (nis unused)
-    return _mukf_step(chart, chart_update, noise_mode, w0, qc, ebar, w, b, P, nx, dt, Qw, Qb,
-                      vm, vref, Rv, Qv, use_v, wm, use_w, Rw, none, none, False, 0.0, False, 0.0,
-                      none, none, False)
+    return mukf_step_ext(chart, chart_update, noise_mode, w0, qc, ebar, w, b, P, nx, dt, Qw, Qb,
+                         vm, vref, Rv, Qv, use_v, wm, use_w, Rw, none, none, False, 0.0, False,
+                         0.0, none, none, False)
 
 
 # measurement rows at most: two vectors, heading, gyro, zero rate
@@ -73,10 +80,10 @@ _NDA = 9
 @jit
 def mukf_scratch(nx: int) -> tuple:
     """Scratch of :func:`mukf_step_t` for ``nx`` states (see its step 2): ``L``, the sigma-point
-    table ``T``, ``P_xy``, ``P_yy``, its factor, ``K P_yy``, ``P_xx`` and ``Kᵀ``, each at its
+    table ``X``, ``P_xy``, ``P_yy``, its factor, ``K P_yy``, ``P_xx`` and ``Kᵀ``, each at its
     largest size (``m`` rows or columns at most ``_M_MAX``)."""
     nd = nx + 3
-    return (np.empty((nd, nd)), np.empty((2 * _NDA + 3, _Y + _M_MAX)),
+    return (np.empty((nd, nd)), np.empty((2 * _NDA + 3, _CY + _M_MAX)),
             np.empty((nx, _M_MAX)), np.empty((_M_MAX, _M_MAX)), np.empty((_M_MAX, _M_MAX)),
             np.empty((nx, _M_MAX)), np.empty((nx, nx)), np.empty((_M_MAX, nx)))
 
@@ -84,14 +91,14 @@ def mukf_scratch(nx: int) -> tuple:
 # measurement blocks of mukf_step_ext, in row order; index into its `gates` / `nis` arrays
 B_VEC0, B_VEC1, B_HEADING, B_GYRO = 0, 1, 2, 3
 _BLOCK_SIZE = (3, 3, 1, 3)
-# columns of the sigma-point table of mukf_step_ext: state part x = (e, ω, b), quaternion q⁻,
-# measurement y
-_X, _Q, _Y = 0, 9, 13
+# columns of the sigma-point table X: the state part x = (e, ω, b) (later Δx), the quaternion q⁻,
+# the measurement y (later Δy)
+_CX, _CQ, _CY = 0, 9, 13
 
 
 @jit_inline
-def _wmeans(T: np.ndarray, ns: int, w_0: float, wj: float, c0: int, c1: int) -> None:
-    """``T[ns, c] = Σ_s W_s T[s, c]`` for columns ``c0 ≤ c < c1`` over the sigma points
+def _wmeans(X: np.ndarray, ns: int, w_0: float, wj: float, c0: int, c1: int) -> None:
+    """``X[ns, c] = Σ_s W_s X[s, c]`` for columns ``c0 ≤ c < c1`` over the sigma points
     ``s < ns`` (``W_0 = w_0``, else ``wj``), accumulated from 0 in point order in registers,
     four columns at a time."""
     c = c0
@@ -100,56 +107,56 @@ def _wmeans(T: np.ndarray, ns: int, w_0: float, wj: float, c0: int, c1: int) -> 
         a0 = a1 = a2 = a3 = 0.0
         for s in range(ns):
             ws_ = w_0 if s == 0 else wj
-            a0 += ws_ * T[s, c]
+            a0 += ws_ * X[s, c]
             if n > 1:
-                a1 += ws_ * T[s, c + 1]
+                a1 += ws_ * X[s, c + 1]
             if n > 2:
-                a2 += ws_ * T[s, c + 2]
+                a2 += ws_ * X[s, c + 2]
             if n > 3:
-                a3 += ws_ * T[s, c + 3]
-        T[ns, c] = a0
+                a3 += ws_ * X[s, c + 3]
+        X[ns, c] = a0
         if n > 1:
-            T[ns, c + 1] = a1
+            X[ns, c + 1] = a1
         if n > 2:
-            T[ns, c + 2] = a2
+            X[ns, c + 2] = a2
         if n > 3:
-            T[ns, c + 3] = a3
+            X[ns, c + 3] = a3
         c += 4
 
 
 @jit_inline
-def _wsums(T: np.ndarray, s0: int, ns: int, w_0: float, wj: float, a: int, b: int, n: int,
+def _wsums(X: np.ndarray, s0: int, ns: int, w_0: float, wj: float, a: int, b: int, n: int,
            out: np.ndarray, r: int, oc: int) -> None:
-    """``out[r, oc + k] = Σ_s W_s T[s, a] T[s, b + k]`` for ``k < n``, over the rows
+    """``out[r, oc + k] = Σ_s W_s X[s, a] X[s, b + k]`` for ``k < n``, over the rows
     ``s0 ≤ s < s0 + ns`` (``W_{s0} = w_0``, else ``wj``), accumulated in registers four columns
     at a time, a last column in four partial sums (independent sums: the additions overlap
     instead of waiting for each other)."""
     k = 0
     s1 = s0 + ns
     while k + 4 <= n:
-        wa = w_0 * T[s0, a]
-        c0, c1 = wa * T[s0, b + k], wa * T[s0, b + k + 1]
-        c2, c3 = wa * T[s0, b + k + 2], wa * T[s0, b + k + 3]
+        wa = w_0 * X[s0, a]
+        c0, c1 = wa * X[s0, b + k], wa * X[s0, b + k + 1]
+        c2, c3 = wa * X[s0, b + k + 2], wa * X[s0, b + k + 3]
         for s in range(s0 + 1, s1):
-            wa = wj * T[s, a]
-            c0 += wa * T[s, b + k]
-            c1 += wa * T[s, b + k + 1]
-            c2 += wa * T[s, b + k + 2]
-            c3 += wa * T[s, b + k + 3]
+            wa = wj * X[s, a]
+            c0 += wa * X[s, b + k]
+            c1 += wa * X[s, b + k + 1]
+            c2 += wa * X[s, b + k + 2]
+            c3 += wa * X[s, b + k + 3]
         out[r, oc + k], out[r, oc + k + 1], out[r, oc + k + 2], out[r, oc + k + 3] = c0, c1, c2, c3
         k += 4
     while k < n:  # one column: four sums over every fourth row, independent likewise
-        c0 = (w_0 * T[s0, a]) * T[s0, b + k]
+        c0 = (w_0 * X[s0, a]) * X[s0, b + k]
         c1 = c2 = c3 = 0.0
         s = s0 + 1
         while s + 4 <= s1:
-            c0 += (wj * T[s, a]) * T[s, b + k]
-            c1 += (wj * T[s + 1, a]) * T[s + 1, b + k]
-            c2 += (wj * T[s + 2, a]) * T[s + 2, b + k]
-            c3 += (wj * T[s + 3, a]) * T[s + 3, b + k]
+            c0 += (wj * X[s, a]) * X[s, b + k]
+            c1 += (wj * X[s + 1, a]) * X[s + 1, b + k]
+            c2 += (wj * X[s + 2, a]) * X[s + 2, b + k]
+            c3 += (wj * X[s + 3, a]) * X[s + 3, b + k]
             s += 4
         while s < s1:
-            c0 += (wj * T[s, a]) * T[s, b + k]
+            c0 += (wj * X[s, a]) * X[s, b + k]
             s += 1
         out[r, oc + k] = (c0 + c1) + (c2 + c3)
         k += 1
@@ -164,7 +171,7 @@ def _row_kept(r: int, first: tuple, rejected: int) -> bool:
     return True
 
 
-@jit
+@jit_inline
 def mukf_step_ext(
     chart: int, chart_update: bool, noise_mode: int, w0: float,
     qc: np.ndarray, ebar: np.ndarray, w: np.ndarray, b: np.ndarray, P: np.ndarray, nx: int,
@@ -184,25 +191,10 @@ def mukf_step_ext(
     pseudo-measurement ``0 = ω + n`` of rest detection, and a χ² gate per block (vector 0,
     vector 1, heading, gyro; a block whose ``rᵀ P_yy⁻¹ r`` exceeds its gate is left out;
     ``nis`` receives every block's value). At most two vector sensors (``use_v`` of length 1
-    or 2)."""
-    return _mukf_step(chart, chart_update, noise_mode, w0, qc, ebar, w, b, P, nx, dt, Qw, Qb,
-                      vm, vref, Rv, Qv, use_v, wm, use_w, Rw, hm, href, use_h, var_h, use_z, var_z,
-                      gates, nis, tilt_v0)
+    or 2). With ``gates`` empty no block is gated and ``nis`` is not written.
 
-
-@jit_inline
-def _mukf_step(
-    chart: int, chart_update: bool, noise_mode: int, w0: float,
-    qc: np.ndarray, ebar: np.ndarray, w: np.ndarray, b: np.ndarray, P: np.ndarray, nx: int,
-    dt: float, Qw: np.ndarray, Qb: np.ndarray,
-    vm: np.ndarray, vref: np.ndarray, Rv: np.ndarray, Qv: np.ndarray, use_v: np.ndarray,
-    wm: np.ndarray, use_w: bool, Rw: np.ndarray,
-    hm: np.ndarray, href: np.ndarray, use_h: bool, var_h: float,
-    use_z: bool, var_z: float, gates: np.ndarray, nis: np.ndarray, tilt_v0: bool,
-) -> bool:
-    """The body of :func:`mukf_step_ext` (inlined into it and into :func:`mukf_step`): the
-    arrays as tuples for :func:`mukf_step_t`. With ``gates`` empty no block is gated and ``nis``
-    is not written. (At most 30 arguments: numba cannot inline a call with more.)"""
+    The arrays as tuples for :func:`mukf_step_t` (inlined into :func:`mukf_step`; at most 30
+    arguments: numba cannot inline a call with more)."""
     z3 = (0.0, 0.0, 0.0)
     z33 = (z3, z3, z3)
     nv = use_v.shape[0]
@@ -247,169 +239,307 @@ def mukf_step_t(
     :func:`mukf_scratch` for ``nx`` states. ``P`` is updated in place. Returns
     ``(ok, q̄_c, ē, ω̄, b̄, nis)``; if a factorisation fails, ``ok`` is False and the rest as far
     as computed (step 0's re-centring, the bias noise added to ``P``). Speed: no allocation,
-    no views; every small input a tuple (no reference counting)."""
-    qc_t, ebar, w, b = x
+    no views; every small input a tuple (no reference counting).
+
+    The steps of §6, in order: 0. reset (:func:`_reset`), the process noise outside the sigma
+    points (:func:`_add_process_noise`), 1.–2. the augmented factor and the weights
+    (:func:`_augmented_factor`, :func:`_weights`), 2. :func:`_sigma_points`, 3.
+    :func:`_propagate` and :func:`_predict_measurements`, 4. :func:`_align_hemispheres`, 5.
+    :func:`_means`, 6. the points in the chart of the new mean (:func:`_to_chart_of_mean`) and
+    the covariances (:func:`_sigma_covariances`, :func:`_linear_covariances`,
+    :func:`_noise_and_innovation`), the χ² gate (:func:`_chi2_gate`, :func:`_keep_rows`),
+    7. :func:`_update` and :func:`_new_state`."""
+    qc, ebar, w, b = x
     nis = (0.0, 0.0, 0.0, 0.0)
-    # 0. reset variant: re-centre at the estimate, keep P
     if not chart_update:
-        qc_t = from_chart_at_t(chart, qc_t, ebar)
-        ebar = (0.0, 0.0, 0.0)
-    if nx == 9:  # bias random walk, added before the sigma points so that it reaches P_xy
+        qc, ebar = _reset(chart, qc, ebar)
+    _add_process_noise(P, nx, dt, Qw, Qb, noise_mode)
+    nvec, row_h, row_g, row_z, m, first = _measurement_rows(use_v, use_h, use_w, use_z)
+    L, X, Pxy, Pyy, Ly, KPyy, Pxx, Kt = scratch  # (see "Scratch layout" below)
+    qa = _rate_noise_scale(noise_mode, dt)
+    if not _augmented_factor(P, L, nx, Qw, qa):
+        return False, qc, ebar, w, b, nis
+    c, wj, w_0 = _weights(w0, nx, nvec)
+    _sigma_points(X, L, ebar, c, nx)
+    _propagate(X, chart, qc, ebar, w, dt, noise_mode, nx)
+    _predict_measurements(X, first, vref, use_h, hm, href, row_h)
+    ns = 2 * _NDA + 1  # the points' rows; row ns: means, row ns + 1: update and innovation
+    _align_hemispheres(X, ns)
+    qm = _means(X, ns, w_0, wj, w, b, row_g, row_z, use_w, use_z)
+    _to_chart_of_mean(X, ns, chart, qm, row_g)
+    _sigma_covariances(X, Pxx, Pxy, Pyy, ns, w_0, wj, nx, row_g)
+    _linear_covariances(P, Pxx, Pxy, Pyy, nx, m, Qw, qa, row_g, row_z)
+    _noise_and_innovation(X, Pyy, ns, first, vm, Rv, Qv, use_h, var_h, row_h, wm, use_w, Rw,
+                          row_g, use_z, var_z, row_z)
+    ok, nis, rejected = _chi2_gate(X, Pyy, Ly, KPyy, ns, first, gates, gated)
+    if not ok:
+        return False, qc, ebar, w, b, nis
+    ma, row_v0k, row_hk = _keep_rows(X, Pxy, Pyy, ns, nx, m, first, rejected)
+    if not _update(X, Pxx, Pxy, Pyy, Ly, KPyy, Kt, ns, nx, ma, qm, tilt_v0, row_v0k, row_hk):
+        return False, qc, ebar, w, b, nis
+    e, w, b = _new_state(X, P, Pxx, ns, nx, chart, w, b)
+    return True, qm, e, w, b, nis
+
+
+# Scratch layout. numba has no stack arrays, and every allocation, every view and every array
+# argument of a call costs reference counting (atomic operations) that outweighs a small
+# matrix's arithmetic; so: eight arrays given by the caller (mukf_scratch), used in their
+# leading blocks, no views; tables by column.
+# L: lower Cholesky factor of the propagated part of Pᵃ, blockdiag(P, Q_ωᵃ).
+# X: row s for sigma point s: e_s in columns _CX…_CX+2 (later e_s⁻, see step 6), the offset
+#    Δz_s of (ω_s⁻, b_s) in _CX+3…_CX+nx−1, q_s⁻ in _CQ…_CQ+3, y_s in _CY…; row ns: the means of
+#    q⁻ and y; row ns + 1: the update Δx and the innovation y − ȳ.
+# P_xy, P_yy, its factor Ly, K P_yy, Kᵀ: m ≤ _M_MAX rows or columns, the first m used.
+
+
+@jit_inline
+def _reset(chart: int, qc: tuple, ebar: tuple) -> tuple:
+    """Step 0 (reset variant only): ``q̄_c ← q̂ = q̄_c * φ⁻¹(ē)``, ``ē ← 0``; ``P`` is kept."""
+    return from_chart_at_t(chart, qc, ebar), (0.0, 0.0, 0.0)
+
+
+@jit_inline
+def _add_process_noise(P: np.ndarray, nx: int, dt: float, Qw: tuple, Qb: tuple,
+                       noise_mode: int) -> None:
+    """The process noise that does not go through the sigma points (extensions), added to ``P``
+    before step 1: the bias random walk ``Q_b Δt`` (so that it reaches ``P_xy``) and, with
+    ``NOISE_INTEGRATED``, the Brownian-bridge part ``Q_ω Δt³/12`` of the attitude increment."""
+    if nx == 9:
         for i in range(3):
             for j in range(3):
                 P[6 + i, 6 + j] += Qb[i][j] * dt
-    published = noise_mode == NOISE_PUBLISHED
-    if noise_mode == NOISE_INTEGRATED:  # Brownian-bridge part of the attitude increment
+    if noise_mode == NOISE_INTEGRATED:
         k3 = dt * dt * dt / 12.0
         for i in range(3):
             for j in range(3):
                 P[i, j] += Qw[i][j] * k3
-    # measurement rows, in this order: vectors (3 each), heading (1), gyro (3), zero rate (3);
-    # first[blk] is the first row of block blk (B_VEC0 … B_GYRO), −1 if absent
+
+
+@jit_inline
+def _measurement_rows(use_v: tuple, use_h: bool, use_w: bool, use_z: bool) -> tuple:
+    """The stacked measurement's rows, in this order: vectors (3 each), heading (1), gyro (3),
+    zero rate (3). Returns ``(nvec, row_h, row_g, row_z, m, first)``: the number of vector
+    sensors, the first row of the heading, gyro and zero-rate blocks, the number of rows, and
+    ``first[blk]``, the first row of block ``blk`` (``B_VEC0`` … ``B_GYRO``), −1 if absent. The
+    rows before ``row_g`` (vectors, heading) are the ones not linear in the state."""
     v0, v1 = use_v
     nvec = (1 if v0 else 0) + (1 if v1 else 0)
     row_h = 3 * nvec
     row_g = row_h + (1 if use_h else 0)
     row_z = row_g + (3 if use_w else 0)
     m = row_z + (3 if use_z else 0)
-    m_nl = row_g  # the rows that are not linear in the state: vectors and heading
     first = (0 if v0 else -1, (3 if v0 else 0) if v1 else -1, row_h if use_h else -1,
              row_g if use_w else -1)
+    return nvec, row_h, row_g, row_z, m, first
 
-    # 1. augment: x̄ᵃ = (ē, ω̄[, b̄], w̄_ω = 0, w̄_v = 0 …), Pᵃ = blockdiag(P, Q_ωᵃ, Q_v …), N = dim
-    # 2. sigma points X_0 = x̄ᵃ, X_j, X_{N+j} = x̄ᵃ ± c L[:, j], c = √(N/(1 − W_0)),
-    #    W_j = (1 − W_0)/(2N), L the lower Cholesky factor of Pᵃ (block diagonal like Pᵃ).
-    #    Exact reductions (the sums of steps 5–6 are linear in the points; 2 W_j c² = 1):
-    #    * a pair along a Q_v column leaves q, ω, b equal to X_0's and moves y_k by
-    #      ±R(q_0⁻)ᵀ c L_v[:, j]: it adds 2 W_j to X_0's weight in every sum and
-    #      R(q_0⁻)ᵀ Q_v R(q_0⁻) to the k-th block of P_yy;
-    #    * a pair along a bias column (L is lower triangular: it moves b only) leaves q⁻ and
-    #      every non-linear y equal to X_0's: it adds 2 W_j to X_0's weight, nothing to the sums
-    #      with e or y (its two b offsets cancel) and its share of L Lᵀ to P_bb (below);
-    #    * z = (ω⁻, b) is linear in the points: z̄⁻ = (ω̄, b̄) and P_zz = P_zz + Q_ωᵃ exactly,
-    #      and a sum Σ_s W_s a_s Δz_s (Δz_0 = 0, Δz_{j−} = −Δz_{j+}) is
-    #      W_j Σ_j (a_{j+} − a_{j−}) Δz_{j+}.
-    #    So 1 + 2·9 points are propagated (directions: attitude, rate, rate noise).
-    N = nx + 3 + 3 * nvec
-    nda = _NDA  # propagated directions: L's columns 0–5 (attitude, rate), nx … nx + 2 (noise)
-    ns = 2 * nda + 1
-    # Scratch. numba has no stack arrays, and every allocation, every view and every array
-    # argument of a call costs reference counting (atomic operations) that outweighs a small
-    # matrix's arithmetic; so: eight arrays given by the caller (mukf_scratch), used in their
-    # leading blocks, no views; tables by column.
-    # L: lower Cholesky factor of the propagated part of Pᵃ, blockdiag(P, Q_ωᵃ).
-    # T: row s for sigma point s: e_s in columns _X…_X+2 (later e_s⁻, see step 6), the offset
-    #    Δz_s of (ω_s⁻, b_s) in _X+3…_X+nx−1, q_s⁻ in _Q…_Q+3, y_s in _Y…; row ns: the means of
-    #    q⁻ and y; row ns + 1: the update Δx and the innovation y − ȳ.
-    # P_xy, P_yy, its factor Ly, K P_yy, Kᵀ: m ≤ _M_MAX rows or columns, the first m used.
-    L, T, Pxy, Pyy, Ly, KPyy, Pxx, Kt = scratch
+
+@jit_inline
+def _rate_noise_scale(noise_mode: int, dt: float) -> float:
+    """Step 1, ``Q_ωᵃ = Q_ω·qa``, the covariance of the rate increment ``n_ω = ω⁻ − ω``:
+    ``qa = Δt`` (consistent, integrated) or ``Δt²`` (published: the authors' ``Q_ω`` with
+    ``n Δt``, the same spread); §8 item 3."""
+    return dt * dt if noise_mode == NOISE_PUBLISHED else max(dt, 0.0)
+
+
+@jit_inline
+def _augmented_factor(P: np.ndarray, L: np.ndarray, nx: int, Qw: tuple, qa: float) -> bool:
+    """Steps 1–2: ``L``, the lower Cholesky factor of the propagated part of
+    ``Pᵃ = blockdiag(P, Q_ωᵃ, Q_v …)``, ``blockdiag(P, Q_ω qa)`` (block diagonal like it; the
+    ``Q_v`` pairs are summed exactly, see :func:`_weights`). False if not positive definite."""
     if not cholesky_into(P, L, 0, nx):
-        return False, qc_t, ebar, w, b, nis
-    # Q_ωᵃ = Q_ω·qa, the covariance of the rate increment n_ω = ω⁻ − ω: Q_ω Δt (consistent,
-    # integrated) or Q_ω Δt² (published: the authors' Q_ω with n Δt, the same spread)
-    qa = dt * dt if published else max(dt, 0.0)
+        return False
     if qa > 0.0:
         for i in range(3):
             for j in range(3):
                 L[nx + i, nx + j] = Qw[i][j] * qa
         if not cholesky_into(L, L, nx, 3):
-            return False, qc_t, ebar, w, b, nis
+            return False
     else:  # a zero-length step (e.g. a magnetometer fused at the IMU's time): no rate noise,
         L[nx:, nx:] = 0.0  # those sigma points coincide with the central one
+    return True
+
+
+@jit_inline
+def _weights(w0: float, nx: int, nvec: int) -> tuple:
+    """Step 2's scale and weights for ``N = nx + 3 + 3·nvec`` (state, rate noise, ``n_v`` per
+    vector sensor): ``c = √(N/(1 − W_0))``, ``W_j = (1 − W_0)/(2N)``, and the weight of ``X_0``
+    with the folded pairs' ``w_0 = W_0 + 2 W_j·(3·nvec + nx − 6)``. Returns ``(c, W_j, w_0)``.
+
+    Exact reductions (the sums of steps 5–6 are linear in the points; ``2 W_j c² = 1``):
+
+    * a pair along a ``Q_v`` column leaves q, ω, b equal to ``X_0``'s and moves ``y_k`` by
+      ``±R(q_0⁻)ᵀ c L_v[:, j]``: it adds ``2 W_j`` to ``X_0``'s weight in every sum and
+      ``R(q_0⁻)ᵀ Q_v R(q_0⁻)`` to the k-th block of ``P_yy`` (:func:`_noise_and_innovation`);
+    * a pair along a bias column (L is lower triangular: it moves b only) leaves ``q⁻`` and
+      every non-linear y equal to ``X_0``'s: it adds ``2 W_j`` to ``X_0``'s weight, nothing to
+      the sums with e or y (its two b offsets cancel) and its share of ``L Lᵀ`` to ``P_bb``;
+    * ``z = (ω⁻, b)`` is linear in the points: ``z̄⁻ = (ω̄, b̄)`` and ``P_zz = P_zz + Q_ωᵃ``
+      exactly, and a sum ``Σ_s W_s a_s Δz_s`` (``Δz_0 = 0``, ``Δz_{j−} = −Δz_{j+}``) is
+      ``W_j Σ_j (a_{j+} − a_{j−}) Δz_{j+}``.
+
+    So ``1 + 2·9`` points are propagated (directions: attitude, rate, rate noise)."""
+    N = nx + 3 + 3 * nvec
     c = np.sqrt(N / (1.0 - w0))
     wj = (1.0 - w0) / (2.0 * N)
-    w_0 = w0 + 2.0 * (3.0 * nvec + (nx - 6)) * wj  # X_0's weight, with the folded pairs'
-    # X_0 on the manifold; also every point that does not move e
-    q_mid = qnormalize_t(qmul_t(qc_t, from_chart_t(chart, saturate_t(chart, ebar))))
-    for s in range(ns):
-        d = s - 1 if s <= nda else s - 1 - nda
-        j = d if d < 6 else d + nx - 6  # direction: column of L
-        step = c if s <= nda else -c
+    w_0 = w0 + 2.0 * (3.0 * nvec + (nx - 6)) * wj
+    return c, wj, w_0
+
+
+@jit_inline
+def _direction(s: int, nx: int) -> int:
+    """The column of L that sigma point ``s > 0`` moves along (step 2): points ``1 … 9`` go
+    along ``+`` the directions (L's columns 0–5, attitude and rate, then ``nx … nx + 2``, rate
+    noise), points ``10 … 18`` along ``−`` the same."""
+    d = s - 1 if s <= _NDA else s - 1 - _NDA
+    return d if d < 6 else d + nx - 6
+
+
+@jit_inline
+def _sigma_points(X: np.ndarray, L: np.ndarray, ebar: tuple, c: float, nx: int) -> None:
+    """Step 2: ``X_0 = x̄ᵃ``, ``X_j, X_{N+j} = x̄ᵃ ± c L[:, j]`` for the propagated directions
+    (:func:`_direction`), row ``s`` of ``X`` for point ``s``: ``e_s`` and the offset ``Δz_s`` of
+    ``(ω_s⁻, b_s)``, the rate noise ``n_ω`` included."""
+    for s in range(2 * _NDA + 1):
+        j = _direction(s, nx)
+        step = c if s <= _NDA else -c
         for i in range(3):
-            T[s, _X + i] = ebar[i]
+            X[s, _CX + i] = ebar[i]
         for i in range(3, nx):
-            T[s, _X + i] = 0.0
-        nw0 = nw1 = nw2 = 0.0
+            X[s, _CX + i] = 0.0
         if s > 0:
             if j < nx:  # a state direction (L is lower triangular: rows j … nx − 1)
                 for i in range(j, nx):
-                    T[s, _X + i] += step * L[i, j]
+                    X[s, _CX + i] += step * L[i, j]
             else:  # a rate-noise direction
-                nw0, nw1, nw2 = step * L[nx, j], step * L[nx + 1, j], step * L[nx + 2, j]
-                T[s, _X + 3], T[s, _X + 4], T[s, _X + 5] = nw0, nw1, nw2
-        # 3. to the manifold, propagate, predict the measurement
-        #    q_j = q̄_c * φ⁻¹(sat(e_j)),  ω_j⁻ = ω_j + n_ω,  q_j⁻ = q_j * q_ω(ω_j⁻, Δt)
-        if noise_mode == NOISE_INTEGRATED:  # rotate with the mean rate ω_j + n_ω/2 over the step
-            wstep = (w[0] + (T[s, _X + 3] - 0.5 * nw0), w[1] + (T[s, _X + 4] - 0.5 * nw1),
-                     w[2] + (T[s, _X + 5] - 0.5 * nw2))
+                X[s, _CX + 3], X[s, _CX + 4], X[s, _CX + 5] = (
+                    step * L[nx, j], step * L[nx + 1, j], step * L[nx + 2, j])
+
+
+@jit_inline
+def _propagate(X: np.ndarray, chart: int, qc: tuple, ebar: tuple, w: tuple, dt: float,
+               noise_mode: int, nx: int) -> None:
+    """Step 3, to the manifold and propagated, ``q_j⁻`` into row ``j`` of ``X``:
+    ``q_j = q̄_c * φ⁻¹(sat(e_j))``, ``ω_j⁻ = ω_j + n_ω``, ``q_j⁻ = q_j * q_ω(ω_j⁻, Δt)``; with
+    ``NOISE_INTEGRATED`` the step rotates with the mean rate ``ω_j + n_ω/2``. Every point that
+    does not move e shares ``X_0``'s ``q_j`` (normalised once, at the end: the scale factors
+    out of the product)."""
+    q_mid = qnormalize_t(qmul_t(qc, from_chart_t(chart, saturate_t(chart, ebar))))
+    for s in range(2 * _NDA + 1):
+        j = _direction(s, nx)
+        dw = (X[s, _CX + 3], X[s, _CX + 4], X[s, _CX + 5])  # ω_j − ω̄ + n_ω
+        if noise_mode == NOISE_INTEGRATED:
+            nw = dw if s > 0 and j >= nx else (0.0, 0.0, 0.0)  # n_ω
+            wstep = (w[0] + (dw[0] - 0.5 * nw[0]), w[1] + (dw[1] - 0.5 * nw[1]),
+                     w[2] + (dw[2] - 0.5 * nw[2]))
         else:
-            wstep = (w[0] + T[s, _X + 3], w[1] + T[s, _X + 4], w[2] + T[s, _X + 5])
+            wstep = (w[0] + dw[0], w[1] + dw[1], w[2] + dw[2])
         qj = q_mid
-        if s > 0 and j < 3:  # (normalised once, below: the scale factors out of the product)
-            qj = qmul_t(qc_t, from_chart_t(chart, saturate_t(
-                chart, (T[s, _X], T[s, _X + 1], T[s, _X + 2]))))
+        if s > 0 and j < 3:
+            qj = qmul_t(qc, from_chart_t(chart, saturate_t(
+                chart, (X[s, _CX], X[s, _CX + 1], X[s, _CX + 2]))))
         qj = qnormalize_t(qmul_t(qj, q_omega_t(wstep, dt)))
         for i in range(4):
-            T[s, _Q + i] = qj[i]
+            X[s, _CQ + i] = qj[i]
+
+
+@jit_inline
+def _predict_measurements(X: np.ndarray, first: tuple, vref: tuple, use_h: bool, hm: tuple,
+                          href: tuple, row_h: int) -> None:
+    """Step 3, the predicted measurement of every point into its row of ``X``: the vectors
+    ``y = R(q_j⁻)ᵀ v`` (``w̄_v = 0``; their spread is added to ``P_yy`` in
+    :func:`_noise_and_innovation`) and the heading residual ``ψ(q_j⁻)``, unwrapped around the
+    central point's. The gyro, ``ω_j⁻ + b_j``, and the zero rate, ``ω_j⁻``, are linear in the
+    state: see :func:`_linear_covariances`."""
+    for s in range(2 * _NDA + 1):
+        qj = (X[s, _CQ], X[s, _CQ + 1], X[s, _CQ + 2], X[s, _CQ + 3])
         for k in range(2):
-            if first[k] >= 0:  # y = R(q_j⁻)ᵀ v  (w̄_v = 0; its spread is added to P_yy below)
+            if first[k] >= 0:
                 y = rotate_inv_t(qj, vref[k])
                 for i in range(3):
-                    T[s, _Y + first[k] + i] = y[i]
-        if use_h:  # heading residual ψ(q_j⁻), unwrapped around the central point's
+                    X[s, _CY + first[k] + i] = y[i]
+        if use_h:
             psi, _ = heading_residual_t(rotmat_t(qj), hm, href)
             if s > 0:  # both in [−π, π]: one turn at most brings the difference into it
-                d_psi = psi - T[0, _Y + row_h]
+                d_psi = psi - X[0, _CY + row_h]
                 if d_psi > np.pi:
                     psi -= 2.0 * np.pi
                 elif d_psi < -np.pi:
                     psi += 2.0 * np.pi
-            T[s, _Y + row_h] = psi
-        # (the gyro, ω_j⁻ + b_j, and the zero rate, ω_j⁻, are linear: see step 6)
-    # 4. hemisphere alignment with the propagated sigma point 0
+            X[s, _CY + row_h] = psi
+
+
+@jit_inline
+def _align_hemispheres(X: np.ndarray, ns: int) -> None:
+    """Step 4: ``q_j⁻ ← −q_j⁻`` where ``q_j⁻ · q_0⁻ < 0``."""
     for s in range(1, ns):
-        dot = (T[s, _Q] * T[0, _Q] + T[s, _Q + 1] * T[0, _Q + 1] + T[s, _Q + 2] * T[0, _Q + 2]
-               + T[s, _Q + 3] * T[0, _Q + 3])
+        dot = (X[s, _CQ] * X[0, _CQ] + X[s, _CQ + 1] * X[0, _CQ + 1]
+               + X[s, _CQ + 2] * X[0, _CQ + 2] + X[s, _CQ + 3] * X[0, _CQ + 3])
         if dot < 0.0:
             for i in range(4):
-                T[s, _Q + i] = -T[s, _Q + i]
-    # 5. means: normalised weighted quaternion sum and measurement; the rate and bias exactly
-    _wmeans(T, ns, w_0, wj, _Q, _Y + m_nl)  # q, the non-linear rows of y
-    qs = (T[ns, _Q], T[ns, _Q + 1], T[ns, _Q + 2], T[ns, _Q + 3])
+                X[s, _CQ + i] = -X[s, _CQ + i]
+
+
+@jit_inline
+def _means(X: np.ndarray, ns: int, w_0: float, wj: float, w: tuple, b: tuple, row_g: int,
+           row_z: int, use_w: bool, use_z: bool) -> tuple:
+    """Step 5 into row ``ns`` of ``X``: ``Σ_j W_j q_j⁻`` and ``ȳ = Σ_j W_j y_j`` of the
+    non-linear rows, the linear rows exactly, ``H x̄`` (``x̄⁻ = (0, ω̄, b̄)``; ``b̄`` also without
+    a bias state). Returns ``q̄⁻ = Σ_j W_j q_j⁻ / ‖Σ_j W_j q_j⁻‖``. (The rate and bias means are
+    ``ω̄``, ``b̄`` exactly: see :func:`_weights`.)"""
+    _wmeans(X, ns, w_0, wj, _CQ, _CY + row_g)
+    qs = (X[ns, _CQ], X[ns, _CQ + 1], X[ns, _CQ + 2], X[ns, _CQ + 3])
     nq = np.sqrt(qs[0] * qs[0] + qs[1] * qs[1] + qs[2] * qs[2] + qs[3] * qs[3])
-    qm = (qs[0] / nq, qs[1] / nq, qs[2] / nq, qs[3] / nq)
-    for i in range(3):  # the linear rows: H x̄ (x̄⁻ = (0, ω̄, b̄); b̄ also without bias state)
-        if use_w:
-            T[ns, _Y + row_g + i] = w[i] + b[i]
-        if use_z:
-            T[ns, _Y + row_z + i] = w[i]
-    # 6. re-express in the chart of the new mean; covariances (no subtraction of Σ W e_j, §8.7)
-    #    Δx_j = (e_j⁻, Δz_j), Δy_j = y_j − ȳ, e_j⁻ written over e_j, Δy_j over y_j.
-    #    Exact reduction: the gyro and zero-rate rows are linear in the state, y_j = H x_j, so
-    #    their sums are P_xy = P_xx Hᵀ and P_yy = H P_xy (the weighted sums are linear); only
-    #    the vector and heading rows (the first m_nl) are summed over the points.
-    for s in range(ns):
-        e = to_chart_t(chart, qconj_mul_t(qm, (T[s, _Q], T[s, _Q + 1], T[s, _Q + 2],
-                                               T[s, _Q + 3])))
-        T[s, _X], T[s, _X + 1], T[s, _X + 2] = e[0], e[1], e[2]
-        for cc in range(_Y, _Y + m_nl):
-            T[s, cc] -= T[ns, cc]
-    # P_ee = Σ_s W_s e_s e_sᵀ (lower triangle), P_ey = Σ_s W_s e_s Δy_sᵀ, P_yy likewise
     for i in range(3):
-        _wsums(T, 0, ns, w_0, wj, _X + i, _X, i + 1, Pxx, i, 0)
-        _wsums(T, 0, ns, w_0, wj, _X + i, _Y, m_nl, Pxy, i, 0)
+        if use_w:
+            X[ns, _CY + row_g + i] = w[i] + b[i]
+        if use_z:
+            X[ns, _CY + row_z + i] = w[i]
+    return (qs[0] / nq, qs[1] / nq, qs[2] / nq, qs[3] / nq)
+
+
+@jit_inline
+def _to_chart_of_mean(X: np.ndarray, ns: int, chart: int, qm: tuple, m_nl: int) -> None:
+    """Step 6, the points in the chart of the new mean: ``e_j⁻ = φ(q̄⁻* * q_j⁻)`` over ``e_j``
+    and ``Δy_j = y_j − ȳ`` over ``y_j`` for the ``m_nl`` non-linear rows."""
+    for s in range(ns):
+        e = to_chart_t(chart, qconj_mul_t(qm, (X[s, _CQ], X[s, _CQ + 1], X[s, _CQ + 2],
+                                               X[s, _CQ + 3])))
+        X[s, _CX], X[s, _CX + 1], X[s, _CX + 2] = e[0], e[1], e[2]
+        for cc in range(_CY, _CY + m_nl):
+            X[s, cc] -= X[ns, cc]
+
+
+@jit_inline
+def _sigma_covariances(X: np.ndarray, Pxx: np.ndarray, Pxy: np.ndarray, Pyy: np.ndarray, ns: int,
+                       w_0: float, wj: float, nx: int, m_nl: int) -> None:
+    """Step 6, the sums over the points (no subtraction of ``Σ W e_j``, §8 item 7) with
+    ``Δx_j = (e_j⁻, Δz_j)``: ``P_ee = Σ_s W_s e_s e_sᵀ`` (lower triangle), ``P_ey``, ``P_yy``
+    (lower triangle) over the ``m_nl`` non-linear rows, and ``P_ez``, ``P_zy`` by pairs
+    (:func:`_weights`); rows ``1 … 9`` of ``X`` become ``a_{j+} − a_{j−}`` for ``a = e, y``."""
+    nda = _NDA
+    for i in range(3):
+        _wsums(X, 0, ns, w_0, wj, _CX + i, _CX, i + 1, Pxx, i, 0)
+        _wsums(X, 0, ns, w_0, wj, _CX + i, _CY, m_nl, Pxy, i, 0)
     for i in range(m_nl):
-        _wsums(T, 0, ns, w_0, wj, _Y + i, _Y, i + 1, Pyy, i, 0)
-    # the sums with Δz by pairs: rows 1 … nda ← a_{j+} − a_{j−} for a = e, y
+        _wsums(X, 0, ns, w_0, wj, _CY + i, _CY, i + 1, Pyy, i, 0)
     for s in range(1, nda + 1):
-        for cc in range(_X, _X + 3):
-            T[s, cc] -= T[s + nda, cc]
-        for cc in range(_Y, _Y + m_nl):
-            T[s, cc] -= T[s + nda, cc]
+        for cc in range(_CX, _CX + 3):
+            X[s, cc] -= X[s + nda, cc]
+        for cc in range(_CY, _CY + m_nl):
+            X[s, cc] -= X[s + nda, cc]
     for i in range(3):  # P_ez (upper block)
-        _wsums(T, 1, nda, wj, wj, _X + i, _X + 3, nx - 3, Pxx, i, 3)
+        _wsums(X, 1, nda, wj, wj, _CX + i, _CX + 3, nx - 3, Pxx, i, 3)
     for k in range(nx - 3):  # P_zy
-        _wsums(T, 1, nda, wj, wj, _X + 3 + k, _Y, m_nl, Pxy, 3 + k, 0)
+        _wsums(X, 1, nda, wj, wj, _CX + 3 + k, _CY, m_nl, Pxy, 3 + k, 0)
+
+
+@jit_inline
+def _linear_covariances(P: np.ndarray, Pxx: np.ndarray, Pxy: np.ndarray, Pyy: np.ndarray,
+                        nx: int, m: int, Qw: tuple, qa: float, row_g: int, row_z: int) -> None:
+    """Step 6, the exact parts: ``P_zz = P_zz + Q_ωᵃ`` (:func:`_weights`), ``P_xx`` completed
+    from its lower triangle; the gyro and zero-rate rows are linear in the state, ``y_j = H x_j``,
+    so their sums are ``P_xy = P_xx Hᵀ`` and ``P_yy = H P_xy`` (the weighted sums are linear);
+    ``P_yy`` completed from its lower triangle."""
     for i in range(3, nx):  # P_zz = P_zz + Q_ωᵃ (lower triangle)
         for jj in range(3, i + 1):
             Pxx[i, jj] = P[i, jj] + (Qw[i - 3][jj - 3] * qa if i < 6 else 0.0)
@@ -419,7 +549,7 @@ def mukf_step_t(
     for i in range(nx):  # the loops above filled the lower triangle
         for jj in range(i):
             Pxx[jj, i] = Pxx[i, jj]
-    for r in range(m_nl, m):  # linear rows: column r of P_xy is P_xx Hᵀ, row r of P_yy H P_xy
+    for r in range(row_g, m):  # linear rows: column r of P_xy is P_xx Hᵀ, row r of P_yy H P_xy
         k = r - row_g if r < row_z else r - row_z
         bias = r < row_z and nx == 9  # the gyro measures ω + b
         for i in range(nx):
@@ -429,31 +559,50 @@ def mukf_step_t(
     for i in range(m):
         for jj in range(i):
             Pyy[jj, i] = Pyy[i, jj]
-    # measurement noise and innovations
-    R0 = rotmat_t((T[0, _Q], T[0, _Q + 1], T[0, _Q + 2], T[0, _Q + 3]))
+
+
+@jit_inline
+def _noise_and_innovation(
+    X: np.ndarray, Pyy: np.ndarray, ns: int, first: tuple, vm: tuple, Rv: tuple, Qv: tuple,
+    use_h: bool, var_h: float, row_h: int, wm: tuple, use_w: bool, Rw: tuple, row_g: int,
+    use_z: bool, var_z: float, row_z: int,
+) -> None:
+    """Step 6's ``+ blockdiag(R_v, R_ω)`` in ``P_yy`` (and the disturbance sigma pairs of the
+    vectors, summed exactly: ``R(q_0⁻)ᵀ Q_v R(q_0⁻)``, :func:`_weights`; the heading and
+    zero-rate variances), and step 7's innovation ``y − ȳ`` into row ``ns + 1`` of ``X`` (the
+    heading and zero-rate pseudo-measurements are 0)."""
+    R0 = rotmat_t((X[0, _CQ], X[0, _CQ + 1], X[0, _CQ + 2], X[0, _CQ + 3]))
     for k in range(2):
         r0 = first[k]
-        if r0 >= 0:  # R_v + R(q_0⁻)ᵀ Q_v R(q_0⁻): the disturbance sigma pairs, summed exactly
+        if r0 >= 0:
             QB = congruence33_t(transpose33_t(R0), Qv[k])  # R(q_0⁻)ᵀ Q_v R(q_0⁻)
             for i in range(3):
                 for jj in range(3):
                     Pyy[r0 + i, r0 + jj] += Rv[k][i][jj] + QB[i][jj]
-                T[ns + 1, _Y + r0 + i] = vm[k][i] - T[ns, _Y + r0 + i]
+                X[ns + 1, _CY + r0 + i] = vm[k][i] - X[ns, _CY + r0 + i]
     if use_h:
         Pyy[row_h, row_h] += var_h
-        T[ns + 1, _Y + row_h] = -T[ns, _Y + row_h]
+        X[ns + 1, _CY + row_h] = -X[ns, _CY + row_h]
     if use_w:
         for i in range(3):
             for jj in range(3):
                 Pyy[row_g + i, row_g + jj] += Rw[i][jj]
-            T[ns + 1, _Y + row_g + i] = wm[i] - T[ns, _Y + row_g + i]
+            X[ns + 1, _CY + row_g + i] = wm[i] - X[ns, _CY + row_g + i]
     if use_z:
         for i in range(3):
             Pyy[row_z + i, row_z + i] += var_z
-            T[ns + 1, _Y + row_z + i] = -T[ns, _Y + row_z + i]
-    # χ² gate per block: rᵀ P_yy⁻¹ r = ‖L⁻¹ r‖² of its rows alone (P_yy = L Lᵀ; Ly and the
-    # first row of KPyy are free here)
-    rejected = 0  # bit mask of blocks
+            X[ns + 1, _CY + row_z + i] = -X[ns, _CY + row_z + i]
+
+
+@jit_inline
+def _chi2_gate(X: np.ndarray, Pyy: np.ndarray, Ly: np.ndarray, KPyy: np.ndarray, ns: int,
+               first: tuple, gates: tuple, gated: bool) -> tuple:
+    """χ² gate per block (extension): ``rᵀ P_yy⁻¹ r = ‖L⁻¹ r‖²`` of its rows alone
+    (``P_yy = L Lᵀ``; ``Ly`` and the first row of ``KPyy`` are free here). Returns
+    ``(ok, nis, rejected)``: False if a block's ``P_yy`` is not positive definite, every
+    block's value (0 unless ``gated``), and the bit mask of the blocks above their gate."""
+    nis = (0.0, 0.0, 0.0, 0.0)
+    rejected = 0
     for blk in range(4 if gated else 0):
         r0 = first[blk]
         if r0 < 0:
@@ -463,10 +612,10 @@ def mukf_step_t(
             for jj in range(nb):
                 Ly[i, jj] = Pyy[r0 + i, r0 + jj]
         if not cholesky_into(Ly, Ly, 0, nb):
-            return False, qc_t, ebar, w, b, nis
+            return False, nis, rejected
         v = 0.0
         for i in range(nb):  # z = L⁻¹ r
-            z = T[ns + 1, _Y + r0 + i]
+            z = X[ns + 1, _CY + r0 + i]
             for k in range(i):
                 z -= Ly[i, k] * KPyy[0, k]
             KPyy[0, i] = z / Ly[i, i]
@@ -475,7 +624,16 @@ def mukf_step_t(
                v if blk == 2 else nis[2], v if blk == 3 else nis[3])
         if v > gates[blk]:
             rejected |= 1 << blk
-    # the rows that pass, moved to the front in order (in place: a row or column only moves up)
+    return True, nis, rejected
+
+
+@jit_inline
+def _keep_rows(X: np.ndarray, Pxy: np.ndarray, Pyy: np.ndarray, ns: int, nx: int, m: int,
+               first: tuple, rejected: int) -> tuple:
+    """The rows of the blocks that pass the gate, moved to the front in order (in place: a row
+    or column only moves up) in the innovation, ``P_xy`` and ``P_yy``. Returns
+    ``(ma, row_v0k, row_hk)``: the number of kept rows and the new first row of vector 0 and
+    of the heading (−1 if absent or rejected)."""
     row_hk = first[B_HEADING] if not (rejected >> B_HEADING) & 1 else -1
     row_v0k = first[B_VEC0] if not (rejected >> B_VEC0) & 1 else -1
     ma = m
@@ -488,7 +646,7 @@ def mukf_step_t(
                 row_hk = ma
             if r == row_v0k:
                 row_v0k = ma
-            T[ns + 1, _Y + ma] = T[ns + 1, _Y + r]
+            X[ns + 1, _CY + ma] = X[ns + 1, _CY + r]
             for i in range(nx):
                 Pxy[i, ma] = Pxy[i, r]
             a = 0
@@ -497,82 +655,129 @@ def mukf_step_t(
                     Pyy[ma, a] = Pyy[r, cc]
                     a += 1
             ma += 1
-    # 7. update with the kept rows: K = P_xy P_yy⁻¹, Δx = K (y − ȳ)
+    return ma, row_v0k, row_hk
+
+
+@jit_inline
+def _update(X: np.ndarray, Pxx: np.ndarray, Pxy: np.ndarray, Pyy: np.ndarray, Ly: np.ndarray,
+            KPyy: np.ndarray, Kt: np.ndarray, ns: int, nx: int, ma: int, qm: tuple,
+            tilt_v0: bool, row_v0k: int, row_hk: int) -> bool:
+    """Step 7 with the ``ma`` kept rows: ``K = P_xy P_yy⁻¹`` (:func:`_gain`), projected for the
+    tilt-only gravity and the heading rows (:func:`_gain_projection`), ``Δx = K (y − ȳ)`` into
+    row ``ns + 1`` of ``X`` (:func:`_correction`), ``P ← P_xx − K P_yy Kᵀ`` in ``Pxx``
+    (:func:`_covariance_update`). False if ``P_yy`` is not positive definite."""
+    if ma == 0:
+        for i in range(nx):
+            X[ns + 1, _CX + i] = 0.0  # Δx
+        return True
+    if not _gain(Pxy, Pyy, Ly, Kt, nx, ma):
+        return False
+    dK = KPyy  # (free here)
+    np_, pc = _gain_projection(Kt, dK, nx, qm, tilt_v0, row_v0k, row_hk)
+    _correction(X, Kt, dK, ns, nx, ma, np_, pc)
+    _covariance_update(Pxx, Pxy, Pyy, Ly, Kt, dK, nx, ma, np_, pc)
+    return True
+
+
+@jit_inline
+def _gain(Pxy: np.ndarray, Pyy: np.ndarray, Ly: np.ndarray, Kt: np.ndarray, nx: int,
+          ma: int) -> bool:
+    """Step 7: ``Kᵀ = P_yy⁻¹ P_xyᵀ`` (the optimal gain ``K₀``, transposed) by the Cholesky
+    factor ``Ly`` of ``P_yy``. False if ``P_yy`` is not positive definite."""
+    if not cholesky_into(Pyy, Ly, 0, ma):
+        return False
+    for a in range(ma):
+        for i in range(nx):
+            Kt[a, i] = Pxy[i, a]
+    cho_solve_into(Ly, ma, Kt)
+    return True
+
+
+@jit_inline
+def _gain_projection(Kt: np.ndarray, dK: np.ndarray, nx: int, qm: tuple, tilt_v0: bool,
+                     row_v0k: int, row_hk: int) -> tuple:
+    """Gain projections (extensions): ``K = K₀ + ΔK`` with ``K₀ = P_xy P_yy⁻¹``. ``ΔK`` has
+    ``np_`` non-zero columns, kept dense in ``dK``; column ``t`` belongs to row ``pc[t]`` of the
+    stacked measurement: the gravity rows with ``tilt_v0`` (every group's gain — attitude, rate,
+    bias — kept off the world vertical), then the heading row (every group's gain onto the
+    vertical). Returns ``(np_, pc)``."""
+    Rm = rotmat_t(qm)
+    u0, u1, u2 = Rm[2][0], Rm[2][1], Rm[2][2]  # world vertical in the new chart's axes
+    g0 = row_v0k if tilt_v0 else -1
+    ng = 3 if g0 >= 0 else 0
+    np_ = ng + (1 if row_hk >= 0 else 0)
+    pc = (g0, g0 + 1, g0 + 2, row_hk) if ng else (row_hk, row_hk, row_hk, row_hk)
+    for t in range(np_):
+        a = pc[t]
+        if t < ng:  # gravity: keep every group's gain (attitude, rate, bias) off the vertical
+            for g in range(nx // 3):
+                ku = u0 * Kt[a, 3 * g] + u1 * Kt[a, 3 * g + 1] + u2 * Kt[a, 3 * g + 2]
+                dK[3 * g, t], dK[3 * g + 1, t], dK[3 * g + 2, t] = -u0 * ku, -u1 * ku, -u2 * ku
+        else:  # heading: every group's gain (attitude, rate, bias) onto the vertical u
+            for g in range(nx // 3):
+                ku = u0 * Kt[a, 3 * g] + u1 * Kt[a, 3 * g + 1] + u2 * Kt[a, 3 * g + 2]
+                dK[3 * g, t], dK[3 * g + 1, t], dK[3 * g + 2, t] = (
+                    u0 * ku - Kt[a, 3 * g], u1 * ku - Kt[a, 3 * g + 1],
+                    u2 * ku - Kt[a, 3 * g + 2])
+    return np_, pc
+
+
+@jit_inline
+def _correction(X: np.ndarray, Kt: np.ndarray, dK: np.ndarray, ns: int, nx: int, ma: int,
+                np_: int, pc: tuple) -> None:
+    """Step 7: ``Δx = K (y − ȳ) = K₀ (y − ȳ) + ΔK (y − ȳ)`` into row ``ns + 1`` of ``X``."""
     for i in range(nx):
-        T[ns + 1, _X + i] = 0.0  # Δx
-    if ma > 0:
-        if not cholesky_into(Pyy, Ly, 0, ma):
-            return False, qc_t, ebar, w, b, nis
+        s_ = 0.0
         for a in range(ma):
-            for i in range(nx):
-                Kt[a, i] = Pxy[i, a]
-        cho_solve_into(Ly, ma, Kt)  # Kᵀ = P_yy⁻¹ P_xyᵀ
-        Rm = rotmat_t(qm)
-        u0, u1, u2 = Rm[2][0], Rm[2][1], Rm[2][2]  # world vertical in the new chart's axes
-        dK = KPyy
-        # gain projections: K = K₀ + ΔK with K₀ = P_xy P_yy⁻¹ the optimal gain. ΔK has np_
-        # non-zero columns, kept dense in dK (KPyy's rows, free here); column t belongs to row
-        # pc[t] of the stacked measurement: the gravity rows (tilt only), then the heading row
-        g0 = row_v0k if tilt_v0 else -1
-        ng = 3 if g0 >= 0 else 0
-        np_ = ng + (1 if row_hk >= 0 else 0)
-        pc = (g0, g0 + 1, g0 + 2, row_hk) if ng else (row_hk, row_hk, row_hk, row_hk)
+            s_ += Kt[a, i] * X[ns + 1, _CY + a]
         for t in range(np_):
-            a = pc[t]
-            if t < ng:  # gravity: keep every group's gain (attitude, rate, bias) off the vertical
-                for g in range(nx // 3):
-                    ku = u0 * Kt[a, 3 * g] + u1 * Kt[a, 3 * g + 1] + u2 * Kt[a, 3 * g + 2]
-                    dK[3 * g, t], dK[3 * g + 1, t], dK[3 * g + 2, t] = -u0 * ku, -u1 * ku, -u2 * ku
-            else:  # heading: every group's gain (attitude, rate, bias) onto the vertical u
-                for g in range(nx // 3):
-                    ku = u0 * Kt[a, 3 * g] + u1 * Kt[a, 3 * g + 1] + u2 * Kt[a, 3 * g + 2]
-                    dK[3 * g, t], dK[3 * g + 1, t], dK[3 * g + 2, t] = (
-                        u0 * ku - Kt[a, 3 * g], u1 * ku - Kt[a, 3 * g + 1],
-                        u2 * ku - Kt[a, 3 * g + 2])
-        for i in range(nx):  # Δx = K (y − ȳ) = K₀ (y − ȳ) + ΔK (y − ȳ)
+            s_ += dK[i, t] * X[ns + 1, _CY + pc[t]]
+        X[ns + 1, _CX + i] = s_
+
+
+@jit_inline
+def _covariance_update(Pxx: np.ndarray, Pxy: np.ndarray, Pyy: np.ndarray, Ly: np.ndarray,
+                       Kt: np.ndarray, dK: np.ndarray, nx: int, ma: int, np_: int,
+                       pc: tuple) -> None:
+    """Step 7: ``P ← P_xx − K₀ P_yy K₀ᵀ = P_xx − P_xy K₀ᵀ`` in ``Pxx``; with projected columns
+    the Joseph form for the gain ``K₀ + ΔK``, valid for any gain:
+    ``P − K P_xyᵀ − P_xy Kᵀ + K P_yy Kᵀ = P − K₀ P_yy K₀ᵀ + ΔK P_yy ΔKᵀ`` (``K₀ P_yy = P_xy``).
+    Exactly symmetric: every update writes the upper triangle, mirrored at the end."""
+    for i in range(nx):
+        for jj in range(i, nx):
             s_ = 0.0
             for a in range(ma):
-                s_ += Kt[a, i] * T[ns + 1, _Y + a]
-            for t in range(np_):
-                s_ += dK[i, t] * T[ns + 1, _Y + pc[t]]
-            T[ns + 1, _X + i] = s_
-        # P ← P_xx − K₀ P_yy K₀ᵀ = P_xx − P_xy K₀ᵀ (symmetric: the upper triangle, mirrored)
+                s_ += Pxy[i, a] * Kt[a, jj]
+            Pxx[i, jj] -= s_
+    if np_ > 0:
+        for t in range(np_):  # Ly ← P_yy ΔKᵀ over the non-zero columns (Ly is free here)
+            for i in range(nx):
+                s_ = 0.0
+                for t2 in range(np_):
+                    s_ += Pyy[pc[t], pc[t2]] * dK[i, t2]
+                Ly[t, i] = s_
         for i in range(nx):
             for jj in range(i, nx):
                 s_ = 0.0
-                for a in range(ma):
-                    s_ += Pxy[i, a] * Kt[a, jj]
-                Pxx[i, jj] -= s_
-        if np_ > 0:  # Joseph form for the gain K₀ + ΔK, valid for any gain:
-            # P − K P_xyᵀ − P_xy Kᵀ + K P_yy Kᵀ = P − K₀ P_yy K₀ᵀ + ΔK P_yy ΔKᵀ  (K₀ P_yy = P_xy)
-            for t in range(np_):  # Ly ← P_yy ΔKᵀ over the non-zero columns (Ly is free here)
-                for i in range(nx):
-                    s_ = 0.0
-                    for t2 in range(np_):
-                        s_ += Pyy[pc[t], pc[t2]] * dK[i, t2]
-                    Ly[t, i] = s_
-            for i in range(nx):
-                for jj in range(i, nx):
-                    s_ = 0.0
-                    for t in range(np_):
-                        s_ += dK[i, t] * Ly[t, jj]
-                    Pxx[i, jj] += s_
-        for i in range(nx):
-            for jj in range(i + 1, nx):
-                Pxx[jj, i] = Pxx[i, jj]
-    # (P_xx is exactly symmetric: every update above wrote one triangle and mirrored it)
-    e = saturate_t(chart, (T[ns + 1, _X], T[ns + 1, _X + 1], T[ns + 1, _X + 2]))
-    w = (w[0] + T[ns + 1, _X + 3], w[1] + T[ns + 1, _X + 4], w[2] + T[ns + 1, _X + 5])
+                for t in range(np_):
+                    s_ += dK[i, t] * Ly[t, jj]
+                Pxx[i, jj] += s_
+    for i in range(nx):
+        for jj in range(i + 1, nx):
+            Pxx[jj, i] = Pxx[i, jj]
+
+
+@jit_inline
+def _new_state(X: np.ndarray, P: np.ndarray, Pxx: np.ndarray, ns: int, nx: int, chart: int,
+               w: tuple, b: tuple) -> tuple:
+    """Step 7, the new state in the chart of ``q̄⁻`` (which becomes ``q̄_c``: the chart update of
+    §6): ``ē ← sat(ē⁺)``, ``ω̄ ← ω̄⁻ + Δω``, ``b̄ ← b̄ + Δb``, ``P ← P_xx``. Returns
+    ``(ē, ω̄, b̄)``."""
+    e = saturate_t(chart, (X[ns + 1, _CX], X[ns + 1, _CX + 1], X[ns + 1, _CX + 2]))
+    w = (w[0] + X[ns + 1, _CX + 3], w[1] + X[ns + 1, _CX + 4], w[2] + X[ns + 1, _CX + 5])
     if nx == 9:
-        b = (b[0] + T[ns + 1, _X + 6], b[1] + T[ns + 1, _X + 7], b[2] + T[ns + 1, _X + 8])
+        b = (b[0] + X[ns + 1, _CX + 6], b[1] + X[ns + 1, _CX + 7], b[2] + X[ns + 1, _CX + 8])
     for i in range(nx):
         for jj in range(nx):
             P[i, jj] = Pxx[i, jj]
-    return True, qm, e, w, b, nis
-
-
-@jit
-def mukf_estimate(chart: int, qc: np.ndarray, ebar: np.ndarray) -> np.ndarray:
-    """The point estimate ``q̂ = q̄_c * φ⁻¹(ē)`` (§2.4)."""
-    return from_chart_at(chart, qc, ebar)
-
+    return e, w, b

