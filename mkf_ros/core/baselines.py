@@ -172,25 +172,24 @@ def accel_roll_pitch(a: np.ndarray) -> tuple[float, float]:
 def euler_cov_to_body(x: np.ndarray, S: np.ndarray, n: int) -> np.ndarray:
     """``A S Aᵀ`` with ``A = blockdiag(E, I)``: an (n×n, n = 3 or 6) covariance of (Euler angles
     [, body rates]) as one of (body rotation vector [, rates])."""
-    E = body_jacobian(x[0], x[1])
-    A = np.zeros((n, n))
-    A[0:3, 0:3] = E
-    for i in range(3, n):
-        A[i, i] = 1.0
-    out = congruence(A, S[0:n, 0:n])
-    symmetrize_leading(out, n)
-    return out
+    return _attitude_congruence(body_jacobian(x[0], x[1]), S, n)
 
 
 @jit
 def body_cov_to_euler(x: np.ndarray, C: np.ndarray, n: int) -> np.ndarray:
     """Inverse of :func:`euler_cov_to_body`: ``A⁻¹ C A⁻ᵀ`` with ``A⁻¹ = blockdiag(W, I)``."""
-    W, _ = euler_rate_matrix(x[0], x[1])
+    return _attitude_congruence(euler_rate_matrix(x[0], x[1])[0], C, n)
+
+
+@jit_inline
+def _attitude_congruence(M: np.ndarray, S: np.ndarray, n: int) -> np.ndarray:
+    """``A S Aᵀ`` (symmetrised) for the leading n×n block of ``S``, ``A = blockdiag(M, I)``
+    with the 3×3 ``M`` on the attitude."""
     A = np.zeros((n, n))
-    A[0:3, 0:3] = W
+    A[0:3, 0:3] = M
     for i in range(3, n):
         A[i, i] = 1.0
-    out = congruence(A, C[0:n, 0:n])
+    out = congruence(A, S[0:n, 0:n])
     symmetrize_leading(out, n)
     return out
 
