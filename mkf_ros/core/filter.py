@@ -43,6 +43,7 @@ from mkf_ros.core.sensor import (
 from mkf_ros.core.state import (
     ALGO_EULER_KF,
     ALGO_MADGWICK,
+    ATTITUDE_VAR_UNKNOWN,
     C_ACC_ALIGN,
     C_ALGO,
     C_B0,
@@ -67,6 +68,7 @@ from mkf_ros.core.state import (
     S_QC,
     S_SIZE,
     S_W,
+    YAW_VAR_UNKNOWN,
     build_cfg,
     build_noise,
     classify_reading,
@@ -79,6 +81,7 @@ __all__ = [
     "MAX_ACC_G",
     "MAX_GYRO_RATE",
     "MAX_MAG",
+    "YAW_VAR_UNKNOWN",
     "AttitudeFilter",
     "BatchOutputs",
     "KernelArrays",
@@ -240,7 +243,7 @@ def run_batch(cfg: np.ndarray, st: np.ndarray, P: np.ndarray, fl: np.ndarray, cn
             for j in range(3):
                 out_cov[n, i, j] = cov[i][j]
             if not init:
-                out_cov[n, i, i] = np.pi ** 2  # not initialised: attitude unknown
+                out_cov[n, i, i] = ATTITUDE_VAR_UNKNOWN
             out_w[n, i] = st[S_W + i]
             out_b[n, i] = st[S_B + i]
             out_bvar[n, i] = P[6 + i, 6 + i] if nx == 9 else 0.0
@@ -430,7 +433,7 @@ class AttitudeFilter:
         c = np.empty((3, 3))
         world_output(self._cfg, self._st, self._P, self._q_from_enu, q, c)
         if not self._fl[F_INIT]:
-            c = np.pi**2 * np.eye(3)
+            c = ATTITUDE_VAR_UNKNOWN * np.eye(3)
         return q, c
 
 

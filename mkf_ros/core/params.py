@@ -373,6 +373,15 @@ def unknown_parameter(name: str, known: Iterable[str]) -> str:
             f"docs/estimator.md and mkf_ros.core.params.PARAMS")
 
 
+def _check_combination(vals: Mapping[str, Any]) -> None:
+    """The rules between filter parameters (each one is valid alone): ValueError, one line."""
+    if abs(np.linalg.det(np.reshape(vals["mag_soft_iron"], (3, 3)))) < 1e-12:
+        raise ValueError("mag_soft_iron must be an invertible 3x3 matrix (row-major, 9 numbers)")
+    if vals["use_mag"] and vals["init_mode"] == "paper" and not any(vals["mag_reference"]):
+        raise ValueError("init_mode 'paper' with use_mag needs mag_reference (the paper's "
+                         "filter has no alignment step to learn it)")
+
+
 class FilterParams(Mapping[str, Any]):
     """Validated values of the filter parameters: a read-only mapping (``params["chart"]``,
     ``dict(params)``, ``params.values()``, ``params.items()``) with attribute access
@@ -387,6 +396,7 @@ class FilterParams(Mapping[str, Any]):
             if k not in vals:
                 raise ValueError(unknown_parameter(k, vals))
             vals[k] = BY_NAME[k].validate(v)
+        _check_combination(vals)
         object.__setattr__(self, "_values", vals)
 
     def __getattr__(self, name: str) -> Any:  # only called for names that are not attributes

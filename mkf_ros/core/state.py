@@ -106,6 +106,8 @@ MAG_REF_SAMPLES = 100  # magnetometer samples averaged into a learned reference
 P0_PAPER = 100.0  # §8 item 9
 YAW0_STDDEV = 1e-3  # rad: heading is defined by the start-up heading when no magnetometer
 YAW_VAR_UNKNOWN = np.pi ** 2 / 3.0  # rad²: variance of an angle uniform over ±180°
+#: rad² about each axis: the published attitude covariance before the filter has an estimate
+ATTITUDE_VAR_UNKNOWN = np.pi ** 2
 REST_LP_TAU = 0.5  # s: rest detection compares the gyro and accelerometer with their low-pass
 REST_CHI2 = 16.27  # 3 degrees of freedom, 0.1 %: the low-passed rate agrees with the bias
 # Euler baselines' tilt re-alignment (issue 14 item 5, :func:`baseline_realign`): the accelerometer
@@ -172,8 +174,26 @@ def build_noise(cfg: np.ndarray) -> np.ndarray:
     return nz
 
 
+#: Configuration slots that hold a parameter's value as it is (:func:`build_cfg` converts the
+#: others).
+_COPIED = (
+    (C_W0, "mukf_w0"), (C_QW, "rate_process_noise"), (C_MAXDT, "max_dt"),
+    (C_ACC_TAU, "acc_time_constant"), (C_ACC_DTIME, "acc_disturbance_time"),
+    (C_GYR_SCALE, "gyro_scale_error"), (C_GYR_GATE, "gyro_gate"),
+    (C_MAG_TAU, "mag_time_constant"), (C_MAG_CTOL, "mag_consistency_tolerance"),
+    (C_MAG_UNDIST, "mag_undisturbed_time"), (C_MAG_DTIME, "mag_disturbance_time"),
+    (C_ACC_ALIGN, "acc_alignment_error"), (C_ACC_TOL, "acc_norm_tolerance"),
+    (C_ACC_GATE, "acc_gate"), (C_ACC_RECOVER, "acc_recovery_time"),
+    (C_MAG_TOL, "mag_norm_tolerance"), (C_DIP_TOL, "mag_dip_tolerance"),
+    (C_MAG_GATE, "mag_gate"), (C_MAG_RECOVER, "mag_recovery_time"),
+    (C_REST_GYR, "rest_gyro_threshold"), (C_REST_ACC, "rest_acc_threshold"),
+    (C_REST_TIME, "rest_time"), (C_BETA, "madgwick_beta"),
+)
+
+
 def build_cfg(p: FilterParams) -> np.ndarray:
-    """Kernel configuration vector from validated parameters (units converted here)."""
+    """Kernel configuration vector from validated parameters (units converted here; the
+    cross-parameter rules are :class:`~mkf_ros.core.params.FilterParams`')."""
     cfg = np.zeros(C_SIZE)
     cfg[C_ALGO] = ALGORITHMS.index(p.algorithm)
     cfg[C_CHART] = chart_id(p.chart)
@@ -186,54 +206,27 @@ def build_cfg(p: FilterParams) -> np.ndarray:
     cfg[C_QA] = (p.acc_disturbance / g) ** 2
     cfg[C_RM] = p.mag_noise**2
     cfg[C_QM] = p.mag_disturbance**2
-    cfg[C_QW] = p.rate_process_noise
     cfg[C_QB] = p.gyro_bias_noise**2
     cfg[C_B0] = p.gyro_bias_stddev**2
-    cfg[C_W0] = p.mukf_w0
     cfg[C_MUKF_NOISE] = NOISE_MODES.index(p.mukf_noise_scaling)
     cfg[C_PAPER] = float(p.init_mode == "paper")
-    cfg[C_MAXDT] = p.max_dt
     cfg[C_MAG_MODE] = MAG_HEADING if p.mag_mode == "heading" else MAG_VECTOR
     cfg[C_ACC_MODE] = ACC_TILT if p.acc_mode == "tilt" else ACC_VECTOR
-    cfg[C_ACC_TAU] = p.acc_time_constant
-    cfg[C_ACC_DTIME] = p.acc_disturbance_time
-    cfg[C_GYR_SCALE] = p.gyro_scale_error
-    cfg[C_GYR_GATE] = p.gyro_gate
-    cfg[C_MAG_TAU] = p.mag_time_constant
-    cfg[C_MAG_CTOL] = p.mag_consistency_tolerance
-    cfg[C_MAG_UNDIST] = p.mag_undisturbed_time
-    cfg[C_MAG_DTIME] = p.mag_disturbance_time
-    cfg[C_ACC_ALIGN] = p.acc_alignment_error
     cfg[C_GRAVITY] = g
-    cfg[C_ACC_TOL] = p.acc_norm_tolerance
-    cfg[C_ACC_GATE] = p.acc_gate
-    cfg[C_ACC_RECOVER] = p.acc_recovery_time
-    cfg[C_MAG_TOL] = p.mag_norm_tolerance
-    cfg[C_DIP_TOL] = p.mag_dip_tolerance
-    cfg[C_MAG_GATE] = p.mag_gate
-    cfg[C_MAG_RECOVER] = p.mag_recovery_time
     cfg[C_REST] = float(p.rest_detection)
-    cfg[C_REST_GYR] = p.rest_gyro_threshold
-    cfg[C_REST_ACC] = p.rest_acc_threshold
-    cfg[C_REST_TIME] = p.rest_time
     cfg[C_REST_VAR] = p.rest_rate_stddev**2
-    cfg[C_BETA] = p.madgwick_beta
     cfg[C_MADG_VAR] = p.madgwick_stddev**2
     cfg[C_GIMBAL_COS] = np.cos(p.gimbal_lock_pitch)
+    for k, name in _COPIED:
+        cfg[k] = p[name]
     cfg[C_MAG_HI:C_MAG_HI + 3] = (p.mag_bias_x, p.mag_bias_y, p.mag_bias_z)
-    si = np.asarray(p.mag_soft_iron, dtype=float)
-    if abs(np.linalg.det(si.reshape(3, 3))) < 1e-12:
-        raise ValueError("mag_soft_iron must be an invertible 3x3 matrix (row-major, 9 numbers)")
-    cfg[C_MAG_SI:C_MAG_SI + 9] = si
+    cfg[C_MAG_SI:C_MAG_SI + 9] = p.mag_soft_iron
     ref = np.asarray(p.mag_reference, dtype=float)
     n = float(np.linalg.norm(ref))
     if n > 0.0:
         q = FROM_ENU[p.world_frame]  # given in the world frame → ENU: R(q_{W←ENU})ᵀ ref
         cfg[C_MREF_GIVEN] = 1.0
         cfg[C_MREF:C_MREF + 3] = rotmat(q).T @ (ref / n)
-    elif p.use_mag and p.init_mode == "paper":
-        raise ValueError("init_mode 'paper' with use_mag needs mag_reference (the paper's "
-                         "filter has no alignment step to learn it)")
     return cfg
 
 

@@ -19,7 +19,8 @@ Time rules (stamps in seconds, the IMU stream sets the filter's clock):
   (heading from the next magnetometer sample with ``use_mag``, otherwise the heading held
   before the gap) instead of integrating a stale rate across the gap. Until the magnetometer
   fixes the heading (or a reset), the published yaw variance is that of an unknown angle,
-  :data:`YAW_UNKNOWN_VAR`: the sensor may have turned by anything during the gap.
+  :data:`~mkf_ros.core.state.YAW_VAR_UNKNOWN`: the sensor may have turned by anything during
+  the gap.
 * Magnetometer samples are fused asynchronously, at their own stamp, never gating the IMU:
   a sample newer than the filter's time is held until the IMU stream reaches its stamp and is
   then fused there (predict to it, update, continue); a sample up to ``mag_max_delay`` older is
@@ -65,7 +66,6 @@ from mkf_ros.core.filter import (
     MAX_GYRO_RATE,
     MAX_MAG,
     AttitudeFilter,
-    build_cfg,
 )
 from mkf_ros.core.frames import FROM_ENU
 from mkf_ros.core.params import BY_NAME, PARAMS, FilterParams, Param
@@ -75,7 +75,6 @@ from mkf_ros.stream import rep145
 
 # constants of the rules above, defined with the rules in stream/kernel.py
 from mkf_ros.stream.kernel import MAX_BACKWARDS as MAX_BACKWARDS
-from mkf_ros.stream.kernel import YAW_UNKNOWN_VAR as YAW_UNKNOWN_VAR
 
 #: Reasons a sample (or part of one) was dropped, rejected or caused a reset; see module doc.
 COUNTER_REASONS: dict[str, str] = {
@@ -207,7 +206,7 @@ def validate_changes(changes: Mapping[str, Any], base: FilterParams) -> dict[str
     out = {name: validate_param(name, v) for name, v in changes.items()}
     filt = {k: v for k, v in out.items() if BY_NAME[k].scope == "filter"}
     if filt:
-        build_cfg(base.replace(**filt))
+        base.replace(**filt)  # the rules between filter parameters
     return out
 
 
@@ -267,6 +266,12 @@ def _rows(v: Any, n: int, kind: str) -> np.ndarray:
     if a.shape != (n, 3):
         raise ValueError(f"{kind} must have shape ({n}, 3), got {a.shape}")
     return a
+
+
+def _ts_value(index: int, doc: str) -> property:
+    """A read-only float property of :class:`StreamAdapter` reading slot ``index`` of its
+    compiled rules' state (``T_*`` of :mod:`mkf_ros.stream.kernel`)."""
+    return property(lambda self: float(self._ts[index]), doc=doc)
 
 
 class StreamAdapter:
@@ -381,33 +386,15 @@ class StreamAdapter:
         """Stamp (s) of the filter's state, None before the first IMU sample."""
         return float(self._ts[sk.T_T]) if self._ts[sk.T_VALID] else None
 
-    @property
-    def acc_norm(self) -> float:
-        """m/s², magnitude of the latest finite accelerometer sample."""
-        return float(self._ts[sk.T_ACC_NORM])
-
-    @property
-    def mag_norm(self) -> float:
-        """T, magnitude of the latest finite magnetometer sample."""
-        return float(self._ts[sk.T_MAG_NORM])
-
-    @property
-    def mag_offset(self) -> float:
-        """s, latest magnetometer stamp − filter time at its arrival."""
-        return float(self._ts[sk.T_MAG_OFFSET])
-
-    @property
-    def last_imu_stamp(self) -> float:
-        return float(self._ts[sk.T_LAST_IMU])
-
-    @property
-    def last_mag_stamp(self) -> float:
-        return float(self._ts[sk.T_LAST_MAG])
-
-    @property
-    def last_acc_stamp(self) -> float:
-        """Stamp of the latest accelerometer sample of split input (NaN: none yet)."""
-        return float(self._ts[sk.T_LAST_ACC])
+    acc_norm = _ts_value(sk.T_ACC_NORM, "m/s², magnitude of the latest finite accelerometer "
+                                        "sample.")
+    mag_norm = _ts_value(sk.T_MAG_NORM, "T, magnitude of the latest finite magnetometer sample.")
+    mag_offset = _ts_value(sk.T_MAG_OFFSET, "s, latest magnetometer stamp − filter time at its "
+                                            "arrival.")
+    last_imu_stamp = _ts_value(sk.T_LAST_IMU, "Stamp of the latest IMU (gyro) sample.")
+    last_mag_stamp = _ts_value(sk.T_LAST_MAG, "Stamp of the latest magnetometer sample.")
+    last_acc_stamp = _ts_value(sk.T_LAST_ACC, "Stamp of the latest accelerometer sample of split "
+                                              "input (NaN: none yet).")
 
     def _reset_dt_stats(self) -> None:
         self._ts[[sk.T_DT_N, sk.T_DT_MIN, sk.T_DT_SUM, sk.T_DT_MAX]] = (0.0, math.inf, 0.0, 0.0)

@@ -24,6 +24,7 @@ from mkf_ros.core.filter import (
     MAX_ACC_G,
     MAX_GYRO_RATE,
     MAX_MAG,
+    YAW_VAR_UNKNOWN,
     bias,
     bias_variance,
     classify_reading,
@@ -50,9 +51,6 @@ MAX_PENDING_MAG = 32
 MIN_STEP = 1e-9
 #: A magnetometer stamp this close to an IMU stamp is fused in the same filter step.
 SAME_STAMP = 1e-6
-#: Published yaw variance (rad²) while the heading is unknown: after a gap the filter keeps
-#: the heading it had, but the sensor may have turned by any angle meanwhile (uniform on ±π).
-YAW_UNKNOWN_VAR = np.pi**2 / 3.0
 
 #: The adapter's own counters (the filter's are synced separately), in ``acnt`` order.
 ADAPTER_COUNTERS = (
@@ -539,8 +537,8 @@ def output(cfg: np.ndarray, st: np.ndarray, P: np.ndarray, fl: np.ndarray,
     if ts[T_YAW_LOST] > 0:
         if heading:
             ts[T_YAW_LOST] = 0.0
-        elif cov[2, 2] < YAW_UNKNOWN_VAR:
-            cov[2, 2] = YAW_UNKNOWN_VAR  # world z is vertical in ENU, NED and NWU
+        elif cov[2, 2] < YAW_VAR_UNKNOWN:
+            cov[2, 2] = YAW_VAR_UNKNOWN  # world z is vertical in ENU, NED and NWU
     sd = npar[P_ORI_SD]
     if sd > 0.0:
         cov[:, :] = 0.0

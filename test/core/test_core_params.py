@@ -118,3 +118,15 @@ def test_unknown_keyword_is_one_short_line_with_a_suggestion() -> None:
     with pytest.raises(ValueError, match=r"^unknown filter parameter 'turbo'; ") as e:
         FilterParams(turbo=1)
     assert len(str(e.value)) <= 200
+
+
+def test_rules_between_parameters_are_the_parameters_own() -> None:
+    """A combination the filter cannot run is refused where the parameters are made (the node's
+    SetParameters, ``mkf`` flags and ``estimate()`` all build FilterParams), not later."""
+    with pytest.raises(ValueError, match="mag_soft_iron must be an invertible 3x3 matrix"):
+        FilterParams(mag_soft_iron=[1, 0, 0, 0, 1, 0, 0, 0, 0])
+    with pytest.raises(ValueError, match="init_mode 'paper' with use_mag needs mag_reference"):
+        FilterParams(init_mode="paper", use_mag=True)
+    ok = FilterParams(init_mode="paper", use_mag=True, mag_reference=[0.0, 0.4, -0.9])
+    with pytest.raises(ValueError, match="needs mag_reference"):
+        ok.replace(mag_reference=[0.0, 0.0, 0.0])
