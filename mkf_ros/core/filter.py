@@ -4,8 +4,7 @@ the stream adapter and the ROS node), :func:`run_batch` (the loop behind
 covariance about world axes.
 
 Compiled front ends (:mod:`mkf_ros.stream.kernel`) drive the filter through the kernels listed
-in ``__all__`` below and the arrays of :meth:`AttitudeFilter.kernel_arrays`, never through the
-layouts of :mod:`mkf_ros.core.state`.
+in ``__all__`` below and the records of :meth:`AttitudeFilter.kernel_arrays`.
 """
 
 from __future__ import annotations
@@ -15,19 +14,14 @@ from typing import NamedTuple
 
 import numpy as np
 
-from mkf_ros.core._jit import jit, jit_inline
+from mkf_ros.core._jit import jit
 from mkf_ros.core.baseline_glue import (
     baseline_estimate,
     from_canonical,
     to_canonical,
 )
 from mkf_ros.core.charts import from_chart_t, t_matrix_t
-from mkf_ros.core.frames import FROM_ENU
 from mkf_ros.core.linalg import congruence33_t
-from mkf_ros.core.mekf import (
-    mekf_scratch,
-)
-from mkf_ros.core.mukf import mukf_scratch
 from mkf_ros.core.params import FilterParams
 from mkf_ros.core.quaternion import (
     qmul_t,
@@ -36,58 +30,42 @@ from mkf_ros.core.quaternion import (
     t4,
     t33,
 )
-from mkf_ros.core.sensor import (
-    sensor_step,
-    sensor_step_t,
-)
+from mkf_ros.core.sensor import sensor_step, step
 from mkf_ros.core.state import (
     ALGO_EULER_KF,
     ALGO_MADGWICK,
     ATTITUDE_VAR_UNKNOWN,
-    C_ACC_ALIGN,
-    C_ALGO,
-    C_B0,
-    C_CHART,
-    C_GRAVITY,
-    C_MAXDT,
-    C_NX,
-    C_REST_SPLIT,
-    C_USE_MAG,
+    CONFIG,
     COUNTER_NAMES,
-    F_HEADING,
-    F_INIT,
-    F_SIZE,
-    K_GAPS,
-    K_SIZE,
+    COUNTERS,
     MAX_ACC_G,
     MAX_GYRO_RATE,
     MAX_MAG,
-    NX_MAX,
-    S_B,
-    S_E,
-    S_QC,
-    S_SIZE,
-    S_W,
+    STATE,
+    WORK,
     YAW_VAR_UNKNOWN,
-    build_cfg,
-    build_noise,
+    build_config,
     classify_reading,
+    new_records,
 )
 
-#: The stateful filter and its batch loop, the plausibility contract of a reading (issue 14) and
-#: the kernel interface of compiled front ends.
+#: The stateful filter and its batch loop, the plausibility contract of a reading and the
+#: kernel interface of compiled front ends.
 __all__ = [
+    "CONFIG",
+    "COUNTERS",
     "COUNTER_NAMES",
     "MAX_ACC_G",
     "MAX_GYRO_RATE",
     "MAX_MAG",
+    "STATE",
+    "WORK",
     "YAW_VAR_UNKNOWN",
     "AttitudeFilter",
     "BatchOutputs",
     "KernelArrays",
     "bias",
     "bias_variance",
-    "build_cfg",
     "classify_reading",
     "gap_count",
     "gravity",
@@ -98,37 +76,39 @@ __all__ = [
     "rate_covariance",
     "run_batch",
     "sensor_step",
+    "step",
     "uses_mag",
-    "world_output"
+    "new_records",
+    "world_output",
+    "world_output_t",
 ]
 
 
-@jit_inline
-def world_output_t(cfg: np.ndarray, st: np.ndarray, P: np.ndarray,
-                    q_from_enu: np.ndarray) -> tuple[tuple, tuple]:
-    """:func:`world_output` as tuples (the quaternion, the covariance's rows): reads ``st`` and
-    ``P`` element by element, so that the per-sample output of :func:`run_batch` allocates
-    nothing and creates no array views (each costs reference counting)."""
-    if int(cfg[C_ALGO]) >= ALGO_EULER_KF:
-        qa, Pa = baseline_estimate(cfg, st, P)
+@jit
+def world_output_t(c: np.record, s: np.record) -> tuple[tuple, tuple]:
+    """Orientation in the world frame (``q0 ≥ 0``) and its 3×3 covariance about world axes
+    (rows), ``Σ_W = R(q_W) Σ_body R(q_W)ᵀ`` (the error is body-side, ``q = q̂ * δ(e)``), plus
+    the accelerometer's misalignment. Reads the state element by element: no allocation."""
+    if c.algorithm >= ALGO_EULER_KF:
+        qa, Pa = baseline_estimate(c, s)
         q, Pb = t4(qa), t33(Pa)
     else:  # q̂ = q̄_c * φ⁻¹(ē), Σ_body = T P_ee Tᵀ (identity for ē = 0)
-        q = (st[S_QC], st[S_QC + 1], st[S_QC + 2], st[S_QC + 3])
+        q = t4(s.q_c)
+        P = s.P
         Pb = ((P[0, 0], P[0, 1], P[0, 2]), (P[1, 0], P[1, 1], P[1, 2]),
               (P[2, 0], P[2, 1], P[2, 2]))
-        e = (st[S_E], st[S_E + 1], st[S_E + 2])
+        e = (s.e[0], s.e[1], s.e[2])
         if not (e[0] == 0.0 and e[1] == 0.0 and e[2] == 0.0):
-            chart = int(cfg[C_CHART])
-            d = from_chart_t(chart, e)
+            d = from_chart_t(c.chart, e)
             q = qnormalize_t(qmul_t(q, d))
-            Pb = congruence33_t(t_matrix_t(chart, d), Pb)
-    q = qmul_t(t4(q_from_enu), q)
+            Pb = congruence33_t(t_matrix_t(c.chart, d), Pb)
+    q = qmul_t(t4(c.q_from_enu), q)
     n = np.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
     if q[0] < 0.0:
         n = -n
     q = (q[0] / n, q[1] / n, q[2] / n, q[3] / n)
     C = congruence33_t(rotmat_t(q), Pb)
-    f2 = cfg[C_ACC_ALIGN] ** 2 if int(cfg[C_ALGO]) != ALGO_MADGWICK else 0.0
+    f2 = c.acc_alignment_error ** 2 if c.algorithm != ALGO_MADGWICK else 0.0
     # the accelerometer's own misalignment: a constant no filter averages out (published only,
     # by every filter but Madgwick, whose published value is a parameter; every world frame
     # here has its z vertical, so x and y are the tilt axes). Symmetric by construction: the
@@ -139,11 +119,11 @@ def world_output_t(cfg: np.ndarray, st: np.ndarray, P: np.ndarray,
 
 
 @jit
-def world_output(cfg: np.ndarray, st: np.ndarray, P: np.ndarray, q_from_enu: np.ndarray,
-                 q_out: np.ndarray, cov_out: np.ndarray) -> None:
-    """Orientation in the world frame (``q0 ≥ 0``) and its 3×3 covariance about world axes:
-    ``Σ_W = R(q_W) Σ_body R(q_W)ᵀ`` (the error is body-side, ``q = q̂ * δ(e)``)."""
-    q, cov = world_output_t(cfg, st, P, q_from_enu)
+def world_output(cfg: np.ndarray, st: np.ndarray, q_out: np.ndarray,
+                 cov_out: np.ndarray) -> None:
+    """:func:`world_output_t` of the filter's record arrays, into ``q_out`` (4) and
+    ``cov_out`` (3×3)."""
+    q, cov = world_output_t(cfg[0], st[0])
     for i in range(4):
         q_out[i] = q[i]
     for i in range(3):
@@ -152,120 +132,75 @@ def world_output(cfg: np.ndarray, st: np.ndarray, P: np.ndarray, q_from_enu: np.
 
 
 # --- the kernel interface of compiled front ends (mkf_ros.stream.kernel) ---------------------
-# A front end that runs its own compiled loop holds the filter's arrays
-# (:meth:`AttitudeFilter.kernel_arrays`) and calls :func:`sensor_step` and :func:`world_output`;
-# what else it reads of the filter it reads through these, never through the layouts.
-
-
-@jit_inline
-def gravity(cfg: np.ndarray) -> float:
-    """The ``gravity`` parameter (m/s²)."""
-    return cfg[C_GRAVITY]
-
-
-@jit_inline
-def max_dt(cfg: np.ndarray) -> float:
-    """The ``max_dt`` parameter (s): a longer step is a gap (re-alignment)."""
-    return cfg[C_MAXDT]
-
-
-@jit_inline
-def uses_mag(cfg: np.ndarray) -> bool:
-    """Whether the magnetometer is fused (``use_mag``)."""
-    return cfg[C_USE_MAG] > 0
-
-
-@jit_inline
-def is_initialized(fl: np.ndarray) -> bool:
-    """Whether the filter has an estimate (aligned, or the paper's start)."""
-    return fl[F_INIT] > 0
-
-
-@jit_inline
-def heading_fixed(cfg: np.ndarray, fl: np.ndarray) -> bool:
-    """Whether the magnetometer has fixed the heading (never without ``use_mag``)."""
-    return fl[F_HEADING] > 0 and cfg[C_USE_MAG] > 0
-
-
-@jit_inline
-def gap_count(cnt: np.ndarray) -> int:
-    """How many steps longer than ``max_dt`` the filter has re-aligned after."""
-    return cnt[K_GAPS]
-
-
-@jit_inline
-def rate(st: np.ndarray, i: int) -> float:
-    """Component ``i`` of the estimated angular velocity ``ω̄`` (body, rad/s)."""
-    return st[S_W + i]
-
-
-@jit_inline
-def bias(st: np.ndarray, i: int) -> float:
-    """Component ``i`` of the estimated gyro bias ``b̄`` (rad/s; 0 without bias estimation)."""
-    return st[S_B + i]
-
-
-@jit_inline
-def bias_variance(cfg: np.ndarray, P: np.ndarray, i: int) -> float:
-    """Variance of bias component ``i`` (rad²/s²; 0 without bias estimation)."""
-    return P[6 + i, 6 + i] if int(cfg[C_NX]) == 9 else 0.0
-
-
-@jit_inline
-def rate_covariance(P: np.ndarray, i: int, j: int) -> float:
-    """Element ``(i, j)`` of the covariance of ``ω̄`` (rad²/s²)."""
-    return P[3 + i, 3 + j]
+# A front end that runs its own compiled loop holds the filter's records
+# (:meth:`AttitudeFilter.kernel_arrays`) and calls :func:`step` and :func:`world_output_t`;
+# what else it reads of the filter it reads through these.
 
 
 @jit
-def run_batch(cfg: np.ndarray, st: np.ndarray, P: np.ndarray, fl: np.ndarray, cnt: np.ndarray,
-              dts: np.ndarray, gyr: np.ndarray, acc: np.ndarray, mag: np.ndarray,
-              q_from_enu: np.ndarray, out_q: np.ndarray, out_cov: np.ndarray,
-              out_w: np.ndarray, out_b: np.ndarray, out_bvar: np.ndarray,
-              out_init: np.ndarray) -> None:
-    """:func:`sensor_step` over a whole recording, writing the outputs of every sample
-    (element by element: no array views in the loop)."""
-    nx = int(cfg[C_NX])
-    nz = build_noise(cfg)
-    dx = np.empty(NX_MAX)
-    work = mekf_scratch(NX_MAX)
-    mwork = mukf_scratch(nx)
-    for n in range(dts.shape[0]):
-        sensor_step_t(cfg, nz, st, P, fl, cnt, dts[n], (gyr[n, 0], gyr[n, 1], gyr[n, 2]),
-                     (acc[n, 0], acc[n, 1], acc[n, 2]), (mag[n, 0], mag[n, 1], mag[n, 2]), dx,
-                     work, mwork)
-        q, cov = world_output_t(cfg, st, P, q_from_enu)
-        init = fl[F_INIT] > 0
-        out_init[n] = init
-        for i in range(4):
-            out_q[n, i] = q[i]
-        for i in range(3):
-            for j in range(3):
-                out_cov[n, i, j] = cov[i][j]
-            if not init:
-                out_cov[n, i, i] = ATTITUDE_VAR_UNKNOWN
-            out_w[n, i] = st[S_W + i]
-            out_b[n, i] = st[S_B + i]
-            out_bvar[n, i] = P[6 + i, 6 + i] if nx == 9 else 0.0
+def gravity(c: np.record) -> float:
+    """The ``gravity`` parameter (m/s²)."""
+    return c.gravity
 
 
-class KernelArrays(NamedTuple):
-    """The arrays of an :class:`AttitudeFilter`, in the order of :func:`sensor_step`'s and
-    :func:`world_output`'s arguments (``counters`` is ``cnt``)."""
+@jit
+def max_dt(c: np.record) -> float:
+    """The ``max_dt`` parameter (s): a longer step is a gap (re-alignment)."""
+    return c.max_dt
 
-    cfg: np.ndarray
-    nz: np.ndarray
-    st: np.ndarray
-    P: np.ndarray
-    fl: np.ndarray
-    counters: np.ndarray
-    q_from_enu: np.ndarray
+
+@jit
+def uses_mag(c: np.record) -> bool:
+    """Whether the magnetometer is fused (``use_mag``)."""
+    return c.use_mag
+
+
+@jit
+def is_initialized(s: np.record) -> bool:
+    """Whether the filter has an estimate (aligned, or the paper's start)."""
+    return s.initialized
+
+
+@jit
+def heading_fixed(c: np.record, s: np.record) -> bool:
+    """Whether the magnetometer has fixed the heading (never without ``use_mag``)."""
+    return s.heading_fixed and c.use_mag
+
+
+@jit
+def gap_count(k: np.record) -> int:
+    """How many steps longer than ``max_dt`` the filter has re-aligned after."""
+    return k.gaps
+
+
+@jit
+def rate(s: np.record, i: int) -> float:
+    """Component ``i`` of the estimated angular velocity ``ω̄`` (body, rad/s)."""
+    return s.w[i]
+
+
+@jit
+def bias(s: np.record, i: int) -> float:
+    """Component ``i`` of the estimated gyro bias ``b̄`` (rad/s; 0 without bias estimation)."""
+    return s.b[i]
+
+
+@jit
+def bias_variance(c: np.record, s: np.record, i: int) -> float:
+    """Variance of bias component ``i`` (rad²/s²; 0 without bias estimation)."""
+    return s.P[6 + i, 6 + i] if c.nx == 9 else 0.0
+
+
+@jit
+def rate_covariance(s: np.record, i: int, j: int) -> float:
+    """Element ``(i, j)`` of the covariance of ``ω̄`` (rad²/s²)."""
+    return s.P[3 + i, 3 + j]
 
 
 class BatchOutputs(NamedTuple):
-    """Per-sample outputs of :meth:`AttitudeFilter.run` (the last arguments of
-    :func:`run_batch`): orientation ``[w, x, y, z]`` in the world frame, its covariance about
-    world axes (``π² I`` before initialisation), rate, bias, bias variance, initialised."""
+    """Per-sample outputs of :meth:`AttitudeFilter.run` (:func:`run_batch`): orientation
+    ``[w, x, y, z]`` in the world frame, its covariance about world axes (``π² I`` before
+    initialisation), rate, bias, bias variance, initialised."""
 
     quat: np.ndarray
     cov: np.ndarray
@@ -273,6 +208,56 @@ class BatchOutputs(NamedTuple):
     bias: np.ndarray
     bias_var: np.ndarray
     initialized: np.ndarray
+
+
+@jit
+def _write_output(c: np.record, s: np.record, out: BatchOutputs, n: int) -> None:
+    """Row ``n`` of the outputs (element by element: no array views)."""
+    q, cov = world_output_t(c, s)
+    init = s.initialized
+    out.initialized[n] = init
+    for i in range(4):
+        out.quat[n, i] = q[i]
+    for i in range(3):
+        for j in range(3):
+            out.cov[n, i, j] = cov[i][j]
+        if not init:
+            out.cov[n, i, i] = ATTITUDE_VAR_UNKNOWN
+        out.omega[n, i] = s.w[i]
+        out.bias[n, i] = s.b[i]
+        out.bias_var[n, i] = bias_variance(c, s, i)
+
+
+@jit
+def run_batch(cfg: np.ndarray, st: np.ndarray, cnt: np.ndarray, work: np.ndarray,
+              dts: np.ndarray, gyr: np.ndarray, acc: np.ndarray, mag: np.ndarray,
+              out: BatchOutputs) -> None:
+    """:func:`step` over a whole recording, writing the outputs of every sample."""
+    c, s, k, w = cfg[0], st[0], cnt[0], work[0]
+    for n in range(dts.shape[0]):
+        step(c, s, k, w, dts[n], (gyr[n, 0], gyr[n, 1], gyr[n, 2]),
+             (acc[n, 0], acc[n, 1], acc[n, 2]), (mag[n, 0], mag[n, 1], mag[n, 2]))
+        _write_output(c, s, out, n)
+
+
+@jit
+def _to_canonical(cfg: np.ndarray, st: np.ndarray) -> None:
+    to_canonical(cfg[0], st[0])
+
+
+@jit
+def _from_canonical(cfg: np.ndarray, st: np.ndarray) -> None:
+    from_canonical(cfg[0], st[0])
+
+
+class KernelArrays(NamedTuple):
+    """The record arrays of an :class:`AttitudeFilter` (one element each: the record), in the
+    order of :func:`step`'s arguments."""
+
+    cfg: np.ndarray
+    st: np.ndarray
+    counters: np.ndarray
+    work: np.ndarray
 
 
 class AttitudeFilter:
@@ -288,19 +273,21 @@ class AttitudeFilter:
     def __init__(self, params: FilterParams | None = None, **overrides: object) -> None:
         self._params = (params or FilterParams()).replace(**overrides)
         self._split = False
-        self._cfg = self._build_cfg(self._params)
-        self._nz = build_noise(self._cfg)
-        self._q_from_enu = FROM_ENU[self._params.world_frame].copy()
-        self.counters = np.zeros(K_SIZE, dtype=np.int64)
+        self._cfg = build_config(self._params, self._split)
+        self._counters = new_records(COUNTERS)
+        self._work = new_records(WORK)
         self.reset()
 
     # --- state ---------------------------------------------------------------------------
     def reset(self) -> None:
         """Forget the estimate: the next accelerometer sample re-initialises (bias kept at 0)."""
-        self._st = np.zeros(S_SIZE)
-        self._st[S_QC] = 1.0
-        self._P = np.zeros((NX_MAX, NX_MAX))
-        self._fl = np.zeros(F_SIZE, dtype=np.int64)
+        self._st = new_records(STATE)
+        self._st[0].q_c[0] = 1.0
+
+    @property
+    def counters(self) -> np.ndarray:
+        """The counters as an int64 array in :data:`COUNTER_NAMES` order."""
+        return self._counters.view(np.int64)
 
     @property
     def params(self) -> FilterParams:
@@ -318,44 +305,37 @@ class AttitudeFilter:
         ``gyro_bias_stddev``; disabling it freezes the current bias.
         """
         new = self._params.replace(**changes)
-        cfg = self._build_cfg(new)
+        cfg = build_config(new, self._split)
+        old_c, c, s = self._cfg[0], cfg[0], self._st[0]
         switch = new.algorithm != self._params.algorithm
-        if switch or int(self._cfg[C_ALGO]) < ALGO_EULER_KF:
-            to_canonical(self._cfg, self._st, self._P)
-        old_nx, new_nx = int(self._cfg[C_NX]), int(cfg[C_NX])
-        if new_nx > old_nx and self._fl[F_INIT]:
-            self._P[6:9, :] = 0.0
-            self._P[:, 6:9] = 0.0
-            self._P[6:9, 6:9] = cfg[C_B0] * np.eye(3)
+        if switch or old_c.algorithm < ALGO_EULER_KF:
+            _to_canonical(self._cfg, self._st)
+        if c.nx > old_c.nx and s.initialized:
+            s.P[6:9, :] = 0.0
+            s.P[:, 6:9] = 0.0
+            s.P[6:9, 6:9] = c.bias_var0 * np.eye(3)
         if new.mag_reference != self._params.mag_reference or (
             new.use_mag and not self._params.use_mag
         ):
-            self._fl[F_HEADING] = 0  # re-establish heading from the next magnetometer sample
+            s.heading_fixed = False  # re-establish heading from the next magnetometer sample
         if switch:
-            from_canonical(cfg, self._st, self._P)
-        self._params, self._cfg, self._nz = new, cfg, build_noise(cfg)
-        self._q_from_enu = FROM_ENU[new.world_frame].copy()
+            _from_canonical(cfg, self._st)
+        self._params, self._cfg = new, cfg
         return new
 
     def set_split_input(self, split: bool) -> None:
         """Tell the rest test that the gyro and the accelerometer come in separate samples
-        (split input, issue 15): each sensor's part of the test is then held across the steps
-        without its reading. Kept across :meth:`set_params`."""
+        (split input): each sensor's part of the test is then held across the steps without
+        its reading. Kept across :meth:`set_params`."""
         self._split = bool(split)
-        self._cfg[C_REST_SPLIT] = float(self._split)
-
-    def _build_cfg(self, p: FilterParams) -> np.ndarray:
-        cfg = build_cfg(p)
-        cfg[C_REST_SPLIT] = float(self._split)
-        return cfg
+        self._cfg[0].split_input = self._split
 
     def kernel_arrays(self) -> KernelArrays:
-        """The filter's arrays, for a front end running its own compiled loop around
-        :func:`sensor_step` and :func:`world_output` (:mod:`mkf_ros.stream.kernel`). They are
-        the filter's own (updated in place) until :meth:`reset` or :meth:`set_params`; their
-        layouts are not part of the interface (read them through the accessors above)."""
-        return KernelArrays(self._cfg, self._nz, self._st, self._P, self._fl, self.counters,
-                            self._q_from_enu)
+        """The filter's record arrays, for a front end running its own compiled loop around
+        :func:`step` and :func:`world_output_t` (:mod:`mkf_ros.stream.kernel`). They are the
+        filter's own (updated in place) until :meth:`reset` or :meth:`set_params`; read them
+        through the accessors above."""
+        return KernelArrays(self._cfg, self._st, self._counters, self._work)
 
     def run(self, dts: np.ndarray, gyr: np.ndarray, acc: np.ndarray,
             mag: np.ndarray) -> BatchOutputs:
@@ -366,8 +346,7 @@ class AttitudeFilter:
         n = len(dts)
         out = BatchOutputs(np.empty((n, 4)), np.empty((n, 3, 3)), np.empty((n, 3)),
                            np.empty((n, 3)), np.empty((n, 3)), np.empty(n, dtype=np.bool_))
-        run_batch(self._cfg, self._st, self._P, self._fl, self.counters, dts, gyr, acc, mag,
-                  self._q_from_enu, *out)
+        run_batch(self._cfg, self._st, self._counters, self._work, dts, gyr, acc, mag, out)
         return out
 
     def step(self, dt: float, gyr: object = None, acc: object = None, mag: object = None) -> None:
@@ -382,16 +361,16 @@ class AttitudeFilter:
         the argument and leaves the filter exactly as it was."""
         d = _dt(dt)
         g, a, m = _vec(gyr, "gyr"), _vec(acc, "acc"), _vec(mag, "mag")
-        sensor_step(self._cfg, self._nz, self._st, self._P, self._fl, self.counters, d, g, a, m)
+        sensor_step(self._cfg, self._st, self._counters, self._work, d, g, a, m)
 
     @property
     def initialized(self) -> bool:
-        return bool(self._fl[F_INIT])
+        return bool(self._st[0].initialized)
 
     @property
     def heading_initialized(self) -> bool:
         """True once the magnetometer has fixed the heading (always False without it)."""
-        return bool(self._fl[F_HEADING]) and self._params.use_mag
+        return bool(self._st[0].heading_fixed) and self._params.use_mag
 
     @property
     def quaternion(self) -> np.ndarray:
@@ -408,31 +387,32 @@ class AttitudeFilter:
     @property
     def omega(self) -> np.ndarray:
         """Estimated angular velocity, body frame (rad/s)."""
-        return self._st[S_W:S_W + 3].copy()
+        return self._st[0].w.copy()
 
     @property
     def bias(self) -> np.ndarray:
         """Estimated gyro bias (rad/s); zero unless ``estimate_gyro_bias``."""
-        return self._st[S_B:S_B + 3].copy()
+        return self._st[0].b.copy()
 
     @property
     def bias_stddev(self) -> np.ndarray:
-        return np.sqrt(np.diag(self._P)[6:9]) if self._cfg[C_NX] == 9 else np.zeros(3)
+        return (np.sqrt(np.diag(self._st[0].P)[6:9]) if self._cfg[0].nx == 9
+                else np.zeros(3))
 
     @property
     def state_covariance(self) -> np.ndarray:
         """The filter's covariance of ``(e, ω[, b])`` in its current chart."""
-        n = int(self._cfg[C_NX])
-        return self._P[:n, :n].copy()
+        n = int(self._cfg[0].nx)
+        return self._st[0].P[:n, :n].copy()
 
     def counter_dict(self) -> dict[str, int]:
-        return dict(zip(COUNTER_NAMES, (int(c) for c in self.counters), strict=True))
+        return {name: int(self._counters[0][name]) for name in COUNTER_NAMES}
 
     def _output(self) -> tuple[np.ndarray, np.ndarray]:
         q = np.empty(4)
         c = np.empty((3, 3))
-        world_output(self._cfg, self._st, self._P, self._q_from_enu, q, c)
-        if not self._fl[F_INIT]:
+        world_output(self._cfg, self._st, q, c)
+        if not self._st[0].initialized:
             c = ATTITUDE_VAR_UNKNOWN * np.eye(3)
         return q, c
 

@@ -44,10 +44,10 @@ def cholesky(a: np.ndarray) -> tuple[np.ndarray, bool]:
 
 
 @jit_inline
-def cho_solve_into(L: np.ndarray, n: int, x: np.ndarray) -> None:
-    """Solve ``(L Lᵀ) X = B`` in place: ``x`` holds ``B`` (columns are right-hand sides) in its
-    first ``n`` rows on entry and ``X`` on return; ``L`` is ``n × n`` lower (leading block)."""
-    m = x.shape[1]
+def cho_solve_into(L: np.ndarray, n: int, x: np.ndarray, m: int) -> None:
+    """Solve ``(L Lᵀ) X = B`` in place: ``x`` holds ``B`` (its first ``m`` columns are
+    right-hand sides) in its first ``n`` rows on entry and ``X`` on return; ``L`` is ``n × n``
+    lower (leading block)."""
     for i in range(n):  # forward: L Z = B, all columns at once (row-major friendly)
         for k in range(i):
             lik = L[i, k]
@@ -70,7 +70,7 @@ def cho_solve_into(L: np.ndarray, n: int, x: np.ndarray) -> None:
 def cho_solve(L: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Solve ``(L Lᵀ) X = B`` for a matrix ``B`` (columns are right-hand sides)."""
     x = b.copy()
-    cho_solve_into(L, b.shape[0], x)
+    cho_solve_into(L, b.shape[0], x, x.shape[1])
     return x
 
 

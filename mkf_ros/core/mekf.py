@@ -42,6 +42,10 @@ def mekf_scratch(nx: int) -> np.ndarray:
     return np.empty((2 * nx + 12, 3))
 
 
+#: Rows of :func:`mekf_scratch` for the largest state (9: attitude, rate, bias).
+MEKF_SCRATCH_ROWS = 2 * 9 + 12
+
+
 # How a block's H acts (for the Joseph form, which needs B Hᵀ of a full matrix B): a vector
 # sensor ``[v̄]×`` on the attitude, the rate ``[0, I, 0]``, the gyro ``[0, I, I]``.
 H_VECTOR, H_RATE, H_RATE_BIAS = 0, 1, 2

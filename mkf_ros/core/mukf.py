@@ -95,6 +95,15 @@ _BLOCK_SIZE = (3, 3, 1, 3)
 # the measurement y (later Δy)
 _CX, _CQ, _CY = 0, 9, 13
 
+#: The same scratch as fields of a record (sized for 9 states; a filter with 6 uses the leading
+#: blocks): name, type, shape, in :func:`mukf_scratch`'s order.
+MUKF_SCRATCH = [
+    ("L", np.float64, (12, 12)), ("X", np.float64, (2 * _NDA + 3, _CY + _M_MAX)),
+    ("Pxy", np.float64, (9, _M_MAX)), ("Pyy", np.float64, (_M_MAX, _M_MAX)),
+    ("Ly", np.float64, (_M_MAX, _M_MAX)), ("KPyy", np.float64, (9, _M_MAX)),
+    ("Pxx", np.float64, (9, 9)), ("Kt", np.float64, (_M_MAX, 9)),
+]
+
 
 @jit_inline
 def _wmeans(X: np.ndarray, ns: int, w_0: float, wj: float, c0: int, c1: int) -> None:
@@ -689,7 +698,7 @@ def _gain(Pxy: np.ndarray, Pyy: np.ndarray, Ly: np.ndarray, Kt: np.ndarray, nx: 
     for a in range(ma):
         for i in range(nx):
             Kt[a, i] = Pxy[i, a]
-    cho_solve_into(Ly, ma, Kt)
+    cho_solve_into(Ly, ma, Kt, nx)
     return True
 
 

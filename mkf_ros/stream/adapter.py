@@ -66,6 +66,7 @@ from mkf_ros.core.filter import (
     MAX_GYRO_RATE,
     MAX_MAG,
     AttitudeFilter,
+    new_records,
 )
 from mkf_ros.core.frames import FROM_ENU
 from mkf_ros.core.params import BY_NAME, PARAMS, FilterParams, Param
@@ -124,10 +125,9 @@ _FILTER_REASONS = {
 }
 COUNTER_REASONS.update({n: _FILTER_REASONS.get(n, f"filter counter {n}")
                         for n in FILTER_REPORTED})
-#: Where each counter lives: ``(True, i)`` the adapter's ``acnt[i]``, ``(False, i)`` the
-#: filter's ``counters[i]`` (in COUNTER_REASONS order, which diagnostics show).
-_COUNTER_SOURCE = {n: (True, sk.ADAPTER_COUNTERS.index(n)) if n in sk.ADAPTER_COUNTERS
-                   else (False, FILTER_COUNTERS.index(n)) for n in COUNTER_REASONS}
+#: Whether each counter is the adapter's own (else the filter's), in COUNTER_REASONS order
+#: (which diagnostics show).
+_COUNTER_OWN = {n: n in sk.ADAPTER_COUNTERS for n in COUNTER_REASONS}
 
 #: Counters that mean data was lost or rejected: diagnostics warn whenever one grows.
 REJECTIONS = (
@@ -268,10 +268,10 @@ def _rows(v: Any, n: int, kind: str) -> np.ndarray:
     return a
 
 
-def _ts_value(index: int, doc: str) -> property:
-    """A read-only float property of :class:`StreamAdapter` reading slot ``index`` of its
-    compiled rules' state (``T_*`` of :mod:`mkf_ros.stream.kernel`)."""
-    return property(lambda self: float(self._ts[index]), doc=doc)
+def _ts_value(field: str, doc: str) -> property:
+    """A read-only float property of :class:`StreamAdapter` reading ``field`` of its compiled
+    rules' time state (:data:`mkf_ros.stream.kernel.STREAM`)."""
+    return property(lambda self: float(self._ts[0][field]), doc=doc)
 
 
 class StreamAdapter:
@@ -284,9 +284,9 @@ class StreamAdapter:
     >>> res = s.process(t, gyr, acc, t_mag, mag)         # a whole recording: arrays of outputs
 
     Parameters are every entry of :data:`mkf_ros.core.params.PARAMS` (filter and node scope).
-    The state is a few arrays that the compiled rules (:mod:`mkf_ros.stream.kernel`) update
-    in place: the filter's, the time state ``_ts``, the held magnetometer samples ``_pend``,
-    the adapter's counters ``_acnt`` and the node parameters ``_npar``.
+    The state is a few records that the compiled rules (:mod:`mkf_ros.stream.kernel`) update
+    in place: the filter's, the time state ``_ts`` (with the held samples), the adapter's
+    counters ``_acnt`` and the node parameters ``_npar``.
     """
 
     def __init__(self, params: Mapping[str, Any] | None = None, **overrides: Any) -> None:
@@ -299,20 +299,16 @@ class StreamAdapter:
         }
         self._node.update({k: v for k, v in vals.items() if BY_NAME[k].scope == "node"})
         self.last_reset_reason = ""
-        self._acnt = np.zeros(sk.A_SIZE, dtype=np.int64)
-        self._ts = np.zeros(sk.T_SIZE)
-        self._ts[[sk.T_ACC_NORM, sk.T_MAG_NORM, sk.T_MAG_OFFSET, sk.T_LAST_IMU,
-                  sk.T_LAST_MAG]] = math.nan
-        self._pend = np.zeros((sk.PEND_ROWS, 4))
-        self._pacc = np.zeros((sk.PEND_ROWS, 4))
-        self._ts[sk.T_LAST_ACC] = math.nan
+        self._acnt = new_records(sk.ADAPTER_COUNTER_RECORD)
+        self._ts = new_records(sk.STREAM)
+        for name in ("acc_norm", "mag_norm", "mag_offset", "last_imu", "last_mag", "last_acc"):
+            self._ts[0][name] = math.nan
         self._reset_dt_stats()
-        # the one-event sequences of on_imu / on_mag
-        self._ev = np.zeros((1, sk.E_SIZE))
-        self._ev_imu = np.array([[sk.EV_IMU, 0]], dtype=np.int64)
-        self._ev_mag = np.array([[sk.EV_MAG, 0]], dtype=np.int64)
-        self._ev_acc = np.array([[sk.EV_ACC, 0]], dtype=np.int64)
-        self._out = np.zeros((1, sk.O_SIZE))
+        # the one-event sequences of on_imu / on_mag / on_accel
+        self._ev_imu, self._ev_mag, self._ev_acc = (new_records(sk.EVENT) for _ in range(3))
+        self._ev_mag[0].kind = sk.EV_MAG
+        self._ev_acc[0].kind = sk.EV_ACC
+        self._out = new_records(sk.OUTPUT)
         self._derive()
 
     # --- parameters ------------------------------------------------------------------------
@@ -329,9 +325,9 @@ class StreamAdapter:
             self.filter.set_params(**filt)
         self._node.update({k: v for k, v in vals.items() if BY_NAME[k].scope == "node"})
         if not self.filter.params.use_mag:
-            self._ts[sk.T_NPEND] = 0
+            self._ts[0].n_mag = 0
         if not self.split:
-            self._ts[sk.T_NPEND_ACC] = 0
+            self._ts[0].n_acc = 0
         self._derive()
 
     @property
@@ -345,36 +341,34 @@ class StreamAdapter:
         return {**self.filter.params, **self._node}
 
     def _derive(self) -> None:
-        """The node parameters as the kernels read them (``npar``, layout ``P_*``)."""
+        """The node parameters as the kernels read them (``npar``, :data:`~.kernel.NODE`)."""
         n, f = self._node, self.filter.params
         q_w = FROM_ENU[f.world_frame]
         psi = float(n["yaw_offset"] - n["declination"])
         qz = np.array([math.cos(psi / 2), 0.0, 0.0, math.sin(psi / 2)])
         q_off = qmul_np(qmul_np(q_w, qz), qconj_np(q_w))  # about world up, in W axes
-        p = np.zeros(sk.P_SIZE)
-        p[sk.P_CONST_DT] = n["constant_dt"]
-        p[sk.P_JUMP] = n["time_jump_threshold"]
-        p[sk.P_ACC_TOL] = n["acc_magnitude_tolerance"]
-        p[sk.P_MAG_DELAY] = n["mag_max_delay"]
-        p[sk.P_HAS_OFF] = abs(psi) > 0.0
-        p[sk.P_Q_OFF:sk.P_Q_OFF + 4] = q_off
-        p[sk.P_R_OFF:sk.P_R_OFF + 9] = rotmat_np(q_off).reshape(9)
-        p[sk.P_UP_W:sk.P_UP_W + 3] = rotmat_np(q_w) @ np.array([0.0, 0.0, 1.0])  # world up
-        p[sk.P_ORI_SD] = n["orientation_stddev"]
-        p[sk.P_AV_SRC] = sk.AV_SOURCES.index(n["angular_velocity_source"])
-        p[sk.P_NO_GRAVITY] = bool(n["remove_gravity_vector"])
-        p[sk.P_SPLIT] = n["input_mode"] == "split"
-        p[sk.P_ACC_DELAY] = n["acc_max_delay"]
-        self._npar = p
+        rec = new_records(sk.NODE)
+        p = rec[0]
+        for name in ("constant_dt", "time_jump_threshold", "acc_magnitude_tolerance",
+                     "mag_max_delay", "acc_max_delay", "orientation_stddev",
+                     "remove_gravity_vector"):
+            p[name] = n[name]
+        p.has_offset = abs(psi) > 0.0
+        p.q_offset[:] = q_off
+        p.R_offset[:] = rotmat_np(q_off)
+        p.up_world[:] = rotmat_np(q_w) @ np.array([0.0, 0.0, 1.0])  # world up
+        p.av_source = sk.AV_SOURCES.index(n["angular_velocity_source"])
+        p.split = n["input_mode"] == "split"
+        self._npar = rec
         self.filter.set_split_input(self.split)
 
     # --- state -----------------------------------------------------------------------------
     def reset(self, reason: str = "requested") -> None:
         """Forget the estimate; the next IMU sample re-initialises. Counters are kept."""
         self.filter.reset()
-        self._ts[[sk.T_T, sk.T_VALID, sk.T_YAW_LOST, sk.T_BACK, sk.T_NPEND,
-                  sk.T_NPEND_ACC]] = 0.0
-        self._acnt[sk.A_RESETS] += 1
+        for name in sk.RESET_FIELDS:
+            self._ts[0][name] = 0
+        self._acnt[0].resets += 1
         self.last_reset_reason = reason
 
     @property
@@ -384,32 +378,35 @@ class StreamAdapter:
     @property
     def time(self) -> float | None:
         """Stamp (s) of the filter's state, None before the first IMU sample."""
-        return float(self._ts[sk.T_T]) if self._ts[sk.T_VALID] else None
+        t = self._ts[0]
+        return float(t.t) if t.valid else None
 
-    acc_norm = _ts_value(sk.T_ACC_NORM, "m/s², magnitude of the latest finite accelerometer "
-                                        "sample.")
-    mag_norm = _ts_value(sk.T_MAG_NORM, "T, magnitude of the latest finite magnetometer sample.")
-    mag_offset = _ts_value(sk.T_MAG_OFFSET, "s, latest magnetometer stamp − filter time at its "
-                                            "arrival.")
-    last_imu_stamp = _ts_value(sk.T_LAST_IMU, "Stamp of the latest IMU (gyro) sample.")
-    last_mag_stamp = _ts_value(sk.T_LAST_MAG, "Stamp of the latest magnetometer sample.")
-    last_acc_stamp = _ts_value(sk.T_LAST_ACC, "Stamp of the latest accelerometer sample of split "
-                                              "input (NaN: none yet).")
+    acc_norm = _ts_value("acc_norm", "m/s², magnitude of the latest finite accelerometer "
+                                     "sample.")
+    mag_norm = _ts_value("mag_norm", "T, magnitude of the latest finite magnetometer sample.")
+    mag_offset = _ts_value("mag_offset", "s, latest magnetometer stamp − filter time at its "
+                                         "arrival.")
+    last_imu_stamp = _ts_value("last_imu", "Stamp of the latest IMU (gyro) sample.")
+    last_mag_stamp = _ts_value("last_mag", "Stamp of the latest magnetometer sample.")
+    last_acc_stamp = _ts_value("last_acc", "Stamp of the latest accelerometer sample of split "
+                                           "input (NaN: none yet).")
 
     def _reset_dt_stats(self) -> None:
-        self._ts[[sk.T_DT_N, sk.T_DT_MIN, sk.T_DT_SUM, sk.T_DT_MAX]] = (0.0, math.inf, 0.0, 0.0)
+        t = self._ts[0]
+        t.dt_n, t.dt_min, t.dt_sum, t.dt_max = 0, math.inf, 0.0, 0.0
 
     def pop_dt_stats(self) -> tuple[int, float, float, float]:
         """``(n, min, mean, max)`` of the IMU time steps (s) since the previous call."""
-        n, lo, s, hi = self._ts[sk.T_DT_N:sk.T_DT_MAX + 1].tolist()
+        t = self._ts[0]
+        n, lo, s, hi = int(t.dt_n), float(t.dt_min), float(t.dt_sum), float(t.dt_max)
         self._reset_dt_stats()
-        return (int(n), lo, s / n, hi) if n else (0, math.nan, math.nan, math.nan)
+        return (n, lo, s / n, hi) if n else (0, math.nan, math.nan, math.nan)
 
     @property
     def counters(self) -> dict[str, int]:
         """Every counter of :data:`COUNTER_REASONS` (the adapter's and the filter's)."""
-        a, f = self._acnt, self.filter.counters
-        return {n: int(a[i] if own else f[i]) for n, (own, i) in _COUNTER_SOURCE.items()}
+        a, f = self._acnt[0], self.filter.counter_dict()
+        return {n: int(a[n]) if own else f[n] for n, own in _COUNTER_OWN.items()}
 
     def all_counters(self) -> dict[str, int]:
         """Adapter counters plus the filter's own sample/gap/update counters."""
@@ -421,19 +418,19 @@ class StreamAdapter:
         accelerometer sample), judged once :data:`INPUT_CHECK_MESSAGES` messages have
         arrived; empty: nothing wrong. The topic names, if given, go into the text
         (``imu_topic``: the IMU, or with split input the gyro topic)."""
-        a, ts = self._acnt, self._ts
+        a, ts = self._acnt[0], self._ts[0]
         out = {}
-        n_imu = int(a[sk.A_IMU_RECEIVED])
+        n_imu = int(a.imu_received)
         imu = f" on {imu_topic}" if imu_topic else ""
-        if n_imu >= INPUT_CHECK_MESSAGES and not ts[sk.T_GYR_SEEN]:
+        if n_imu >= INPUT_CHECK_MESSAGES and not ts.gyr_seen:
             hint = ("is it the accelerometer topic? (split input: check the gyro topic)"
                     if self.split else "is this an accelerometer-only topic? (separate "
                     "accelerometer and gyro topics: input_mode split)")
             out["gyro"] = (f"angular velocity zero or not reported in all {n_imu} IMU messages"
                            f"{imu}: {hint}")
-        n_acc = int(a[sk.A_ACC_RECEIVED]) if self.split else n_imu
+        n_acc = int(a.acc_received) if self.split else n_imu
         acc = f" on {accel_topic or imu_topic}" if (accel_topic or imu_topic) else ""
-        if n_acc >= INPUT_CHECK_MESSAGES and not ts[sk.T_ACC_SEEN]:
+        if n_acc >= INPUT_CHECK_MESSAGES and not ts.acc_seen:
             hint = ("is it the gyro topic? (split input: check the accelerometer topic)"
                     if self.split else "is this a gyro-only topic? (separate accelerometer "
                     "and gyro topics: input_mode split)")
@@ -450,27 +447,23 @@ class StreamAdapter:
         Returns the estimate at ``stamp``, or None when nothing is to be published (sample
         dropped, filter not initialised yet).
         """
-        e = self._ev[0]
-        e[sk.E_V:sk.E_V + 3] = _vec(gyr, "gyr")
-        e[sk.E_A:sk.E_A + 3] = _vec(acc, "acc")
-        e[sk.E_STAMP] = stamp = float(stamp)
-        self._run(self._ev, self._ev_imu, self._out, 0, 1)
-        o = self._out[0]
-        flags = int(o[sk.O_FLAGS])
-        if not flags:
+        ev = self._ev_imu
+        e = ev[0]
+        e.v[:] = _vec(gyr, "gyr")
+        e.a[:] = _vec(acc, "acc")
+        e.stamp = stamp = float(stamp)
+        self._run(ev, self._out, 0, 1)
+        if not self._out[0].present:
             return None
-        o = o.copy()  # the fields below are views of this copy
+        o = self._out.copy()[0]  # the fields below are views of this copy
+        flags = int(o.present)
         return StreamOutput(
-            stamp=stamp, quat_wxyz=o[sk.O_Q:sk.O_Q + 4],
-            orientation_cov=o[sk.O_COV:sk.O_COV + 9].reshape(3, 3),
-            angular_velocity=o[sk.O_W:sk.O_W + 3] if flags & sk.OF_W else None,
-            angular_velocity_cov=(o[sk.O_WCOV:sk.O_WCOV + 9].reshape(3, 3)
-                                  if flags & sk.OF_WCOV else None),
-            angular_velocity_cov_add=(np.diag(o[sk.O_WADD:sk.O_WADD + 3])
-                                      if flags & sk.OF_WADD else None),
-            linear_acceleration=o[sk.O_LIN:sk.O_LIN + 3] if flags & sk.OF_LIN else None,
-            omega=o[sk.O_OMEGA:sk.O_OMEGA + 3], bias=o[sk.O_BIAS:sk.O_BIAS + 3],
-            bias_stddev=o[sk.O_BSTD:sk.O_BSTD + 3],
+            stamp=stamp, quat_wxyz=o.q, orientation_cov=o.cov,
+            angular_velocity=o.w if flags & sk.OF_W else None,
+            angular_velocity_cov=o.wcov if flags & sk.OF_WCOV else None,
+            angular_velocity_cov_add=np.diag(o.wadd) if flags & sk.OF_WADD else None,
+            linear_acceleration=o.lin if flags & sk.OF_LIN else None,
+            omega=o.omega, bias=o.bias, bias_stddev=o.bstd,
             heading_initialized=bool(flags & sk.OF_HEADING))
 
     def on_gyro(self, stamp: float, gyr: Any) -> StreamOutput | None:
@@ -483,17 +476,17 @@ class StreamAdapter:
         if not self.split:
             raise ValueError("on_accel needs input_mode split (with input_mode imu the "
                              "accelerometer comes with the gyro in on_imu)")
-        e = self._ev[0]
-        e[sk.E_V:sk.E_V + 3] = _vec(acc, "acc")
-        e[sk.E_STAMP] = stamp
-        self._run(self._ev, self._ev_acc, self._out, 0, 1)
+        ev = self._ev_acc
+        ev[0].v[:] = _vec(acc, "acc")
+        ev[0].stamp = stamp
+        self._run(ev, self._out, 0, 1)
 
     def on_mag(self, stamp: float, mag: Any) -> None:
         """Process one magnetometer sample (any unit, tesla by REP-145; all NaN = none)."""
-        e = self._ev[0]
-        e[sk.E_V:sk.E_V + 3] = _vec(mag, "mag")
-        e[sk.E_STAMP] = stamp
-        self._run(self._ev, self._ev_mag, self._out, 0, 1)
+        ev = self._ev_mag
+        ev[0].v[:] = _vec(mag, "mag")
+        ev[0].stamp = stamp
+        self._run(ev, self._out, 0, 1)
 
     def process(self, imu_stamp: Any, gyr: Any, acc: Any, mag_stamp: Any = None,
                 mag: Any = None, *, imu_arrival: Any = None, mag_arrival: Any = None,
@@ -522,21 +515,21 @@ class StreamAdapter:
                              "acc_stamp is for split input (input_mode split)")
         k = 0 if mag_stamp is None else len(mag_stamp)
         j = 0 if acc_stamp is None else len(acc_stamp)
-        ev_f = np.full((n + k + j, sk.E_SIZE), math.nan)
-        ev_f[:n, sk.E_STAMP] = ts
-        ev_f[:n, sk.E_V:sk.E_V + 3] = _rows(gyr, n, "gyr")
+        ev = np.zeros(n + k + j, sk.EVENT)
+        ev["stamp"][:n] = ts
+        ev["v"][:n] = _rows(gyr, n, "gyr")
+        ev["a"][:] = math.nan
         if acc_stamp is None:
-            ev_f[:n, sk.E_A:sk.E_A + 3] = _rows(acc, n, "acc")
-        ev_i = np.zeros((n + k + j, 2), dtype=np.int64)
-        ev_i[:n, 1] = np.arange(n)
-        ev_i[n:n + k, 0] = sk.EV_MAG
-        ev_i[n + k:, 0] = sk.EV_ACC
+            ev["a"][:n] = _rows(acc, n, "acc")
+        ev["row"][:n] = np.arange(n)
+        ev["kind"][n:n + k] = sk.EV_MAG
+        ev["kind"][n + k:] = sk.EV_ACC
         if k:
-            ev_f[n:n + k, sk.E_STAMP] = mag_stamp
-            ev_f[n:n + k, sk.E_V:sk.E_V + 3] = _rows(mag, k, "mag")
+            ev["stamp"][n:n + k] = mag_stamp
+            ev["v"][n:n + k] = _rows(mag, k, "mag")
         if j:
-            ev_f[n + k:, sk.E_STAMP] = acc_stamp
-            ev_f[n + k:, sk.E_V:sk.E_V + 3] = _rows(acc, j, "acc")
+            ev["stamp"][n + k:] = acc_stamp
+            ev["v"][n + k:] = _rows(acc, j, "acc")
         if k or j:
             parts = [ts if imu_arrival is None else imu_arrival]  # one dtype: ns stay exact
             if k:
@@ -545,30 +538,26 @@ class StreamAdapter:
                 parts.append(acc_stamp if acc_arrival is None else acc_arrival)
             when = np.concatenate(parts)
             # at equal times: magnetometer, accelerometer, IMU; stable: each stream's order
-            rank = np.array([2, 0, 1])[ev_i[:, 0]]
-            order = np.lexsort((rank, when))
-            ev_f, ev_i = ev_f[order], ev_i[order]
+            rank = np.array([2, 0, 1])[ev["kind"]]
+            ev = ev[np.lexsort((rank, when))]
         elif imu_arrival is not None:
-            order = np.argsort(imu_arrival, kind="stable")
-            ev_f, ev_i = ev_f[order], ev_i[order]
-        out = np.zeros((n, sk.O_SIZE))
+            ev = ev[np.argsort(imu_arrival, kind="stable")]
+        out = np.zeros(n, sk.OUTPUT)
         total = n + k + j
         for k0 in range(0, total, chunk):
             k1 = min(k0 + chunk, total)
-            self._run(ev_f, ev_i, out, k0, k1)
+            self._run(ev, out, k0, k1)
             if progress is not None:
                 progress(k1 - k0)
         return _outputs(out, ts)
 
-    def _run(self, ev_f: np.ndarray, ev_i: np.ndarray, out: np.ndarray, k0: int,
-             k1: int) -> None:
+    def _run(self, ev: np.ndarray, out: np.ndarray, k0: int, k1: int) -> None:
         """Events ``k0 … k1-1`` through the compiled rules. Only resets come back here: the
-        filter gets new state arrays, then the loop resumes."""
+        filter gets new state, then the loop resumes."""
         resume = False
         while True:
             k, why = sk.run_events(*self.filter.kernel_arrays(), self._npar, self._ts,
-                                   self._pend, self._acnt, ev_f, ev_i, out, k0, k1, resume,
-                                   self._pacc)
+                                   self._acnt, ev, out, k0, k1, resume)
             if why == sk.R_DONE:
                 return
             if why == sk.R_TIME_JUMP:  # the same sample again, re-initialising from it
@@ -580,9 +569,9 @@ class StreamAdapter:
 
 
 def _outputs(out: np.ndarray, stamps: np.ndarray) -> StreamOutputs:
-    """The published rows of a table of ``O_*`` rows (one per IMU message) as arrays (views
-    of the table, absent optional fields NaN)."""
-    flags = out[:, sk.O_FLAGS].astype(np.int64)
+    """The published rows of a table of :data:`~mkf_ros.stream.kernel.OUTPUT` records (one
+    per IMU message) as arrays (views of the table, absent optional fields NaN)."""
+    flags = out["present"]
     if flags.all():
         idx = np.arange(len(out))
     else:
@@ -590,14 +579,11 @@ def _outputs(out: np.ndarray, stamps: np.ndarray) -> StreamOutputs:
         out, flags = out[idx], flags[idx]
     m = len(idx)
     wadd = np.zeros((m, 3, 3))
-    wadd[:, (0, 1, 2), (0, 1, 2)] = out[:, sk.O_WADD:sk.O_WADD + 3]
+    wadd[:, (0, 1, 2), (0, 1, 2)] = out["wadd"]
     wadd[(flags & sk.OF_WADD) == 0] = math.nan
     return StreamOutputs(
-        index=idx, stamp=stamps[idx], quat_wxyz=out[:, sk.O_Q:sk.O_Q + 4],
-        orientation_cov=out[:, sk.O_COV:sk.O_COV + 9].reshape(m, 3, 3),
-        angular_velocity=out[:, sk.O_W:sk.O_W + 3],
-        angular_velocity_cov=out[:, sk.O_WCOV:sk.O_WCOV + 9].reshape(m, 3, 3),
-        angular_velocity_cov_add=wadd, linear_acceleration=out[:, sk.O_LIN:sk.O_LIN + 3],
-        omega=out[:, sk.O_OMEGA:sk.O_OMEGA + 3], bias=out[:, sk.O_BIAS:sk.O_BIAS + 3],
-        bias_stddev=out[:, sk.O_BSTD:sk.O_BSTD + 3],
+        index=idx, stamp=stamps[idx], quat_wxyz=out["q"], orientation_cov=out["cov"],
+        angular_velocity=out["w"], angular_velocity_cov=out["wcov"],
+        angular_velocity_cov_add=wadd, linear_acceleration=out["lin"],
+        omega=out["omega"], bias=out["bias"], bias_stddev=out["bstd"],
         heading_initialized=(flags & sk.OF_HEADING) > 0)

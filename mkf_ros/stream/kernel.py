@@ -4,18 +4,26 @@ The adapter's rules (see :mod:`mkf_ros.stream` for what they are) are implemente
 as kernels over a merged sequence of IMU and magnetometer events. The per-message methods
 (``on_imu``, ``on_mag``) run a one-event sequence through :func:`run_events`; the batch entry
 (``process``) runs a whole recording through it. Only resets leave the compiled loop: the
-kernel stops at the event that needs one, Python resets the filter (new state arrays) and the
-loop resumes, so both paths share every rule, bit for bit.
+kernel stops at the event that needs one, Python resets the filter (new state) and the loop
+resumes, so both paths share every rule, bit for bit.
 
-Layouts: the adapter's time state ``ts`` (``T_*``), its node parameters ``npar`` (``P_*``), the
-magnetometer samples held for the IMU stream ``pend`` and, with split input, the accelerometer
-samples held for the gyro stream ``pacc`` (rows ``stamp, v``, in stamp order, equal stamps in
-arrival order), its own counters ``acnt`` (:data:`ADAPTER_COUNTERS`), events ``ev_f``
-(``E_*``) and ``ev_i`` (kind, output row), outputs ``out`` (``O_*``, one row per IMU (gyro)
-message, flags ``OF_*``).
+Records (one definition each, below): the adapter's node parameters (:data:`NODE`), its time
+state with the magnetometer samples held for the IMU stream and, with split input, the
+accelerometer samples held for the gyro stream (:data:`STREAM`; rows ``stamp, v`` in stamp
+order, equal stamps in arrival order), its own counters (:data:`ADAPTER_COUNTER_RECORD`), the
+events (:data:`EVENT`) and the outputs, one per IMU (gyro) message (:data:`OUTPUT`, flags
+``OF_*``). The filter's records travel together as a :class:`FilterRecords`, the adapter's as
+a :class:`StreamRecords`.
+
+Every function that runs a filter step is inlined into :func:`run_events` (numba IR), so that
+the filter's compiled code is linked into one kernel here: numba links (and re-optimises) a
+callee's machine code into every compiled function that calls it, directly or not (measured:
+each such function cost another 8–10 s of compile time).
 """
 
 from __future__ import annotations
+
+from collections import namedtuple
 
 import numpy as np
 
@@ -35,11 +43,11 @@ from mkf_ros.core.filter import (
     max_dt,
     rate,
     rate_covariance,
-    sensor_step,
+    step,
     uses_mag,
-    world_output,
+    world_output_t,
 )
-from mkf_ros.core.quaternion import q_from_rotvec, qmul, rotate_inv, rotmat
+from mkf_ros.core.quaternion import q_from_rotvec, qmul, rotmat, rotate_inv, t3
 
 #: Out-of-order IMU samples in a row after which the stream is taken to have jumped back.
 MAX_BACKWARDS = 10
@@ -51,8 +59,12 @@ MAX_PENDING_MAG = 32
 MIN_STEP = 1e-9
 #: A magnetometer stamp this close to an IMU stamp is fused in the same filter step.
 SAME_STAMP = 1e-6
+#: Rows of a held-samples table: one more than it keeps (a sample is inserted, then the oldest
+#: dropped).
+PEND_ROWS = MAX_PENDING_MAG + 1
+NAN3 = (np.nan, np.nan, np.nan)
 
-#: The adapter's own counters (the filter's are synced separately), in ``acnt`` order.
+#: The adapter's own counters (the filter's are synced separately).
 ADAPTER_COUNTERS = (
     "imu_received", "imu_duplicate", "imu_out_of_order", "imu_bad_stamp",
     "gyr_missing", "gyr_invalid", "acc_missing", "acc_invalid", "acc_implausible",
@@ -60,50 +72,89 @@ ADAPTER_COUNTERS = (
     "mag_overflow", "mag_fused", "output_nonfinite", "resets", "resets_time_jump",
     "acc_received", "acc_too_old", "acc_ahead", "acc_overflow", "acc_fused",
 )
-(A_IMU_RECEIVED, A_IMU_DUPLICATE, A_IMU_OUT_OF_ORDER, A_IMU_BAD_STAMP,
- A_GYR_MISSING, A_GYR_INVALID, A_ACC_MISSING, A_ACC_INVALID, A_ACC_IMPLAUSIBLE,
- A_MAG_RECEIVED, A_MAG_UNUSED, A_MAG_MISSING, A_MAG_INVALID, A_MAG_TOO_OLD, A_MAG_AHEAD,
- A_MAG_OVERFLOW, A_MAG_FUSED, A_OUTPUT_NONFINITE, A_RESETS, A_RESETS_TIME_JUMP,
- A_ACC_RECEIVED, A_ACC_TOO_OLD, A_ACC_AHEAD, A_ACC_OVERFLOW, A_ACC_FUSED) = range(25)
-A_SIZE = len(ADAPTER_COUNTERS)
+ADAPTER_COUNTER_RECORD = np.dtype([(name, np.int64) for name in ADAPTER_COUNTERS])
 
-# time state: filter time and whether it is set, heading lost in a gap, out-of-order run,
-# number of held samples (these five, and the held accelerometer samples, are cleared by a
-# reset), latest magnitudes/offset/stamps, dt statistics; whether a usable gyro reading that
-# is not exactly zero, and a usable accelerometer reading, ever arrived (input checks)
-T_T, T_VALID, T_YAW_LOST, T_BACK, T_NPEND = 0, 1, 2, 3, 4
-T_ACC_NORM, T_MAG_NORM, T_MAG_OFFSET, T_LAST_IMU, T_LAST_MAG = 5, 6, 7, 8, 9
-T_DT_N, T_DT_MIN, T_DT_SUM, T_DT_MAX = 10, 11, 12, 13
-T_NPEND_ACC, T_GYR_SEEN, T_ACC_SEEN, T_LAST_ACC = 14, 15, 16, 17
-T_SIZE = 18
-#: Rows of ``pend``: one more than it keeps (a sample is inserted, then the oldest dropped).
-PEND_ROWS = MAX_PENDING_MAG + 1
-
-# node parameters (the filter's own are read from its configuration vector)
-P_CONST_DT, P_JUMP, P_ACC_TOL, P_MAG_DELAY, P_HAS_OFF = 0, 1, 2, 3, 4
-P_Q_OFF, P_R_OFF, P_UP_W = 5, 9, 18  # 4, 9 (row-major), 3 values
-P_ORI_SD, P_AV_SRC, P_NO_GRAVITY = 21, 22, 23
-P_SPLIT, P_ACC_DELAY = 24, 25  # input_mode split; acc_max_delay
-P_SIZE = 26
-#: ``angular_velocity_source`` choices, in ``npar[P_AV_SRC]`` code order.
+#: The node parameters as the rules read them (the filter's own are in its configuration).
+NODE = np.dtype(
+    [
+        ("constant_dt", np.float64),
+        ("time_jump_threshold", np.float64),
+        ("acc_magnitude_tolerance", np.float64),
+        ("mag_max_delay", np.float64),
+        ("acc_max_delay", np.float64),
+        ("orientation_stddev", np.float64),
+        ("av_source", np.int64),  # angular_velocity_source, index in AV_SOURCES
+        ("remove_gravity_vector", np.bool_),
+        ("split", np.bool_),  # input_mode split
+        ("has_offset", np.bool_),  # a yaw offset / declination turns the output
+        ("q_offset", np.float64, 4),  # that turn about world up, in world axes
+        ("R_offset", np.float64, (3, 3)),  # its rotation matrix
+        ("up_world", np.float64, 3),  # world up in world_frame axes
+    ],
+    align=True,
+)
+#: ``angular_velocity_source`` choices, in ``av_source`` code order.
 AV_SOURCES = ("input", "bias_corrected", "estimate")
 AV_INPUT, AV_BIAS_CORRECTED, AV_ESTIMATE = 0, 1, 2
 
-# events: ev_f row = stamp, gyro or magnetometer vector, accelerometer; ev_i row = kind, row
-E_STAMP, E_V, E_A, E_SIZE = 0, 1, 4, 7
-EV_IMU, EV_MAG, EV_ACC = 0, 1, 2  # EV_ACC: split input, an accelerometer sample in E_V
+#: The adapter's time state: filter time and whether it is set, heading lost in a gap,
+#: out-of-order run, the held samples (these, cleared by a reset: :data:`RESET_FIELDS`),
+#: latest magnitudes/offset/stamps, time-step statistics, and whether a usable gyro reading
+#: that is not exactly zero, and a usable accelerometer reading, ever arrived (input checks).
+STREAM = np.dtype(
+    [
+        ("t", np.float64),  # the filter's time (s)
+        ("valid", np.bool_),  # the first IMU sample has set it
+        ("yaw_lost", np.bool_),  # a gap: heading unknown until the magnetometer fixes it
+        ("backwards", np.int64),  # out-of-order IMU samples in a row
+        ("n_mag", np.int64),  # magnetometer samples held
+        ("n_acc", np.int64),  # accelerometer samples held (split input)
+        ("mag_held", np.float64, (PEND_ROWS, 4)),  # rows: stamp, field
+        ("acc_held", np.float64, (PEND_ROWS, 4)),  # rows: stamp, specific force
+        ("acc_norm", np.float64),  # latest finite accelerometer magnitude (m/s²)
+        ("mag_norm", np.float64),  # latest finite magnetometer magnitude
+        ("mag_offset", np.float64),  # latest magnetometer stamp − filter time (s)
+        ("last_imu", np.float64),  # latest stamps (s)
+        ("last_mag", np.float64),
+        ("last_acc", np.float64),
+        ("dt_n", np.int64),  # IMU time steps since the statistics were read ...
+        ("dt_min", np.float64),
+        ("dt_sum", np.float64),
+        ("dt_max", np.float64),
+        ("gyr_seen", np.bool_),
+        ("acc_seen", np.bool_),
+    ],
+    align=True,
+)
+#: :data:`STREAM` fields a reset clears.
+RESET_FIELDS = ("t", "valid", "yaw_lost", "backwards", "n_mag", "n_acc")
 
-# outputs per IMU message; flags: published, and which optional fields are present (an absent
-# one is NaN)
-O_FLAGS, O_Q, O_COV, O_W, O_WCOV, O_WADD, O_LIN, O_OMEGA, O_BIAS, O_BSTD = (
-    0, 1, 5, 14, 17, 26, 29, 32, 35, 38)
-O_SIZE = 41
+#: One input event: stamp, the gyro / magnetometer / (split input) accelerometer vector, the
+#: accelerometer of an IMU message, kind (``EV_*``) and output row (IMU events).
+EVENT = np.dtype([("stamp", np.float64), ("v", np.float64, 3), ("a", np.float64, 3),
+                  ("kind", np.int64), ("row", np.int64)])
+EV_IMU, EV_MAG, EV_ACC = 0, 1, 2  # EV_ACC: split input, an accelerometer sample in v
+
+#: One output per IMU (gyro) message; ``present``: published, and which optional fields are
+#: present (an absent one is NaN).
+OUTPUT = np.dtype([("present", np.int64), ("q", np.float64, 4), ("cov", np.float64, (3, 3)),
+                   ("w", np.float64, 3), ("wcov", np.float64, (3, 3)), ("wadd", np.float64, 3),
+                   ("lin", np.float64, 3), ("omega", np.float64, 3), ("bias", np.float64, 3),
+                   ("bstd", np.float64, 3)])
 OF_PUB, OF_W, OF_WCOV, OF_WADD, OF_LIN, OF_HEADING = 1, 2, 4, 8, 16, 32
+
+#: The filter's records (:meth:`mkf_ros.core.filter.AttitudeFilter.kernel_arrays`, element
+#: ``[0]`` of each): configuration, state, counters, scratch.
+FilterRecords = namedtuple("FilterRecords", ("c", "s", "k", "w"))
+#: The adapter's records: node parameters, time state, counters.
+StreamRecords = namedtuple("StreamRecords", ("p", "t", "a"))
 
 # the outcome of one IMU event: nothing published, published, or a reset request; run_events
 # returns R_DONE or the reset request with the index of the event it stopped at
 _NONE, _OUT, R_TIME_JUMP, R_NONFINITE = 0, 1, 2, 3
 R_DONE = 0
+# sensors, for the input counters
+_GYR, _ACC, _MAG = 0, 1, 2
 
 
 @jit
@@ -117,23 +168,34 @@ def norm3(v: np.ndarray) -> float:
 
 
 @jit
-def input_class(acnt: np.ndarray, v: np.ndarray, k_missing: int, is_vector: bool,
-                limit: float) -> int:
-    """0 if ``v`` is a usable reading, 1 missing (no reading), 2 invalid; counted
-    (``k_missing``, or the invalid counter right after it). The filter's own rule,
-    :func:`~mkf_ros.core.filter.classify_reading` with its plausibility limits (``limit``: a
-    gyro faster than :data:`~mkf_ros.core.filter.MAX_GYRO_RATE` is invalid, etc.)."""
-    c = classify_reading((v[0], v[1], v[2]), is_vector, limit)
-    if c:
-        acnt[k_missing + c - 1] += 1
-    return c
+def _count_input(a: np.record, cls: int, sensor: int) -> None:
+    """Count a missing (1) or invalid (2) reading of ``sensor``."""
+    if cls == 1:
+        if sensor == _GYR:
+            a.gyr_missing += 1
+        elif sensor == _ACC:
+            a.acc_missing += 1
+        else:
+            a.mag_missing += 1
+    elif cls == 2:
+        if sensor == _GYR:
+            a.gyr_invalid += 1
+        elif sensor == _ACC:
+            a.acc_invalid += 1
+        else:
+            a.mag_invalid += 1
 
 
 @jit
-def check_input(acnt: np.ndarray, v: np.ndarray, k_missing: int, is_vector: bool,
-                limit: float) -> bool:
-    """True if ``v`` is a usable reading (:func:`input_class`)."""
-    return input_class(acnt, v, k_missing, is_vector, limit) == 0
+def input_class(a: np.record, v: np.ndarray, sensor: int, is_vector: bool,
+                limit: float) -> int:
+    """0 if ``v`` is a usable reading, 1 missing (no reading), 2 invalid; counted. The
+    filter's own rule, :func:`~mkf_ros.core.filter.classify_reading` with its plausibility
+    limits (``limit``: a gyro faster than :data:`~mkf_ros.core.filter.MAX_GYRO_RATE` is
+    invalid, etc.)."""
+    cls = classify_reading((v[0], v[1], v[2]), is_vector, limit)
+    _count_input(a, cls, sensor)
+    return cls
 
 
 @jit
@@ -163,451 +225,508 @@ def covariance_rows(c: np.ndarray, stddev: float, add: np.ndarray) -> None:
 
 
 # --- magnetometer (split input: accelerometer) samples held for the IMU (gyro) stream --------
-# ``pend`` holds magnetometer samples (count ``ts[T_NPEND]``), ``pacc`` accelerometer samples
-# (count ``ts[T_NPEND_ACC]``); ``is_acc`` selects the sensor in the functions below.
+# ``t.mag_held`` holds magnetometer samples (count ``t.n_mag``), ``t.acc_held`` accelerometer
+# samples (count ``t.n_acc``); ``is_acc`` selects the sensor in the functions below.
 
 
 @jit
-def _pop_front(ts: np.ndarray, pend: np.ndarray, k: int, ni: int = T_NPEND) -> None:
-    """Drop the ``k`` oldest held samples (count in ``ts[ni]``)."""
-    n = int(ts[ni])
+def _held(t: np.record, is_acc: bool) -> tuple[np.ndarray, int]:
+    """The held samples of a sensor and their count."""
+    return (t.acc_held, t.n_acc) if is_acc else (t.mag_held, t.n_mag)
+
+
+@jit
+def _set_count(t: np.record, is_acc: bool, n: int) -> None:
+    if is_acc:
+        t.n_acc = n
+    else:
+        t.n_mag = n
+
+
+@jit
+def _pop_front(t: np.record, k: int, is_acc: bool) -> None:
+    """Drop the ``k`` oldest held samples of a sensor."""
+    buf, n = _held(t, is_acc)
     for i in range(n - k):
         for j in range(4):
-            pend[i, j] = pend[i + k, j]
-    ts[ni] = n - k
+            buf[i, j] = buf[i + k, j]
+    _set_count(t, is_acc, n - k)
 
 
 @jit
-def hold(ts: np.ndarray, pend: np.ndarray, acnt: np.ndarray, stamp: float,
-         m: np.ndarray, is_acc: bool = False) -> None:
+def _count_dropped(a: np.record, is_acc: bool, n: int, why: int) -> None:
+    """Count ``n`` samples of a sensor dropped: too old (0), ahead (1), overflow (2)."""
+    if why == 0:
+        if is_acc:
+            a.acc_too_old += n
+        else:
+            a.mag_too_old += n
+    elif why == 1:
+        if is_acc:
+            a.acc_ahead += n
+        else:
+            a.mag_ahead += n
+    elif is_acc:
+        a.acc_overflow += n
+    else:
+        a.mag_overflow += n
+
+
+@jit
+def hold(t: np.record, a: np.record, stamp: float, m: np.ndarray, is_acc: bool) -> None:
     """Insert a sample in stamp order (after equal stamps); the oldest goes on overflow."""
-    ni = T_NPEND_ACC if is_acc else T_NPEND
-    n = int(ts[ni])
+    buf, n = _held(t, is_acc)
     i = n
-    while i > 0 and pend[i - 1, 0] > stamp:
+    while i > 0 and buf[i - 1, 0] > stamp:
         for j in range(4):
-            pend[i, j] = pend[i - 1, j]
+            buf[i, j] = buf[i - 1, j]
         i -= 1
-    pend[i, 0] = stamp
+    buf[i, 0] = stamp
     for j in range(3):
-        pend[i, 1 + j] = m[j]
-    ts[ni] = n + 1
+        buf[i, 1 + j] = m[j]
+    _set_count(t, is_acc, n + 1)
     if n + 1 > MAX_PENDING_MAG:
-        _pop_front(ts, pend, 1, ni)
-        acnt[A_ACC_OVERFLOW if is_acc else A_MAG_OVERFLOW] += 1
+        _pop_front(t, 1, is_acc)
+        _count_dropped(a, is_acc, 1, 2)
 
 
-@jit
-def fuse_now(cfg: np.ndarray, nz: np.ndarray, st: np.ndarray, P: np.ndarray,
-             fl: np.ndarray, fcnt: np.ndarray, acnt: np.ndarray, v: np.ndarray,
-             age: float, nan3: np.ndarray, is_acc: bool = False) -> None:
+@jit_inline
+def _filter_step(f: FilterRecords, a: np.record, dt: float, v: np.ndarray,
+                 is_acc: bool) -> None:
+    """One filter step with only a magnetometer (or accelerometer) sample; counted."""
+    step(f.c, f.s, f.k, f.w, dt, NAN3, t3(v) if is_acc else NAN3, NAN3 if is_acc else t3(v))
+    if is_acc:
+        a.acc_fused += 1
+    else:
+        a.mag_fused += 1
+
+
+@jit_inline
+def fuse_now(f: FilterRecords, a: np.record, v: np.ndarray, age: float, is_acc: bool) -> None:
     """Fuse a magnetometer (or accelerometer) sample at the filter's current time, rotated
     forward over its ``age`` (s): both measure a world-fixed vector in body axes."""
-    if age > 0.0 and is_initialized(fl) and np.isfinite(v[0] + v[1] + v[2]):
+    if age > 0.0 and is_initialized(f.s) and np.isfinite(v[0] + v[1] + v[2]):
         w = np.empty(3)
         for i in range(3):
-            w[i] = rate(st, i) * age
+            w[i] = rate(f.s, i) * age
         v = rotate_back(v, w)
-    if is_acc:
-        sensor_step(cfg, nz, st, P, fl, fcnt, MIN_STEP, nan3, v, nan3)
-        acnt[A_ACC_FUSED] += 1
-    else:
-        sensor_step(cfg, nz, st, P, fl, fcnt, MIN_STEP, nan3, nan3, v)
-        acnt[A_MAG_FUSED] += 1
+    _filter_step(f, a, MIN_STEP, v, is_acc)
 
 
-@jit
-def fuse_late(cfg: np.ndarray, nz: np.ndarray, st: np.ndarray, P: np.ndarray, fl: np.ndarray,
-              fcnt: np.ndarray, npar: np.ndarray, ts: np.ndarray, acnt: np.ndarray,
-              stamp: float, m: np.ndarray, nan3: np.ndarray, is_acc: bool = False) -> None:
+@jit_inline
+def fuse_late(f: FilterRecords, r: StreamRecords, stamp: float, m: np.ndarray,
+              is_acc: bool) -> None:
     """A sample stamped at or before the filter time: fused now if recent enough
     (``mag_max_delay``, ``acc_max_delay``)."""
-    age = ts[T_T] - stamp
-    if age > npar[P_ACC_DELAY if is_acc else P_MAG_DELAY] + SAME_STAMP:
-        acnt[A_ACC_TOO_OLD if is_acc else A_MAG_TOO_OLD] += 1
+    age = r.t.t - stamp
+    if age > (r.p.acc_max_delay if is_acc else r.p.mag_max_delay) + SAME_STAMP:
+        _count_dropped(r.a, is_acc, 1, 0)
         return
-    fuse_now(cfg, nz, st, P, fl, fcnt, acnt, m, max(age, 0.0), nan3, is_acc)
+    fuse_now(f, r.a, m, max(age, 0.0), is_acc)
 
 
 @jit
-def _first_pending(ts: np.ndarray, pend: np.ndarray, acnt: np.ndarray, t_new: float,
-                   tol: float, same: np.ndarray, is_acc: bool) -> bool:
+def _first_pending(r: StreamRecords, t_new: float, tol: float, same: np.ndarray,
+                   is_acc: bool) -> bool:
     """On the first IMU sample: keep the held samples ahead of it, drop the older ones but the
     latest within ``tol``, which goes in ``same`` to be fused with it (True if so)."""
-    ni = T_NPEND_ACC if is_acc else T_NPEND
-    n = int(ts[ni])
+    buf, n = _held(r.t, is_acc)
     n_keep = 0
     n_near = 0
     for i in range(n):
-        p = pend[i, 0]
+        p = buf[i, 0]
         if p > t_new + SAME_STAMP:
             n_keep += 1
         elif abs(t_new - p) <= tol:
             n_near += 1
             for j in range(3):
-                same[j] = pend[i, 1 + j]
-    acnt[A_ACC_TOO_OLD if is_acc else A_MAG_TOO_OLD] += n - n_keep - min(n_near, 1)
-    _pop_front(ts, pend, n - n_keep, ni)  # sorted: the kept ones are the newest
+                same[j] = buf[i, 1 + j]
+    _count_dropped(r.a, is_acc, n - n_keep - min(n_near, 1), 0)
+    _pop_front(r.t, n - n_keep, is_acc)  # sorted: the kept ones are the newest
     return n_near > 0
 
 
 @jit
-def take_pending(cfg: np.ndarray, nz: np.ndarray, st: np.ndarray, P: np.ndarray,
-                 fl: np.ndarray, fcnt: np.ndarray, npar: np.ndarray, ts: np.ndarray,
-                 pend: np.ndarray, acnt: np.ndarray, t_new: float, dt: float,
-                 same: np.ndarray, nan3: np.ndarray, pacc: np.ndarray,
-                 same_a: np.ndarray) -> int:
+def _drop_unplaceable(r: StreamRecords, t_new: float) -> None:
+    """A gap: held samples older than the maximum delay before ``t_new`` cannot be placed."""
+    for is_acc in (False, True):
+        buf, n = _held(r.t, is_acc)
+        x = t_new - (r.p.acc_max_delay if is_acc else r.p.mag_max_delay)
+        old = 0
+        while old < n and buf[old, 0] < x:
+            old += 1
+        _count_dropped(r.a, is_acc, old, 0)
+        _pop_front(r.t, old, is_acc)
+
+
+@jit_inline
+def take_pending(f: FilterRecords, r: StreamRecords, t_new: float, dt: float,
+                 same: np.ndarray, same_a: np.ndarray) -> int:
     """Fuse held samples stamped before ``t_new``, in stamp order (the magnetometer first at
     equal stamps), each at its own stamp; put one stamped at ``t_new`` (or, on the first IMU
     sample, the latest recent one) in ``same`` (magnetometer) / ``same_a`` (accelerometer) to
     fuse with the IMU (gyro) sample. Returns 1 if ``same`` is set, plus 2 if ``same_a`` is."""
-    if ts[T_VALID] == 0:  # first sample: initialise with the latest recent samples
-        r = 0
-        if ts[T_NPEND] > 0 and _first_pending(ts, pend, acnt, t_new,
-                                              max(npar[P_MAG_DELAY], SAME_STAMP), same, False):
-            r |= 1
-        if ts[T_NPEND_ACC] > 0 and _first_pending(ts, pacc, acnt, t_new,
-                                                  max(npar[P_ACC_DELAY], SAME_STAMP), same_a,
-                                                  True):
-            r |= 2
-        return r
-    if dt > max_dt(cfg):  # a gap: the held samples cannot be placed
-        for is_acc in (False, True):
-            buf = pacc if is_acc else pend
-            ni = T_NPEND_ACC if is_acc else T_NPEND
-            x = t_new - npar[P_ACC_DELAY if is_acc else P_MAG_DELAY]
-            n = int(ts[ni])
-            old = 0
-            while old < n and buf[old, 0] < x:
-                old += 1
-            acnt[A_ACC_TOO_OLD if is_acc else A_MAG_TOO_OLD] += old
-            _pop_front(ts, buf, old, ni)
-    r = 0
+    t = r.t
+    if not t.valid:  # first sample: initialise with the latest recent samples
+        res = 0
+        if t.n_mag > 0 and _first_pending(r, t_new, max(r.p.mag_max_delay, SAME_STAMP), same,
+                                          False):
+            res |= 1
+        if t.n_acc > 0 and _first_pending(r, t_new, max(r.p.acc_max_delay, SAME_STAMP),
+                                          same_a, True):
+            res |= 2
+        return res
+    if dt > max_dt(f.c):  # a gap: the held samples cannot be placed
+        _drop_unplaceable(r, t_new)
+    res = 0
     while True:
-        m_due = ts[T_NPEND] > 0 and pend[0, 0] <= t_new + SAME_STAMP
-        a_due = ts[T_NPEND_ACC] > 0 and pacc[0, 0] <= t_new + SAME_STAMP
+        m_due = t.n_mag > 0 and t.mag_held[0, 0] <= t_new + SAME_STAMP
+        a_due = t.n_acc > 0 and t.acc_held[0, 0] <= t_new + SAME_STAMP
         if not (m_due or a_due):
             break
-        is_acc = a_due and not (m_due and pend[0, 0] <= pacc[0, 0])
-        buf = pacc if is_acc else pend
+        is_acc = a_due and not (m_due and t.mag_held[0, 0] <= t.acc_held[0, 0])
+        buf, _ = _held(t, is_acc)
         tm = buf[0, 0]
         v = buf[0, 1:4].copy()
-        _pop_front(ts, buf, 1, T_NPEND_ACC if is_acc else T_NPEND)
+        _pop_front(t, 1, is_acc)
         if abs(tm - t_new) <= SAME_STAMP:
             bit = 2 if is_acc else 1
             sm = same_a if is_acc else same
-            if r & bit:
-                fuse_now(cfg, nz, st, P, fl, fcnt, acnt, sm.copy(), 0.0, nan3, is_acc)
+            if res & bit:
+                fuse_now(f, r.a, sm.copy(), 0.0, is_acc)
             sm[:] = v
-            r |= bit
-        elif tm <= ts[T_T]:  # held before a reset moved the time: treat as late
-            fuse_late(cfg, nz, st, P, fl, fcnt, npar, ts, acnt, tm, v, nan3, is_acc)
+            res |= bit
+        elif tm <= t.t:  # held before a reset moved the time: treat as late
+            fuse_late(f, r, tm, v, is_acc)
         else:
-            if is_acc:
-                sensor_step(cfg, nz, st, P, fl, fcnt, max(tm - ts[T_T], MIN_STEP), nan3, v,
-                            nan3)
-                acnt[A_ACC_FUSED] += 1
-            else:
-                sensor_step(cfg, nz, st, P, fl, fcnt, max(tm - ts[T_T], MIN_STEP), nan3, nan3,
-                            v)
-                acnt[A_MAG_FUSED] += 1
-            ts[T_T] = tm
-    return r
+            _filter_step(f, r.a, max(tm - t.t, MIN_STEP), v, is_acc)
+            t.t = tm
+    return res
 
 
 # --- events ---------------------------------------------------------------------------------
 
 
 @jit_inline
-def fuse_untimed(cfg: np.ndarray, nz: np.ndarray, st: np.ndarray, P: np.ndarray,
-                 fl: np.ndarray, fcnt: np.ndarray, ts: np.ndarray, buf: np.ndarray,
-                 acnt: np.ndarray, v: np.ndarray, nan3: np.ndarray, is_acc: bool) -> None:
+def fuse_untimed(f: FilterRecords, r: StreamRecords, v: np.ndarray, is_acc: bool) -> None:
     """A magnetometer or (split input) accelerometer sample when stamps are not trusted
-    (``use_constant_dt``): fused at the current time; before the first IMU sample kept as the
+    (``constant_dt``): fused at the current time; before the first IMU sample kept as the
     one held sample."""
-    if ts[T_VALID] == 0:
+    if not r.t.valid:
+        buf, _ = _held(r.t, is_acc)
         buf[0, 0] = 0.0
         buf[0, 1:4] = v
-        ts[T_NPEND_ACC if is_acc else T_NPEND] = 1
+        _set_count(r.t, is_acc, 1)
     else:
-        fuse_now(cfg, nz, st, P, fl, fcnt, acnt, v, 0.0, nan3, is_acc)
+        fuse_now(f, r.a, v, 0.0, is_acc)
 
 
 @jit_inline
-def place(cfg: np.ndarray, nz: np.ndarray, st: np.ndarray, P: np.ndarray, fl: np.ndarray,
-          fcnt: np.ndarray, npar: np.ndarray, ts: np.ndarray, buf: np.ndarray,
-          acnt: np.ndarray, stamp: float, v: np.ndarray, nan3: np.ndarray,
+def place(f: FilterRecords, r: StreamRecords, stamp: float, v: np.ndarray,
           is_acc: bool) -> None:
     """A checked, stamped magnetometer or (split input) accelerometer sample: held while ahead
     of the IMU (gyro) stream (before its first sample, the latest few), dropped when more than
     ``max_dt`` ahead, else fused now if recent enough (:func:`fuse_late`)."""
-    if ts[T_VALID] == 0:  # before the first IMU sample: keep the latest few
-        hold(ts, buf, acnt, stamp, v, is_acc)
+    if not r.t.valid:  # before the first IMU sample: keep the latest few
+        hold(r.t, r.a, stamp, v, is_acc)
         return
-    d = stamp - ts[T_T]
-    if d > max_dt(cfg):
-        acnt[A_ACC_AHEAD if is_acc else A_MAG_AHEAD] += 1
+    d = stamp - r.t.t
+    if d > max_dt(f.c):
+        _count_dropped(r.a, is_acc, 1, 1)
     elif d > SAME_STAMP:
-        hold(ts, buf, acnt, stamp, v, is_acc)
+        hold(r.t, r.a, stamp, v, is_acc)
     else:
-        fuse_late(cfg, nz, st, P, fl, fcnt, npar, ts, acnt, stamp, v, nan3, is_acc)
+        fuse_late(f, r, stamp, v, is_acc)
 
 
 @jit_inline
-def mag_event(cfg: np.ndarray, nz: np.ndarray, st: np.ndarray, P: np.ndarray, fl: np.ndarray,
-              fcnt: np.ndarray, npar: np.ndarray, ts: np.ndarray, pend: np.ndarray,
-              acnt: np.ndarray, stamp: float, mag: np.ndarray, nan3: np.ndarray) -> None:
+def mag_event(f: FilterRecords, r: StreamRecords, stamp: float, mag: np.ndarray) -> None:
     """One magnetometer sample: fused now (late), held (ahead of the IMU) or dropped."""
-    acnt[A_MAG_RECEIVED] += 1
-    if not uses_mag(cfg):
-        acnt[A_MAG_UNUSED] += 1
+    a, t = r.a, r.t
+    a.mag_received += 1
+    if not uses_mag(f.c):
+        a.mag_unused += 1
         return
-    if not check_input(acnt, mag, A_MAG_MISSING, True, MAX_MAG):
+    if input_class(a, mag, _MAG, True, MAX_MAG) != 0:
         return
     m = mag.copy()
     # hard/soft-iron calibration (mag_bias_*, mag_soft_iron) is applied by the core filter
     norm = norm3(m)
-    ts[T_MAG_NORM] = norm
+    t.mag_norm = norm
     if not 0.0 < norm < np.inf:
-        acnt[A_MAG_INVALID] += 1
+        a.mag_invalid += 1
         return
     # the raw field goes to the filter: it calibrates it and checks magnitude and dip
-    ts[T_LAST_MAG] = stamp
-    if npar[P_CONST_DT] > 0.0:  # stamps are not trusted: fuse at the current time
-        fuse_untimed(cfg, nz, st, P, fl, fcnt, ts, pend, acnt, m, nan3, False)
+    t.last_mag = stamp
+    if r.p.constant_dt > 0.0:  # stamps are not trusted: fuse at the current time
+        fuse_untimed(f, r, m, False)
         return
     if not np.isfinite(stamp):
-        acnt[A_MAG_INVALID] += 1
+        a.mag_invalid += 1
         return
-    if ts[T_VALID] != 0:
-        ts[T_MAG_OFFSET] = stamp - ts[T_T]
-    place(cfg, nz, st, P, fl, fcnt, npar, ts, pend, acnt, stamp, m, nan3, False)
+    if t.valid:
+        t.mag_offset = stamp - t.t
+    place(f, r, stamp, m, False)
 
 
 @jit_inline
-def acc_event(cfg: np.ndarray, nz: np.ndarray, st: np.ndarray, P: np.ndarray, fl: np.ndarray,
-              fcnt: np.ndarray, npar: np.ndarray, ts: np.ndarray, pacc: np.ndarray,
-              acnt: np.ndarray, stamp: float, acc: np.ndarray, nan3: np.ndarray) -> None:
+def acc_event(f: FilterRecords, r: StreamRecords, stamp: float, acc: np.ndarray) -> None:
     """One accelerometer sample of split input (its own stream, ``input_mode`` split): like a
     magnetometer sample, held until the gyro stream reaches its stamp and fused there (with
     the gyro sample of the same stamp), fused at once if up to ``acc_max_delay`` late (rotated
     forward by the estimated rate), dropped if older. The same checks as the accelerometer of
     a combined message: a missing, invalid or implausible sample is counted and not fused."""
-    acnt[A_ACC_RECEIVED] += 1
-    if input_class(acnt, acc, A_ACC_MISSING, True, MAX_ACC_G * gravity(cfg)) != 0:
+    a, t = r.a, r.t
+    a.acc_received += 1
+    if input_class(a, acc, _ACC, True, MAX_ACC_G * gravity(f.c)) != 0:
         return
     norm = norm3(acc)
-    ts[T_ACC_NORM] = norm
-    if abs(norm / gravity(cfg) - 1.0) > npar[P_ACC_TOL]:
-        acnt[A_ACC_IMPLAUSIBLE] += 1
+    t.acc_norm = norm
+    if abs(norm / gravity(f.c) - 1.0) > r.p.acc_magnitude_tolerance:
+        a.acc_implausible += 1
         return
-    ts[T_ACC_SEEN] = 1.0
-    a = acc.copy()
-    if npar[P_CONST_DT] > 0.0:  # stamps are not trusted: fuse at the current time
-        fuse_untimed(cfg, nz, st, P, fl, fcnt, ts, pacc, acnt, a, nan3, True)
+    t.acc_seen = True
+    v = acc.copy()
+    if r.p.constant_dt > 0.0:  # stamps are not trusted: fuse at the current time
+        fuse_untimed(f, r, v, True)
         return
     if not np.isfinite(stamp) or stamp == 0.0:
-        acnt[A_ACC_INVALID] += 1
+        a.acc_invalid += 1
         return
-    ts[T_LAST_ACC] = stamp
-    place(cfg, nz, st, P, fl, fcnt, npar, ts, pacc, acnt, stamp, a, nan3, True)
+    t.last_acc = stamp
+    place(f, r, stamp, v, True)
 
 
-@jit_inline
-def imu_event(cfg: np.ndarray, nz: np.ndarray, st: np.ndarray, P: np.ndarray, fl: np.ndarray,
-              fcnt: np.ndarray, q_from_enu: np.ndarray, npar: np.ndarray, ts: np.ndarray,
-              pend: np.ndarray, acnt: np.ndarray, stamp: float, gyr: np.ndarray,
-              acc: np.ndarray, out: np.ndarray, resume: bool, nan3: np.ndarray,
-              pacc: np.ndarray) -> int:
-    """One IMU sample (split input: a gyro sample; its accelerometer field is ignored): time
-    rules, input checks, held magnetometer (and accelerometer) samples, filter step, output.
-    Returns ``_OUT`` (``out`` written), ``_NONE``, or a reset request ``R_*``; ``resume``: the
-    same sample again after a time-jump reset (already counted). A reading that is not
-    usable goes to the filter as missing (all NaN)."""
-    out[O_FLAGS] = 0.0
+@jit
+def _imu_time(r: StreamRecords, stamp: float, resume: bool) -> tuple[int, float, float]:
+    """The time rules of an IMU sample: ``(status, t_new, dt)``, status ``_OUT`` to go on,
+    ``_NONE`` to drop the sample (bad stamp, duplicate, out of order; counted) or a reset
+    request ``R_TIME_JUMP``."""
+    a, t, p = r.a, r.t, r.p
     if not resume:
-        acnt[A_IMU_RECEIVED] += 1
-    valid = ts[T_VALID] > 0
-    if npar[P_CONST_DT] > 0.0:
-        dt = npar[P_CONST_DT] if valid else 0.0
-        t_new = ts[T_T] + dt if valid else 0.0
-    else:
-        if not np.isfinite(stamp) or stamp == 0.0:
-            acnt[A_IMU_BAD_STAMP] += 1
-            return _NONE
-        t_new = stamp
-        dt = 0.0
-        if valid:
-            dt = stamp - ts[T_T]
-            if dt <= 0.0:
-                if dt == 0.0:
-                    acnt[A_IMU_DUPLICATE] += 1
-                    return _NONE
-                ts[T_BACK] += 1
-                if -dt <= npar[P_JUMP] and ts[T_BACK] < MAX_BACKWARDS:
-                    acnt[A_IMU_OUT_OF_ORDER] += 1
-                    return _NONE
-                acnt[A_RESETS_TIME_JUMP] += 1
-                return R_TIME_JUMP  # Python resets; the sample comes back with resume
-    ts[T_BACK] = 0
-    ts[T_LAST_IMU] = stamp
-    g_cls = input_class(acnt, gyr, A_GYR_MISSING, False, MAX_GYRO_RATE)
-    has_g = g_cls == 0
+        a.imu_received += 1
+    if p.constant_dt > 0.0:
+        dt = p.constant_dt if t.valid else 0.0
+        return _OUT, (t.t + dt if t.valid else 0.0), dt
+    if not np.isfinite(stamp) or stamp == 0.0:
+        a.imu_bad_stamp += 1
+        return _NONE, 0.0, 0.0
+    dt = 0.0
+    if t.valid:
+        dt = stamp - t.t
+        if dt <= 0.0:
+            if dt == 0.0:
+                a.imu_duplicate += 1
+                return _NONE, 0.0, 0.0
+            t.backwards += 1
+            if -dt <= p.time_jump_threshold and t.backwards < MAX_BACKWARDS:
+                a.imu_out_of_order += 1
+                return _NONE, 0.0, 0.0
+            a.resets_time_jump += 1
+            return R_TIME_JUMP, 0.0, 0.0  # Python resets; the sample comes back with resume
+    return _OUT, stamp, dt
+
+
+@jit
+def _imu_inputs(f: FilterRecords, r: StreamRecords, gyr: np.ndarray,
+                acc: np.ndarray) -> tuple[bool, bool, bool]:
+    """The input checks of an IMU sample: ``(has_g, has_a_in, has_a)``, a usable gyro, a usable
+    accelerometer reading, and one that passed the plausibility of its magnitude
+    (``acc_magnitude_tolerance``); counted."""
+    a, t = r.a, r.t
+    has_g = input_class(a, gyr, _GYR, False, MAX_GYRO_RATE) == 0
     if has_g and (gyr[0] != 0.0 or gyr[1] != 0.0 or gyr[2] != 0.0):
-        ts[T_GYR_SEEN] = 1.0
-    split = npar[P_SPLIT] > 0.0
-    a_cls = 1 if split else input_class(acnt, acc, A_ACC_MISSING, True,
-                                        MAX_ACC_G * gravity(cfg))
+        t.gyr_seen = True
+    a_cls = 1 if r.p.split else input_class(a, acc, _ACC, True, MAX_ACC_G * gravity(f.c))
     has_a_in = a_cls == 0
     has_a = has_a_in
     if has_a:
         norm = norm3(acc)
-        ts[T_ACC_NORM] = norm
-        if abs(norm / gravity(cfg) - 1.0) > npar[P_ACC_TOL]:
-            acnt[A_ACC_IMPLAUSIBLE] += 1
+        t.acc_norm = norm
+        if abs(norm / gravity(f.c) - 1.0) > r.p.acc_magnitude_tolerance:
+            a.acc_implausible += 1
             has_a = False
         else:
-            ts[T_ACC_SEEN] = 1.0
-    if valid and dt > 0.0:
-        ts[T_DT_N] += 1
-        ts[T_DT_MIN] = min(ts[T_DT_MIN], dt)
-        ts[T_DT_SUM] += dt
-        ts[T_DT_MAX] = max(ts[T_DT_MAX], dt)
-    mag = np.empty(3)
-    a_in = acc if has_a else nan3
-    # the call is skipped when nothing is held, as it mostly is (it costs ~0.4 µs)
-    has_m = False
-    a_held = False
-    if ts[T_NPEND] > 0 or ts[T_NPEND_ACC] > 0:
-        a_same = np.empty(3)
-        r = take_pending(cfg, nz, st, P, fl, fcnt, npar, ts, pend, acnt, t_new, dt, mag, nan3,
-                         pacc, a_same)
-        has_m = (r & 1) > 0
-        if r & 2:
-            a_in = a_same
-            a_held = True
-    gaps = gap_count(fcnt)
-    step = dt if not valid or npar[P_CONST_DT] > 0.0 else t_new - ts[T_T]
-    sensor_step(cfg, nz, st, P, fl, fcnt, step,
-                gyr if has_g else nan3, a_in,
-                mag if has_m else nan3)
-    if gap_count(fcnt) != gaps:
-        ts[T_YAW_LOST] = 1.0
-    if has_m:
-        acnt[A_MAG_FUSED] += 1
-    if a_held:
-        acnt[A_ACC_FUSED] += 1
-    ts[T_T] = t_new
-    ts[T_VALID] = 1.0
-    return output(cfg, st, P, fl, q_from_enu, npar, ts, acnt, gyr, has_g, acc, has_a_in, out)
+            t.acc_seen = True
+    return has_g, has_a_in, has_a
+
+
+@jit
+def _dt_stats(t: np.record, dt: float) -> None:
+    """The IMU time steps' statistics (diagnostics)."""
+    if t.valid and dt > 0.0:
+        t.dt_n += 1
+        t.dt_min = min(t.dt_min, dt)
+        t.dt_sum += dt
+        t.dt_max = max(t.dt_max, dt)
 
 
 @jit_inline
-def output(cfg: np.ndarray, st: np.ndarray, P: np.ndarray, fl: np.ndarray,
-           q_from_enu: np.ndarray, npar: np.ndarray, ts: np.ndarray, acnt: np.ndarray,
-           g: np.ndarray, has_g: bool, a: np.ndarray, has_a: bool, out: np.ndarray) -> int:
-    """The estimate as published (``out``, one ``O_*`` row): nothing before initialisation,
-    never NaN (a non-finite estimate asks for a reset), then the output options."""
-    if not is_initialized(fl):
-        return _NONE
-    q = np.empty(4)
-    cov = np.empty((3, 3))
-    world_output(cfg, st, P, q_from_enu, q, cov)
-    tot = q.sum() + cov.sum()
+def imu_event(f: FilterRecords, r: StreamRecords, stamp: float, gyr: np.ndarray,
+              acc: np.ndarray, o: np.record, resume: bool) -> int:
+    """One IMU sample (split input: a gyro sample; its accelerometer field is ignored): time
+    rules, input checks, held magnetometer (and accelerometer) samples, filter step, output.
+    Returns ``_OUT`` (``o`` written), ``_NONE``, or a reset request ``R_*``; ``resume``: the
+    same sample again after a time-jump reset (already counted). A reading that is not
+    usable goes to the filter as missing (all NaN)."""
+    o.present = 0
+    t = r.t
+    status, t_new, dt = _imu_time(r, stamp, resume)
+    if status != _OUT:
+        return status
+    t.backwards = 0
+    t.last_imu = stamp
+    has_g, has_a_in, has_a = _imu_inputs(f, r, gyr, acc)
+    _dt_stats(t, dt)
+    mag = np.empty(3)
+    a_in = t3(acc) if has_a else NAN3
+    # the call is skipped when nothing is held, as it mostly is (it costs ~0.4 µs)
+    has_m = False
+    a_held = False
+    if t.n_mag > 0 or t.n_acc > 0:
+        a_same = np.empty(3)
+        res = take_pending(f, r, t_new, dt, mag, a_same)
+        has_m = (res & 1) > 0
+        if res & 2:
+            a_in = t3(a_same)
+            a_held = True
+    gaps = gap_count(f.k)
+    dt_step = dt if not t.valid or r.p.constant_dt > 0.0 else t_new - t.t
+    step(f.c, f.s, f.k, f.w, dt_step, t3(gyr) if has_g else NAN3, a_in,
+         t3(mag) if has_m else NAN3)
+    if gap_count(f.k) != gaps:
+        t.yaw_lost = True
+    if has_m:
+        r.a.mag_fused += 1
+    if a_held:
+        r.a.acc_fused += 1
+    t.t = t_new
+    t.valid = True
+    return output(f, r, gyr, has_g, acc, has_a_in, o)
+
+
+@jit
+def _offset(p: np.record, q: tuple, cov: np.ndarray) -> tuple:
+    """The yaw offset / declination turn applied to the output, covariance in place:
+    ``q ← q_off q``, ``Σ ← R Σ Rᵀ``."""
+    qo = qmul(p.q_offset, np.array(q))
+    R = p.R_offset
+    rc = np.empty((3, 3))
     for i in range(3):
-        tot += rate(st, i) + bias(st, i)
+        for j in range(3):
+            rc[i, j] = R[i, 0] * cov[0, j] + R[i, 1] * cov[1, j] + R[i, 2] * cov[2, j]
+    for i in range(3):
+        for j in range(3):
+            cov[i, j] = rc[i, 0] * R[j, 0] + rc[i, 1] * R[j, 1] + rc[i, 2] * R[j, 2]
+    if qo[0] < 0.0:
+        qo = -qo
+    return (qo[0], qo[1], qo[2], qo[3])
+
+
+@jit
+def _optional_fields(f: FilterRecords, r: StreamRecords, g: np.ndarray, has_g: bool,
+                     acc: np.ndarray, has_a: bool, q: tuple, o: np.record) -> int:
+    """The output's optional fields per the node parameters (angular velocity and its
+    covariance, linear acceleration with or without gravity); returns their flags."""
+    s, p = f.s, r.p
+    flags = 0
+    o.w[:] = np.nan  # absent unless written below
+    o.wcov[:, :] = np.nan
+    o.wadd[:] = np.nan
+    o.lin[:] = np.nan
+    if p.av_source == AV_ESTIMATE:
+        flags |= OF_W | OF_WCOV
+        for i in range(3):
+            o.w[i] = rate(s, i)
+            for j in range(3):
+                o.wcov[i, j] = rate_covariance(s, i, j)
+    elif has_g:
+        flags |= OF_W
+        for i in range(3):
+            o.w[i] = g[i] - bias(s, i) if p.av_source == AV_BIAS_CORRECTED else g[i]
+        if p.av_source == AV_BIAS_CORRECTED:
+            flags |= OF_WADD
+            for i in range(3):
+                o.wadd[i] = o.bstd[i] * o.bstd[i]
+    if has_a:
+        flags |= OF_LIN
+        for i in range(3):
+            o.lin[i] = acc[i]
+        if p.remove_gravity_vector:
+            Rq = rotmat(np.array(q))
+            up = p.up_world
+            for i in range(3):
+                up_b = Rq[0, i] * up[0] + Rq[1, i] * up[1] + Rq[2, i] * up[2]
+                o.lin[i] = acc[i] - gravity(f.c) * up_b
+    return flags
+
+
+@jit
+def output(f: FilterRecords, r: StreamRecords, g: np.ndarray, has_g: bool, a: np.ndarray,
+           has_a: bool, o: np.record) -> int:
+    """The estimate as published (``o``, an :data:`OUTPUT` record): nothing before
+    initialisation, never NaN (a non-finite estimate asks for a reset), then the output
+    options."""
+    s, t, p = f.s, r.t, r.p
+    if not is_initialized(s):
+        return _NONE
+    qt, ct = world_output_t(f.c, s)
+    cov = np.empty((3, 3))
+    tot = qt[0] + qt[1] + qt[2] + qt[3]
+    for i in range(3):
+        for j in range(3):
+            cov[i, j] = ct[i][j]
+    tot += cov.sum()
+    for i in range(3):
+        tot += rate(s, i) + bias(s, i)
     if not np.isfinite(tot):
-        acnt[A_OUTPUT_NONFINITE] += 1
+        r.a.output_nonfinite += 1
         return R_NONFINITE
-    if npar[P_HAS_OFF] > 0:
-        q = qmul(npar[P_Q_OFF:P_Q_OFF + 4], q)
-        R = npar[P_R_OFF:P_R_OFF + 9]
-        rc = np.empty((3, 3))
-        for i in range(3):
-            for j in range(3):
-                rc[i, j] = (R[3 * i] * cov[0, j] + R[3 * i + 1] * cov[1, j]
-                            + R[3 * i + 2] * cov[2, j])
-        for i in range(3):
-            for j in range(3):
-                cov[i, j] = (rc[i, 0] * R[3 * j] + rc[i, 1] * R[3 * j + 1]
-                             + rc[i, 2] * R[3 * j + 2])
-        if q[0] < 0.0:
-            q = -q
-    heading = heading_fixed(cfg, fl)
-    if ts[T_YAW_LOST] > 0:
+    q = _offset(p, qt, cov) if p.has_offset else qt
+    heading = heading_fixed(f.c, s)
+    if t.yaw_lost:
         if heading:
-            ts[T_YAW_LOST] = 0.0
+            t.yaw_lost = False
         elif cov[2, 2] < YAW_VAR_UNKNOWN:
             cov[2, 2] = YAW_VAR_UNKNOWN  # world z is vertical in ENU, NED and NWU
-    sd = npar[P_ORI_SD]
+    sd = p.orientation_stddev
     if sd > 0.0:
         cov[:, :] = 0.0
         for i in range(3):
             cov[i, i] = sd * sd
-    flags = OF_PUB | (OF_HEADING if heading else 0)
     for i in range(4):
-        out[O_Q + i] = q[i]
+        o.q[i] = q[i]
     for i in range(3):
         for j in range(3):
-            out[O_COV + 3 * i + j] = cov[i, j]
-    for i in range(3):
-        out[O_OMEGA + i] = rate(st, i)
-        out[O_BIAS + i] = bias(st, i)
-        out[O_BSTD + i] = np.sqrt(bias_variance(cfg, P, i))
-    out[O_W:O_LIN + 3] = np.nan  # the optional fields, absent unless written below
-    src = int(npar[P_AV_SRC])
-    if src == AV_ESTIMATE:
-        flags |= OF_W | OF_WCOV
-        for i in range(3):
-            out[O_W + i] = rate(st, i)
-            for j in range(3):
-                out[O_WCOV + 3 * i + j] = rate_covariance(P, i, j)
-    elif has_g:
-        flags |= OF_W
-        for i in range(3):
-            out[O_W + i] = g[i] - bias(st, i) if src == AV_BIAS_CORRECTED else g[i]
-        if src == AV_BIAS_CORRECTED:
-            flags |= OF_WADD
-            for i in range(3):
-                out[O_WADD + i] = out[O_BSTD + i] * out[O_BSTD + i]
-    if has_a:
-        flags |= OF_LIN
-        for i in range(3):
-            out[O_LIN + i] = a[i]
-        if npar[P_NO_GRAVITY] > 0:
-            Rq = rotmat(q)
-            up = npar[P_UP_W:P_UP_W + 3]
-            for i in range(3):
-                up_b = Rq[0, i] * up[0] + Rq[1, i] * up[1] + Rq[2, i] * up[2]
-                out[O_LIN + i] = a[i] - gravity(cfg) * up_b
-    out[O_FLAGS] = flags
+            o.cov[i, j] = cov[i, j]
+        o.omega[i] = rate(s, i)
+        o.bias[i] = bias(s, i)
+        o.bstd[i] = np.sqrt(bias_variance(f.c, s, i))
+    flags = OF_PUB | (OF_HEADING if heading else 0)
+    o.present = flags | _optional_fields(f, r, g, has_g, a, has_a, q, o)
     return _OUT
 
 
 @jit
-def run_events(cfg: np.ndarray, nz: np.ndarray, st: np.ndarray, P: np.ndarray,
-               fl: np.ndarray, fcnt: np.ndarray, q_from_enu: np.ndarray, npar: np.ndarray,
-               ts: np.ndarray, pend: np.ndarray, acnt: np.ndarray, ev_f: np.ndarray,
-               ev_i: np.ndarray, out: np.ndarray, k0: int, k1: int,
-               resume: bool, pacc: np.ndarray) -> tuple[int, int]:
-    """Events ``k0 … k1-1`` in order; returns ``(k, R_DONE)`` at the end, or the index and
-    reason of an event that needs a reset (``R_TIME_JUMP``: call again from ``k`` with
-    ``resume``; ``R_NONFINITE``: the event is done, call again from ``k + 1``)."""
-    nan3 = np.full(3, np.nan)
+def run_events(cfg: np.ndarray, st: np.ndarray, cnt: np.ndarray, work: np.ndarray,
+               npar: np.ndarray, ts: np.ndarray, acnt: np.ndarray, ev: np.ndarray,
+               out: np.ndarray, k0: int, k1: int, resume: bool) -> tuple[int, int]:
+    """Events ``k0 … k1-1`` in order (the filter's record arrays, the adapter's, the events
+    and the outputs); returns ``(k, R_DONE)`` at the end, or the index and reason of an event
+    that needs a reset (``R_TIME_JUMP``: call again from ``k`` with ``resume``;
+    ``R_NONFINITE``: the event is done, call again from ``k + 1``)."""
+    f = FilterRecords(cfg[0], st[0], cnt[0], work[0])
+    r = StreamRecords(npar[0], ts[0], acnt[0])
     for k in range(k0, k1):
-        e = ev_f[k]
-        kind = ev_i[k, 0]
-        if kind == EV_MAG:
-            mag_event(cfg, nz, st, P, fl, fcnt, npar, ts, pend, acnt, e[E_STAMP],
-                      e[E_V:E_V + 3], nan3)
+        e = ev[k]
+        if e.kind == EV_MAG:
+            mag_event(f, r, e.stamp, e.v)
             continue
-        if kind == EV_ACC:
-            acc_event(cfg, nz, st, P, fl, fcnt, npar, ts, pacc, acnt, e[E_STAMP],
-                      e[E_V:E_V + 3], nan3)
+        if e.kind == EV_ACC:
+            acc_event(f, r, e.stamp, e.v)
             continue
-        r = imu_event(cfg, nz, st, P, fl, fcnt, q_from_enu, npar, ts, pend, acnt, e[E_STAMP],
-                      e[E_V:E_V + 3], e[E_A:E_A + 3], out[ev_i[k, 1]], resume, nan3, pacc)
+        res = imu_event(f, r, e.stamp, e.v, e.a, out[e.row], resume)
         resume = False
-        if r >= R_TIME_JUMP:
-            return k, r
+        if res >= R_TIME_JUMP:
+            return k, res
     return k1, R_DONE

@@ -47,6 +47,6 @@ def test_cho_solve_into_leading_rows() -> None:
     X = rng.normal(size=(6, 5))
     want = np.linalg.solve(S, X[:4])
     rest = X[4:].copy()
-    cho_solve_into(L, 4, X)
+    cho_solve_into(L, 4, X, X.shape[1])
     np.testing.assert_allclose(X[:4], want, rtol=1e-10)
     np.testing.assert_array_equal(X[4:], rest)
