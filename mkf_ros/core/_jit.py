@@ -20,12 +20,21 @@ file copy, well under a second), so a new user, container or cache directory sta
 
 A cache directory that cannot be written is not an error: the kernels go to a private temporary
 directory instead (seeded the same way) and one warning says where it looked.
+
+Compile units. numba links the machine code of every compiled function into each compiled
+function that calls it, directly or through others, and optimises and compiles it there again
+(measured: 3–10 s for each caller of the sensor step). The large kernels are therefore
+:func:`unit`\ s: each is compiled once, on its own, as a C callable (a numba ``cfunc``), and its
+callers receive it as an argument and call it through its address (a few nanoseconds per
+call). Its callers' compile no longer includes it, and the units compile independently of each
+other, so :func:`precompile` spreads them over processes.
 """
 
 from __future__ import annotations
 
 import hashlib
 import os
+from collections.abc import Callable
 import shutil
 import sys
 import tempfile
@@ -34,7 +43,8 @@ from pathlib import Path
 from types import FunctionType
 
 import numba
-from numba.core import caching
+from numba.core import caching, types
+from numba.core.registry import CPUDispatcher
 
 _PACKAGE_DIR = Path(__file__).resolve().parents[1]
 _MARKER = "core._jit import jit"
@@ -178,17 +188,80 @@ def _prune_old_caches(root: Path, keep_days: float = 7.0) -> None:
         pass
 
 
-def precompile(root: Path) -> None:
-    """Compile every kernel into ``root/numba-<hash>/`` (the install-time step; see the module
-    docstring), dropping other versions there. Runs :func:`mkf_ros.api.warmup` in a child
-    process whose cache is ``root``."""
-    import subprocess
+#: The kernel families :func:`mkf_ros.api.warmup` prepares after the units (the compiled loops
+#: that take them): the second phase of :func:`precompile`.
+_ENTRY_PARTS = ("estimate", "filter", "stream")
 
-    env = dict(os.environ, MKF_ROS_CACHE_DIR=str(root), PYTHONWARNINGS="ignore")
-    env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(_PACKAGE_DIR.parent),
-                                                      env.get("PYTHONPATH")]))
-    subprocess.run([sys.executable, "-c", "import mkf_ros.api as a; a.warmup()"], env=env,
-                   check=True)
+
+def compile_tasks() -> tuple[list[str], list[str]]:
+    """The install-time compile as two lists of independent tasks: every :class:`Unit`
+    (``"unit:MODULE.NAME"``, largest first: they compile in any order), then the compiled
+    loops that take them (``"warmup:PART"``, :func:`mkf_ros.api.warmup`)."""
+    import mkf_ros.api  # noqa: F401  (defines every unit)
+
+    return [f"unit:{u.__module__}.{u.__qualname__}"
+            for u in sorted(UNITS, key=lambda u: -u.cost)], [
+        f"warmup:{p}" for p in _ENTRY_PARTS]
+
+
+def run_compile_task(task: str) -> tuple[str, float, float, int]:
+    """One task of :func:`compile_tasks` in this process: ``(task, wall s, CPU s, peak RSS
+    in KiB of this process)``."""
+    import resource
+    import time
+
+    t0, c0 = time.perf_counter(), time.process_time()
+    import mkf_ros.api as api
+
+    kind, name = task.split(":", 1)
+    if kind == "unit":
+        next(u for u in UNITS if f"{u.__module__}.{u.__qualname__}" == name).compiled
+    else:
+        api.warmup((name,))
+    return (task, time.perf_counter() - t0, time.process_time() - c0,
+            resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)
+
+
+def compile_jobs() -> int:
+    """Processes of the install-time compile: ``$MKF_ROS_COMPILE_JOBS``, else the CPUs this
+    process may use, at most 2 (each takes up to ~0.5 GB)."""
+    env = os.environ.get("MKF_ROS_COMPILE_JOBS", "")
+    if env.strip().isdigit() and int(env) > 0:
+        return int(env)
+    try:
+        n = len(os.sched_getaffinity(0))
+    except AttributeError:  # pragma: no cover (not Linux)
+        n = os.cpu_count() or 1
+    return max(1, min(2, n))
+
+
+def precompile(root: Path, jobs: int | None = None,
+               report: Callable[[tuple[str, float, float, int]], object] | None = None) -> None:
+    """Compile every kernel into ``root/numba-<hash>/`` (the install-time step; see the module
+    docstring), dropping other versions there: the tasks of :func:`compile_tasks`, each in a
+    fresh process whose cache is ``root``, ``jobs`` at a time (:func:`compile_jobs`), the
+    units first. ``report`` receives each task's result (:func:`run_compile_task`)."""
+    import concurrent.futures
+    import multiprocessing
+
+    units, entries = compile_tasks()
+    jobs = jobs or compile_jobs()
+    saved = {k: os.environ.get(k) for k in ("MKF_ROS_CACHE_DIR", "PYTHONWARNINGS")}
+    os.environ.update(MKF_ROS_CACHE_DIR=str(root), PYTHONWARNINGS="ignore")
+    try:
+        for phase in (units, entries):
+            with concurrent.futures.ProcessPoolExecutor(
+                    max_workers=jobs, mp_context=multiprocessing.get_context("spawn"),
+                    max_tasks_per_child=1) as pool:
+                for result in pool.map(run_compile_task, phase):
+                    if report is not None:
+                        report(result)
+    finally:
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
     _prune_old_caches(root, keep_days=0.0)
 
 
@@ -197,12 +270,93 @@ _prune_old_caches(_cache_root())
 if KernelCacheLocator not in caching.CacheImpl._locator_classes:
     caching.CacheImpl._locator_classes.insert(0, KernelCacheLocator)
 
-#: Compile options shared by every kernel: no Python objects, cached, GIL released.
-jit = numba.njit(cache=True, nogil=True, error_model="numpy")
+class _Dispatcher(CPUDispatcher):
+    """numba's dispatcher, compiling one version per argument *types* for calls from compiled
+    code too: numba compiles a separate version of a function for each constant (literal)
+    argument of a compiled caller (``f(x, True)`` and ``f(x, False)``: two versions; measured:
+    up to 10 of one small kernel, a quarter of the compile time)."""
+
+    def get_call_template(self, args: tuple, kws: dict) -> tuple:
+        return super().get_call_template(tuple(types.unliteral(a) for a in args),
+                                         {k: types.unliteral(v) for k, v in kws.items()})
+
+
+_OPTIONS = {"nopython": True, "nogil": True, "error_model": "numpy"}
+
+
+def _kernel(inline: str) -> Callable[[Callable], Callable]:
+    def decorate(fn: Callable) -> Callable:
+        if numba.config.DISABLE_JIT:
+            return fn
+        disp = _Dispatcher(py_func=fn, locals={}, targetoptions=dict(_OPTIONS, inline=inline))
+        disp.enable_caching()
+        return disp
+    return decorate
+
+
+#: Compile options shared by every kernel: no Python objects, cached, GIL released, one
+#: version per argument types (:class:`_Dispatcher`).
+jit = _kernel("never")
+#: Whether kernels run as plain Python (``NUMBA_DISABLE_JIT=1``).
+JIT_DISABLED = bool(numba.config.DISABLE_JIT)
+
+
+#: Every :class:`Unit`, in the order their modules defined them.
+UNITS: list[Unit] = []
+
+
+class Unit:
+    """A kernel compiled on its own (see "Compile units" above): calling it from Python runs
+    the Python function; :attr:`compiled` is the compiled C callable (compiled, or loaded from
+    the cache, on first use) that compiled callers take as an argument of type :attr:`type`
+    (numba ``FunctionType``). With ``NUMBA_DISABLE_JIT=1`` :attr:`compiled` is the Python
+    function itself."""
+
+    def __init__(self, py_func: Callable, signature: numba.core.typing.templates.Signature,
+                 cost: float) -> None:
+        self.py_func = py_func
+        self.cost = cost
+        self.signature = signature
+        self.type = numba.types.FunctionType(signature)
+        self._compiled: object = None
+        self.__name__ = py_func.__name__
+        self.__qualname__ = py_func.__qualname__
+        self.__doc__ = py_func.__doc__
+        self.__module__ = py_func.__module__
+        UNITS.append(self)
+
+    def __call__(self, *args: object) -> object:
+        return self.py_func(*args)
+
+    @property
+    def compiled(self) -> object:
+        if JIT_DISABLED:
+            return self.py_func
+        if self._compiled is None:
+            self._compiled = numba.cfunc(self.signature, cache=True, error_model="numpy")(
+                self.py_func)
+        return self._compiled
+
+
+def tuple_type(members: list, cls: type) -> types.Type:
+    """The numba type of an instance of the namedtuple class ``cls`` with members of these
+    types (as ``numba.typeof`` gives it: uniform members make a ``NamedUniTuple``)."""
+    if all(m == members[0] for m in members):
+        return types.NamedUniTuple(members[0], len(members), cls)
+    return types.NamedTuple(members, cls)
+
+
+def unit(signature: numba.core.typing.templates.Signature,
+         cost: float = 1.0) -> Callable[[Callable], Unit]:
+    """Decorator: the function as a :class:`Unit` of the given numba signature; ``cost``, its
+    compile time in seconds on the reference machine (``./run bench compile_time --tasks``),
+    orders the install-time compile (the largest first, so that the processes end together)."""
+    return lambda fn: Unit(fn, signature, cost)
 #: The same, inlined into every compiled caller at numba IR level (a Python call still gets a
 #: normal compiled function): for kernels and helpers on the per-sample hot paths. A call between
 #: compiled functions increfs and decrefs every array argument (atomic operations, together
 #: more than the arithmetic of a 6-state update, ~0.3 µs for a call with many arrays); inlined,
-#: numba prunes most of those pairs. Costs compile time at every call site. Not for functions
-#: with more than 30 parameters (numba cannot inline such a call).
-jit_inline = numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+#: numba prunes most of those pairs. Costs compile time at every call site (numba types the
+#: inlined code again there). Not for functions with more than 30 parameters (numba cannot
+#: inline such a call).
+jit_inline = _kernel("always")

@@ -6,9 +6,12 @@ after the sensor layer's checks, and the Euler filters' tilt re-alignment.
 
 from __future__ import annotations
 
-import numpy as np
+from collections import namedtuple
 
-from mkf_ros.core._jit import jit
+import numpy as np
+from numba import types as nt
+
+from mkf_ros.core._jit import jit, tuple_type, unit
 from mkf_ros.core.baselines import (
     body_cov_to_euler,
     euler_cov_to_body,
@@ -22,15 +25,18 @@ from mkf_ros.core.baselines import (
     yaw_update,
 )
 from mkf_ros.core.frames import align_tilt, keep_yaw
+from mkf_ros.core.linalg import copy_block, copy_into
 from mkf_ros.core.mekf import heading_residual
 from mkf_ros.core.quaternion import rotmat
 from mkf_ros.core.state import (
     ALGO_EULER_KF,
     ALGO_EULER_UKF,
     ALGO_MADGWICK,
+    CONFIG_T,
     NX_MAX,
     REALIGN_ACC_TOL,
     REALIGN_MAX_RATE,
+    STATE_T,
     Fusion,
     mag_yaw_var,
     recentre,
@@ -82,13 +88,13 @@ def baseline_export(c: np.record, s: np.record) -> None:
     P = s.P
     if algo == ALGO_EULER_UKF:
         C = euler_cov_to_body(s.euler, P, 6)
-    s.q_c[:] = q
+    copy_into(s.q_c, q)
     s.e[:] = 0.0
     for i in range(NX_MAX):  # clear everything but the bias block ...
         for j in range(NX_MAX):
             if i < 6 or j < 6:
                 P[i, j] = 0.0
-    P[0:n, 0:n] = C  # ... then the attitude [and rate] block
+    copy_block(P, 0, 0, C, False)  # ... then the attitude [and rate] block
     if n == 3:  # KF, Madgwick: the gyro reading is the rate estimate
         for i in range(3, 6):
             P[i, i] = c.gyro_var
@@ -129,8 +135,31 @@ def from_canonical(c: np.record, s: np.record) -> None:
         for j in range(n, NX_MAX):
             P[i, j] = 0.0
             P[j, i] = 0.0
-    P[0:n, 0:n] = S
-    s.q_c[:] = euler_to_quat(phi, theta, psi)
+    copy_block(P, 0, 0, S, False)
+    copy_into(s.q_c, euler_to_quat(phi, theta, psi))
+
+
+@unit(nt.void(CONFIG_T, STATE_T), cost=3.5)
+def export(c: np.record, s: np.record) -> None:
+    """:func:`baseline_export` compiled on its own (the sensor layer's rare paths call it)."""
+    baseline_export(c, s)
+
+
+@unit(nt.void(CONFIG_T, STATE_T), cost=3.4)
+def restore(c: np.record, s: np.record) -> None:
+    """:func:`from_canonical` compiled on its own (the sensor layer's rare paths call it)."""
+    from_canonical(c, s)
+
+
+#: The conversions of a baseline's state to and from the canonical form, compiled once each
+#: and handed to the sensor layer's rare paths (:func:`canonical`).
+Canonical = namedtuple("Canonical", ("export", "restore"))
+CANONICAL_T = tuple_type([export.type, restore.type], Canonical)
+
+
+def canonical() -> Canonical:
+    """The compiled :data:`Canonical` conversions."""
+    return Canonical(export.compiled, restore.compiled)
 
 
 @jit
@@ -161,7 +190,7 @@ def baseline_realign(c: np.record, s: np.record, a: tuple, w: tuple) -> bool:
     for i in range(3):
         for j in range(3):
             var_yaw += R[2, i] * R[2, j] * P[i, j]
-    s.q_c[:] = keep_yaw(align_tilt(np.array(a)), s.q_c)
+    copy_into(s.q_c, keep_yaw(align_tilt(np.array(a)), s.q_c))
     set_world_attitude_cov(s, c.nx, c.acc_var + 9.0 * c.acc_disturbance_var + jump * jump,
                            var_yaw, False)
     return True
@@ -175,7 +204,7 @@ def _madgwick_update(c: np.record, s: np.record, dt: float, z: Fusion) -> None:
     use_m = z.has_m
     has_a = z.has_a and z.a_ok
     if z.has_m and not has_a:  # hold it for the next IMU sample
-        s.held_mag[:] = m
+        copy_into(s.held_mag, m)
         s.mag_held = True
         use_m = False
     elif has_a and not z.has_m and s.mag_held:
@@ -270,5 +299,5 @@ def baseline_update(c: np.record, s: np.record, k: np.record, dt: float,
     x = s.euler
     if abs(np.cos(x[1])) < c.gimbal_cos:
         k.gimbal_lock += 1
-    s.q_c[:] = euler_to_quat(x[0], x[1], x[2])
+    copy_into(s.q_c, euler_to_quat(x[0], x[1], x[2]))
     return ok, acc_nis, mag_nis

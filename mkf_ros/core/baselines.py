@@ -54,7 +54,7 @@ from __future__ import annotations
 import numpy as np
 
 from mkf_ros.core._jit import jit, jit_inline
-from mkf_ros.core.linalg import cho_solve, cholesky, congruence, symmetrize_leading
+from mkf_ros.core.linalg import cho_solve, cholesky, congruence, copy_block, symmetrize_leading
 
 #: Floor of |cos θ| in sec θ and tan θ (θ within 0.06° of ±90°): keeps eq. (7) finite.
 COS_MIN = 1e-3
@@ -181,12 +181,12 @@ def body_cov_to_euler(x: np.ndarray, C: np.ndarray, n: int) -> np.ndarray:
     return _attitude_congruence(euler_rate_matrix(x[0], x[1])[0], C, n)
 
 
-@jit_inline
+@jit
 def _attitude_congruence(M: np.ndarray, S: np.ndarray, n: int) -> np.ndarray:
     """``A S Aᵀ`` (symmetrised) for the leading n×n block of ``S``, ``A = blockdiag(M, I)``
     with the 3×3 ``M`` on the attitude."""
     A = np.zeros((n, n))
-    A[0:3, 0:3] = M
+    copy_block(A, 0, 0, M, False)
     for i in range(3, n):
         A[i, i] = 1.0
     out = congruence(A, S[0:n, 0:n])

@@ -10,11 +10,13 @@ in ``__all__`` below and the records of :meth:`AttitudeFilter.kernel_arrays`.
 from __future__ import annotations
 
 import contextlib
+from collections import namedtuple
 from typing import NamedTuple
 
 import numpy as np
+from numba import types as nt
 
-from mkf_ros.core._jit import jit
+from mkf_ros.core._jit import jit, tuple_type, unit
 from mkf_ros.core.baseline_glue import (
     baseline_estimate,
     from_canonical,
@@ -27,15 +29,20 @@ from mkf_ros.core.quaternion import (
     qmul_t,
     qnormalize_t,
     rotmat_t,
+    t3,
     t4,
     t33,
 )
-from mkf_ros.core.sensor import sensor_step, step
+from mkf_ros.core.sensor import UNITS_T, Units, step, units
 from mkf_ros.core.state import (
     ALGO_EULER_KF,
     ALGO_MADGWICK,
     ATTITUDE_VAR_UNKNOWN,
     CONFIG,
+    CONFIG_T,
+    F4,
+    F33,
+    STATE_T,
     COUNTER_NAMES,
     COUNTERS,
     MAX_ACC_G,
@@ -76,16 +83,18 @@ __all__ = [
     "rate_covariance",
     "run_batch",
     "sensor_step",
-    "step",
     "uses_mag",
     "new_records",
+    "Kernels",
+    "kernels",
+    "output",
+    "run_step",
     "world_output",
-    "world_output_t",
 ]
 
 
-@jit
-def world_output_t(c: np.record, s: np.record) -> tuple[tuple, tuple]:
+@unit(nt.Tuple((F4, F33))(CONFIG_T, STATE_T), cost=1.6)
+def output(c: np.record, s: np.record) -> tuple[tuple, tuple]:
     """Orientation in the world frame (``q0 ≥ 0``) and its 3×3 covariance about world axes
     (rows), ``Σ_W = R(q_W) Σ_body R(q_W)ᵀ`` (the error is body-side, ``q = q̂ * δ(e)``), plus
     the accelerometer's misalignment. Reads the state element by element: no allocation."""
@@ -118,12 +127,43 @@ def world_output_t(c: np.record, s: np.record) -> tuple[tuple, tuple]:
     return q, ((C[0][0] + f2, c01, c02), (c01, C[1][1] + f2, c12), (c02, c12, C[2][2]))
 
 
+#: The compiled kernels a front end hands to the compiled loops: :func:`step` and its
+#: :data:`~mkf_ros.core.sensor.Units`, and :func:`output` (:func:`kernels`).
+Kernels = namedtuple("Kernels", ("step", "units", "output"))
+KERNELS_T = tuple_type([step.type, UNITS_T, output.type], Kernels)
+_compiled_kernels: list[Kernels] = []
+
+
+def kernels() -> Kernels:
+    """The compiled :data:`Kernels` (compiled, or loaded from the kernel cache, once per
+    process)."""
+    if not _compiled_kernels:
+        _compiled_kernels.append(Kernels(step.compiled, units(), output.compiled))
+    return _compiled_kernels[0]
+
+
 @jit
-def world_output(cfg: np.ndarray, st: np.ndarray, q_out: np.ndarray,
+def run_step(kern: Kernels, c: np.record, s: np.record, k: np.record, w: np.record, dt: float,
+             gyr: tuple, acc: tuple, mag: tuple) -> None:
+    """One sample through the compiled :func:`~mkf_ros.core.sensor.step`."""
+    kern.step(c, s, k, w, kern.units, dt, gyr, acc, mag)
+
+
+@jit
+def sensor_step(kern: Kernels, cfg: np.ndarray, st: np.ndarray, cnt: np.ndarray,
+                work: np.ndarray, dt: float, gyr: np.ndarray, acc: np.ndarray,
+                mag: np.ndarray) -> None:
+    """One sample on the filter's record arrays (:class:`AttitudeFilter`), readings as arrays
+    of 3."""
+    run_step(kern, cfg[0], st[0], cnt[0], work[0], dt, t3(gyr), t3(acc), t3(mag))
+
+
+@jit
+def world_output(kern: Kernels, cfg: np.ndarray, st: np.ndarray, q_out: np.ndarray,
                  cov_out: np.ndarray) -> None:
-    """:func:`world_output_t` of the filter's record arrays, into ``q_out`` (4) and
-    ``cov_out`` (3×3)."""
-    q, cov = world_output_t(cfg[0], st[0])
+    """:func:`output` of the filter's record arrays, into ``q_out`` (4) and ``cov_out``
+    (3×3)."""
+    q, cov = kern.output(cfg[0], st[0])
     for i in range(4):
         q_out[i] = q[i]
     for i in range(3):
@@ -133,8 +173,9 @@ def world_output(cfg: np.ndarray, st: np.ndarray, q_out: np.ndarray,
 
 # --- the kernel interface of compiled front ends (mkf_ros.stream.kernel) ---------------------
 # A front end that runs its own compiled loop holds the filter's records
-# (:meth:`AttitudeFilter.kernel_arrays`) and calls :func:`step` and :func:`world_output_t`;
-# what else it reads of the filter it reads through these.
+# (:meth:`AttitudeFilter.kernel_arrays`) and the compiled :data:`Kernels` (:func:`kernels`),
+# calls :func:`run_step` and ``Kernels.output``; what else it reads of the filter it reads
+# through these.
 
 
 @jit
@@ -211,9 +252,9 @@ class BatchOutputs(NamedTuple):
 
 
 @jit
-def _write_output(c: np.record, s: np.record, out: BatchOutputs, n: int) -> None:
+def _write_output(kern: Kernels, c: np.record, s: np.record, out: BatchOutputs, n: int) -> None:
     """Row ``n`` of the outputs (element by element: no array views)."""
-    q, cov = world_output_t(c, s)
+    q, cov = kern.output(c, s)
     init = s.initialized
     out.initialized[n] = init
     for i in range(4):
@@ -229,15 +270,15 @@ def _write_output(c: np.record, s: np.record, out: BatchOutputs, n: int) -> None
 
 
 @jit
-def run_batch(cfg: np.ndarray, st: np.ndarray, cnt: np.ndarray, work: np.ndarray,
-              dts: np.ndarray, gyr: np.ndarray, acc: np.ndarray, mag: np.ndarray,
-              out: BatchOutputs) -> None:
+def run_batch(kern: Kernels, cfg: np.ndarray, st: np.ndarray, cnt: np.ndarray,
+              work: np.ndarray, dts: np.ndarray, gyr: np.ndarray, acc: np.ndarray,
+              mag: np.ndarray, out: BatchOutputs) -> None:
     """:func:`step` over a whole recording, writing the outputs of every sample."""
     c, s, k, w = cfg[0], st[0], cnt[0], work[0]
     for n in range(dts.shape[0]):
-        step(c, s, k, w, dts[n], (gyr[n, 0], gyr[n, 1], gyr[n, 2]),
-             (acc[n, 0], acc[n, 1], acc[n, 2]), (mag[n, 0], mag[n, 1], mag[n, 2]))
-        _write_output(c, s, out, n)
+        run_step(kern, c, s, k, w, dts[n], (gyr[n, 0], gyr[n, 1], gyr[n, 2]),
+                 (acc[n, 0], acc[n, 1], acc[n, 2]), (mag[n, 0], mag[n, 1], mag[n, 2]))
+        _write_output(kern, c, s, out, n)
 
 
 @jit
@@ -332,7 +373,7 @@ class AttitudeFilter:
 
     def kernel_arrays(self) -> KernelArrays:
         """The filter's record arrays, for a front end running its own compiled loop around
-        :func:`step` and :func:`world_output_t` (:mod:`mkf_ros.stream.kernel`). They are the
+        :func:`run_step` and ``Kernels.output`` (:mod:`mkf_ros.stream.kernel`). They are the
         filter's own (updated in place) until :meth:`reset` or :meth:`set_params`; read them
         through the accessors above."""
         return KernelArrays(self._cfg, self._st, self._counters, self._work)
@@ -346,7 +387,8 @@ class AttitudeFilter:
         n = len(dts)
         out = BatchOutputs(np.empty((n, 4)), np.empty((n, 3, 3)), np.empty((n, 3)),
                            np.empty((n, 3)), np.empty((n, 3)), np.empty(n, dtype=np.bool_))
-        run_batch(self._cfg, self._st, self._counters, self._work, dts, gyr, acc, mag, out)
+        run_batch(kernels(), self._cfg, self._st, self._counters, self._work, dts, gyr,
+                  acc, mag, out)
         return out
 
     def step(self, dt: float, gyr: object = None, acc: object = None, mag: object = None) -> None:
@@ -361,7 +403,7 @@ class AttitudeFilter:
         the argument and leaves the filter exactly as it was."""
         d = _dt(dt)
         g, a, m = _vec(gyr, "gyr"), _vec(acc, "acc"), _vec(mag, "mag")
-        sensor_step(self._cfg, self._st, self._counters, self._work, d, g, a, m)
+        sensor_step(kernels(), self._cfg, self._st, self._counters, self._work, d, g, a, m)
 
     @property
     def initialized(self) -> bool:
@@ -411,7 +453,7 @@ class AttitudeFilter:
     def _output(self) -> tuple[np.ndarray, np.ndarray]:
         q = np.empty(4)
         c = np.empty((3, 3))
-        world_output(self._cfg, self._st, q, c)
+        world_output(kernels(), self._cfg, self._st, q, c)
         if not self._st[0].initialized:
             c = ATTITUDE_VAR_UNKNOWN * np.eye(3)
         return q, c

@@ -74,6 +74,27 @@ def cho_solve(L: np.ndarray, b: np.ndarray) -> np.ndarray:
     return x
 
 
+@jit
+def copy_into(dst: np.ndarray, src: np.ndarray) -> None:
+    """``dst[:] = src`` for vectors (written out: numba compiles a slice assignment with its
+    shape check and the formatting of its error message, seconds of compile time)."""
+    for i in range(dst.shape[0]):
+        dst[i] = src[i]
+
+
+@jit
+def copy_block(dst: np.ndarray, r0: int, c0: int, src: np.ndarray, transpose: bool) -> None:
+    """``dst[r0:r0+n, c0:c0+m] = src`` (``src.T`` with ``transpose``) for the ``n × m`` ``src``
+    (``m × n`` transposed); written out like :func:`copy_into`."""
+    n, m = src.shape
+    for i in range(n):
+        for j in range(m):
+            if transpose:
+                dst[r0 + j, c0 + i] = src[i, j]
+            else:
+                dst[r0 + i, c0 + j] = src[i, j]
+
+
 @jit_inline
 def symmetrize_leading(P: np.ndarray, n: int) -> None:
     """``P ← ½(P + Pᵀ)`` on the leading ``n × n`` block, in place."""

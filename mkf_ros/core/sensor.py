@@ -24,17 +24,21 @@ reference counting).
 
 from __future__ import annotations
 
-import numpy as np
+from collections import namedtuple
 
-from mkf_ros.core._jit import jit
+import numpy as np
+from numba import types as nt
+
+from mkf_ros.core._jit import jit, jit_inline, tuple_type, unit
 from mkf_ros.core.baseline_glue import (
-    baseline_export,
+    CANONICAL_T,
+    Canonical,
     baseline_realign,
     baseline_update,
-    from_canonical,
+    canonical,
 )
 from mkf_ros.core.frames import align_tilt, heading_correction, keep_yaw
-from mkf_ros.core.linalg import eye, symmetrize_leading
+from mkf_ros.core.linalg import copy_block, copy_into, eye, symmetrize_leading
 from mkf_ros.core.mekf import (
     heading_residual_t,
     inv3_spd_t,
@@ -57,6 +61,13 @@ from mkf_ros.core.quaternion import (
 )
 from mkf_ros.core.state import (
     ALGO_EULER_KF,
+    CONFIG_T,
+    COUNTERS_T,
+    F3,
+    F33,
+    FUSION_T,
+    STATE_T,
+    WORK_T,
     ALGO_MEKF,
     ALGO_MUKF,
     INVALID,
@@ -86,10 +97,15 @@ from mkf_ros.core.state import (
 )
 
 ZERO3 = (0.0, 0.0, 0.0)
+#: The per-sample steps: compiled once each and linked into :func:`step` (they take the
+#: records, passed by pointer, so a call costs little).
+hot = jit_inline
+#: Signature of the filters' updates after the sensor layer: ``(ok, acc NIS, mag NIS)``.
+_UPDATE_SIG = nt.Tuple((nt.boolean, nt.float64, nt.float64))
 
 
 # --- small helpers ---------------------------------------------------------------------------
-@jit
+@hot
 def _unit_t(v: tuple) -> tuple:
     n = np.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
     return (v[0] / n, v[1] / n, v[2] / n)
@@ -100,7 +116,7 @@ def _unit(v: np.ndarray) -> np.ndarray:
     return v / np.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
 
 
-@jit
+@hot
 def _turn(v: np.ndarray, R: tuple) -> None:
     """A 3-vector kept in body axes follows the body over one step: ``v ← R(Δq)ᵀ v``."""
     x = (v[0], v[1], v[2])
@@ -108,14 +124,14 @@ def _turn(v: np.ndarray, R: tuple) -> None:
         v[i] = R[0][i] * x[0] + R[1][i] * x[1] + R[2][i] * x[2]
 
 
-@jit
+@hot
 def _lowpass(x: np.ndarray, v: tuple, al: float) -> None:
     """First-order low-pass step of a 3-vector: ``x ← x + α (v − x)``."""
     for i in range(3):
         x[i] += al * (v[i] - x[i])
 
 
-@jit
+@hot
 def _alpha(s: np.record, k: int, dt: float, tau: float) -> float:
     """``1 − exp(−Δt/τ)``, the gain of a first-order low-pass, kept in ``s.lp_gain[k]`` for the
     last (Δt, τ) of low-pass ``k`` (``LP_*``): at a fixed rate it is computed once (measured:
@@ -128,7 +144,7 @@ def _alpha(s: np.record, k: int, dt: float, tau: float) -> float:
     return g[k, 2]
 
 
-@jit
+@hot
 def _lowpass_gain(s: np.record, k: int, t: float, dt: float, tau: float) -> tuple[float, bool]:
     """Gain of a first-order low-pass with time constant ``tau`` (gain slot ``k`` of
     :func:`_alpha`) that starts as the running mean: for the first ``tau`` seconds since its
@@ -145,7 +161,7 @@ def _lowpass_gain(s: np.record, k: int, t: float, dt: float, tau: float) -> tupl
     return (m, True) if m > a else (a, False)
 
 
-@jit
+@hot
 def _correlated(T: float, dt: float) -> float:
     """``max(1, T/Δt)``: how much a disturbance correlated over ``T`` (s) widens the variance
     of samples ``Δt`` apart, so that their information per second does not grow with the rate.
@@ -155,7 +171,7 @@ def _correlated(T: float, dt: float) -> float:
 
 
 # --- 1. the sample's readings ----------------------------------------------------------------
-@jit
+@hot
 def calibrate_mag(c: np.record, mag: tuple) -> tuple:
     """Hard- and soft-iron correction ``m = S (m_raw − h)`` (extension; sensor units)."""
     h, S = c.mag_hard_iron, c.mag_soft_iron
@@ -165,7 +181,7 @@ def calibrate_mag(c: np.record, mag: tuple) -> tuple:
             S[2, 0] * v0 + S[2, 1] * v1 + S[2, 2] * v2)
 
 
-@jit
+@hot
 def _count_reading(k: np.record, cls: int, sensor: int) -> None:
     """Count a missing or invalid reading of ``sensor`` (0 gyro, 1 accelerometer, 2 field)."""
     if cls == MISSING:
@@ -184,7 +200,7 @@ def _count_reading(k: np.record, cls: int, sensor: int) -> None:
             k.mag_invalid += 1
 
 
-@jit
+@hot
 def _read(c: np.record, k: np.record, gyr: tuple, acc: tuple, mag: tuple) -> tuple:
     """Classify the sample's three readings (:func:`~mkf_ros.core.state.classify_reading`,
     counted) and calibrate the field. Returns ``(gs, as_, ms, m_body, m_norm)``: the classes,
@@ -216,13 +232,13 @@ def _learn_mag_ref(c: np.record, s: np.record, m_body: np.ndarray, m_norm: float
     s.mag_norm = (s.mag_norm * n + m_norm) / (n + 1)
     s.mag_count = n + 1
     if c.mag_ref_given:
-        s.mag_ref[:] = c.mag_ref
+        copy_into(s.mag_ref, c.mag_ref)
         return
     r = rotate(s.q_c, m_body)
     for i in range(3):
         s.mag_sum[i] += r[i]
     m = s.mag_sum
-    s.mag_ref[:] = _unit(np.array((0.0, np.sqrt(m[0] * m[0] + m[1] * m[1]), m[2])))
+    copy_into(s.mag_ref, _unit(np.array((0.0, np.sqrt(m[0] * m[0] + m[1] * m[1]), m[2]))))
 
 
 @jit
@@ -238,8 +254,8 @@ def _heading_init(c: np.record, s: np.record, m_body: np.ndarray, m_norm: float)
     s.mag_norm = 0.0
     s.mag_count = 0
     rot = heading_correction(s.q_c, m_body, ref)
-    s.q_c[:] = qnormalize(qmul(rot, s.q_c))
-    s.mag_ref[:] = ref
+    copy_into(s.q_c, qnormalize(qmul(rot, s.q_c)))
+    copy_into(s.mag_ref, ref)
     set_world_attitude_cov(s, c.nx, 0.0, mag_yaw_var(c, ref), True)
     s.heading_fixed = True
     s.t_mag_disagree = 0.0
@@ -248,15 +264,6 @@ def _heading_init(c: np.record, s: np.record, m_body: np.ndarray, m_norm: float)
     for i in range(3):  # the field's low-pass starts at this sample (unit magnitude)
         s.mag_lp[i] = m_body[i]
     _learn_mag_ref(c, s, m_body, m_norm)
-
-
-@jit
-def _fix_heading(c: np.record, s: np.record, m_body: tuple, m_norm: float) -> None:
-    """The first magnetometer sample (since the start or a gap) fixes the heading; the
-    baselines' state goes through the canonical form (:mod:`~mkf_ros.core.baseline_glue`)."""
-    baseline_export(c, s)
-    _heading_init(c, s, np.array(m_body), m_norm)
-    from_canonical(c, s)
 
 
 @jit
@@ -290,20 +297,23 @@ def _align(c: np.record, s: np.record, gyr: np.ndarray, has_g: bool, acc: np.nda
     if s.ever_initialized:  # re-alignment: keep the heading we had (of the estimate q̂)
         recentre(c, s)
         q = keep_yaw(q, s.q_c)
-    s.q_c[:] = q
+    copy_into(s.q_c, q)
     s.e[:] = 0.0
-    s.w[:] = gyr - s.b if has_g else np.zeros(3)
+    for i in range(3):
+        s.w[i] = gyr[i] - s.b[i] if has_g else 0.0
     P = s.P
     Pb = P[6:9, 6:9].copy()
     P[:, :] = 0.0
     for i in range(3):
         P[3 + i, 3 + i] = c.gyro_var if has_g else 1.0
     if nx == 9:
-        P[6:9, 6:9] = Pb if s.ever_initialized else eye(3, c.bias_var0)
+        copy_block(P, 6, 6, Pb if s.ever_initialized else eye(3, c.bias_var0), False)
         if has_g:  # ω̄ = g − b̄: the rate inherits the bias uncertainty, anti-correlated
-            P[3:6, 3:6] += P[6:9, 6:9]
-            P[3:6, 6:9] = -P[6:9, 6:9]
-            P[6:9, 3:6] = -P[6:9, 6:9]
+            for i in range(3):
+                for j in range(3):
+                    P[3 + i, 3 + j] += P[6 + i, 6 + j]
+                    P[3 + i, 6 + j] = -P[6 + i, 6 + j]
+                    P[6 + i, 3 + j] = -P[6 + i, 6 + j]
     # heading: defined by the start-up heading at the first alignment; after a gap it is kept
     # but unknown (uniform over ±180°) until a magnetometer fixes it
     # (with use_mag: unknown until the first magnetometer sample fixes it)
@@ -322,7 +332,8 @@ def _align(c: np.record, s: np.record, gyr: np.ndarray, has_g: bool, acc: np.nda
 def _paper_init(c: np.record, s: np.record) -> None:
     """The paper's start: ``q̄ = (1,0,0,0)``, ``P = 10² I₆``, ``ω̄ = 0`` (MEKF) or
     ``10⁻¹⁰(1,1,1)`` (MUKF, "breaks the symmetry") (§5, §6, §8 item 9)."""
-    s.q_c[:] = np.array((1.0, 0.0, 0.0, 0.0))
+    s.q_c[:] = 0.0
+    s.q_c[0] = 1.0
     s.e[:] = 0.0
     s.w[:] = 1e-10 if c.algorithm == ALGO_MUKF else 0.0
     P = s.P
@@ -332,7 +343,7 @@ def _paper_init(c: np.record, s: np.record) -> None:
     if c.nx == 9:
         for i in range(6, 9):
             P[i, i] = c.bias_var0
-    s.mag_ref[:] = c.mag_ref
+    copy_into(s.mag_ref, c.mag_ref)
     s.t_acc_refused = 0.0
     s.t_mag_disagree = 0.0
     s.t_rest = 0.0
@@ -341,34 +352,47 @@ def _paper_init(c: np.record, s: np.record) -> None:
     s.heading_fixed = True
 
 
-@jit
-def _start(c: np.record, s: np.record, k: np.record, dt: float, gyr: tuple, has_g: bool,
-           acc: tuple, has_a: bool, m_body: tuple, m_norm: float, has_m: bool) -> bool:
-    """Gaps and initialisation: a step longer than ``max_dt`` re-aligns from this (or the next)
-    accelerometer sample, keeping yaw; a filter without an estimate aligns from this sample
-    (heading from its magnetometer reading), or takes the paper's start. Returns whether the
-    sample goes on to the updates (not when it was used to align, or cannot)."""
+#: What :func:`start` says of a sample: used up (it aligned the filter, or there is nothing
+#: to align from), go on, or go on without its magnetometer reading (it fixed the heading).
+USED, GO, GO_WITHOUT_MAG = 0, 1, 2
+
+
+@unit(nt.int64(CONFIG_T, STATE_T, COUNTERS_T, CANONICAL_T, nt.float64, F3, nt.boolean, F3,
+               nt.boolean, F3, nt.float64, nt.boolean), cost=10)
+def start(c: np.record, s: np.record, k: np.record, cn: Canonical, dt: float, gyr: tuple,
+          has_g: bool, acc: tuple, has_a: bool, m_body: tuple, m_norm: float,
+          has_m: bool) -> int:
+    """Gaps, initialisation and the heading: a step longer than ``max_dt`` re-aligns from this
+    (or the next) accelerometer sample, keeping yaw; a filter without an estimate aligns from
+    this sample (heading from its magnetometer reading), or takes the paper's start; the first
+    magnetometer sample since then fixes the heading (a baseline's state goes through the
+    canonical form, ``cn``). Returns :data:`USED`, :data:`GO` or :data:`GO_WITHOUT_MAG`."""
     if s.initialized and dt > c.max_dt:
         k.gaps += 1
         s.initialized = False
-    if s.initialized:
-        return True
-    if c.paper_init:
-        _paper_init(c, s)
-        from_canonical(c, s)
-        return True
-    if not has_a:
-        k.before_init += 1
-        return False
-    _align(c, s, np.array(gyr if has_g else ZERO3), has_g, np.array(acc))
-    if has_m:
+    if not s.initialized:
+        if c.paper_init:
+            _paper_init(c, s)
+            cn.restore(c, s)
+        elif not has_a:
+            k.before_init += 1
+            return USED
+        else:
+            _align(c, s, np.array(gyr if has_g else ZERO3), has_g, np.array(acc))
+            if has_m:
+                _heading_init(c, s, np.array(m_body), m_norm)
+            cn.restore(c, s)
+            return USED
+    if has_m and not s.heading_fixed:
+        cn.export(c, s)
         _heading_init(c, s, np.array(m_body), m_norm)
-    from_canonical(c, s)
-    return False
+        cn.restore(c, s)
+        return GO_WITHOUT_MAG
+    return GO
 
 
 # --- 3. the gyro -----------------------------------------------------------------------------
-@jit
+@hot
 def _gyro_gate(c: np.record, s: np.record, k: np.record, g: tuple) -> bool:
     """The gyro's innovation gate: the innovation ``g − ω̄ − b̄`` against
     ``S = H P Hᵀ + R_ω`` (``H = [0, I, I]``), χ² with ``gyro_gate``. One sample alone beyond it
@@ -409,7 +433,7 @@ def _gyro_gate(c: np.record, s: np.record, k: np.record, g: tuple) -> bool:
     return False
 
 
-@jit
+@hot
 def _gyro(c: np.record, s: np.record, k: np.record, g: tuple, has_g: bool) -> tuple:
     """The gyro sample after its gate (MEKF and MUKF with ``gyro_gate``), and the rate (bias
     removed) that turns the inertial low-passes over this step: the gyro's, or without one the
@@ -424,7 +448,7 @@ def _gyro(c: np.record, s: np.record, k: np.record, g: tuple, has_g: bool) -> tu
 
 
 # --- 4. the accelerometer --------------------------------------------------------------------
-@jit
+@hot
 def _acc_blend(c: np.record, s: np.record, kq: float, u_raw: tuple, q_raw: float, ex: float,
                ex2: float) -> tuple:
     """The low-pass view of gravity and its blend with the raw one (:func:`_acc_measurement`);
@@ -451,7 +475,7 @@ def _acc_blend(c: np.record, s: np.record, kq: float, u_raw: tuple, q_raw: float
     return _unit_t(u), kq * q_lp * q_rw / (q_lp + q_rw), 0
 
 
-@jit
+@hot
 def _acc_measurement(c: np.record, s: np.record, dt: float, wl: tuple, Rw: tuple, a: tuple,
                      has_a: bool) -> tuple:
     """The accelerometer as the filters fuse it (extension): the unit direction and the
@@ -511,8 +535,9 @@ def _acc_measurement(c: np.record, s: np.record, dt: float, wl: tuple, Rw: tuple
     return u, q, u_raw, q_raw, status
 
 
-@jit
-def _acc_recovery(c: np.record, s: np.record, a: tuple, a_body: tuple, wl: tuple) -> None:
+@unit(nt.void(CONFIG_T, STATE_T, CANONICAL_T, F3, F3, F3), cost=5)
+def acc_recovery(c: np.record, s: np.record, cn: Canonical, a: tuple, a_body: tuple,
+                 wl: tuple) -> None:
     """Gravity refused for ``acc_recovery_time``: the estimate may be what is wrong. Its tilt
     variance grows by the measured disagreement (no forced update: the gates then judge
     against the wider prior, and a sample still refused grows it again later); the Euler
@@ -520,24 +545,24 @@ def _acc_recovery(c: np.record, s: np.record, a: tuple, a_body: tuple, wl: tuple
     up = rotate_inv(s.q_c, np.array(UP))
     ang = np.arccos(max(-1.0, min(1.0, up[0] * a_body[0] + up[1] * a_body[1]
                                   + up[2] * a_body[2])))
-    baseline_export(c, s)
+    cn.export(c, s)
     if not baseline_realign(c, s, a, wl):
         inflate_world(s, ang * ang, 0.0)
-    from_canonical(c, s)
+    cn.restore(c, s)
     s.t_acc_refused = 0.0
 
 
-@jit
-def _accelerometer(c: np.record, s: np.record, k: np.record, dt: float, wl: tuple, Rw: tuple,
-                   a: tuple, has_a: bool) -> tuple:
+@hot
+def _accelerometer(c: np.record, s: np.record, k: np.record, u: tuple, dt: float, wl: tuple,
+                   Rw: tuple, a: tuple, has_a: bool) -> tuple:
     """The accelerometer's view of gravity (:func:`_acc_measurement`), the recovery of a
-    long-refused tilt (:func:`_acc_recovery`) and the magnitude test's count. Returns
+    long-refused tilt (:func:`acc_recovery`) and the magnitude test's count. Returns
     ``(a_body, var_a, a_raw, var_a_raw, a_ok, has_a)``: ``a_ok`` the raw sample passed the
     magnitude test, ``has_a`` something is fused."""
     a_body, qa, a_rawu, qa_raw, a_stat = _acc_measurement(c, s, dt, wl, Rw, a, has_a)
     if has_a:
         if s.t_acc_refused > c.acc_recovery_time:
-            _acc_recovery(c, s, a, a_body, wl)
+            u.acc_recovery(c, s, u.canonical, a, a_body, wl)
         if a_stat > 0:
             k.acc_rejected_norm += 1
         if a_stat == 2:
@@ -546,7 +571,7 @@ def _accelerometer(c: np.record, s: np.record, k: np.record, dt: float, wl: tupl
 
 
 # --- 5. rest ---------------------------------------------------------------------------------
-@jit
+@hot
 def _rest_steady(c: np.record, s: np.record, dtg: float) -> bool:
     """Whether the body looks still: the gyro's and accelerometer's mean squared deviations
     below their thresholds, and the low-passed rate, less the bias estimate, a possible gyro
@@ -566,7 +591,7 @@ def _rest_steady(c: np.record, s: np.record, dtg: float) -> bool:
     return steady
 
 
-@jit
+@hot
 def _rest_test(c: np.record, s: np.record, dt: float, g: tuple, has_g: bool, a: tuple,
                has_a: bool, g_none: bool, a_none: bool) -> bool:
     """Rest detection (extension): for ``rest_time`` without a break, the gyro and the
@@ -626,7 +651,7 @@ def _rest_test(c: np.record, s: np.record, dt: float, g: tuple, has_g: bool, a: 
 
 
 # --- 6. the magnetometer ---------------------------------------------------------------------
-@jit
+@hot
 def _mag_plausible(c: np.record, s: np.record, k: np.record, R: tuple, m_body: tuple,
                    m_norm: float) -> bool:
     """Field magnitude and dip against the learned reference (extension); counted if not."""
@@ -644,7 +669,7 @@ def _mag_plausible(c: np.record, s: np.record, k: np.record, R: tuple, m_body: t
     return True
 
 
-@jit
+@hot
 def _mag_consistent(c: np.record, s: np.record, k: np.record, m_body: tuple, m_norm: float,
                     alm: float) -> bool:
     """The field over its learned magnitude against its own low-pass in the almost inertial
@@ -666,23 +691,23 @@ def _mag_consistent(c: np.record, s: np.record, k: np.record, m_body: tuple, m_n
     return True
 
 
-@jit
-def _mag_recovery(c: np.record, s: np.record, Rq: tuple, m_body: tuple) -> None:
+@unit(nt.void(CONFIG_T, STATE_T, CANONICAL_T, F33, F3), cost=0.6)
+def mag_recovery(c: np.record, s: np.record, cn: Canonical, Rq: tuple, m_body: tuple) -> None:
     """A plausible, consistent field refused by the χ² gate for ``mag_recovery_time``: the
     heading is what is wrong. Its variance grows by the disagreement (no snap: the next
     updates pull it in)."""
     ref = s.mag_ref
     h = np.sqrt(ref[0] ** 2 + ref[1] ** 2)
     psi, _ = heading_residual_t(Rq, m_body, (ref[0] / h, ref[1] / h, 0.0))
-    baseline_export(c, s)
+    cn.export(c, s)
     inflate_world(s, 0.0, psi * psi)
-    from_canonical(c, s)
+    cn.restore(c, s)
     s.t_mag_disagree = 0.0
 
 
-@jit
-def _mag_checks(c: np.record, s: np.record, k: np.record, dt: float, dtm: float, wl: tuple,
-                Rw: tuple, m_body: tuple, m_norm: float, has_m: bool) -> bool:
+@hot
+def _mag_checks(c: np.record, s: np.record, k: np.record, u: tuple, dt: float, dtm: float,
+                wl: tuple, Rw: tuple, m_body: tuple, m_norm: float, has_m: bool) -> bool:
     """Whether this magnetometer sample may be fused (extension), in this order:
 
     * consistency (:func:`_mag_consistent`): a field fixed in the world passes however the
@@ -690,7 +715,7 @@ def _mag_checks(c: np.record, s: np.record, k: np.record, dt: float, dtm: float,
       changes;
     * plausibility: magnitude and dip against the learned reference (:func:`_mag_plausible`);
     * both held for ``mag_undisturbed_time`` without a break;
-    * recovery (:func:`_mag_recovery`) after ``mag_recovery_time`` of χ² refusals.
+    * recovery (:func:`mag_recovery`) after ``mag_recovery_time`` of χ² refusals.
 
     Counted when refused."""
     _turn(s.mag_lp, Rw)
@@ -711,13 +736,13 @@ def _mag_checks(c: np.record, s: np.record, k: np.record, dt: float, dtm: float,
     if s.t_mag_ok < c.mag_undisturbed_time:
         return False
     if s.t_mag_disagree > c.mag_recovery_time:
-        _mag_recovery(c, s, Rq, m_body)
+        u.mag_recovery(c, s, u.canonical, Rq, m_body)
     return True
 
 
-@jit
-def _magnetometer(c: np.record, s: np.record, k: np.record, dt: float, wl: tuple, Rw: tuple,
-                  m_body: tuple, m_norm: float, has_m: bool) -> tuple:
+@hot
+def _magnetometer(c: np.record, s: np.record, k: np.record, u: tuple, dt: float, wl: tuple,
+                  Rw: tuple, m_body: tuple, m_norm: float, has_m: bool) -> tuple:
     """The magnetometer's checks (:func:`_mag_checks`, once the heading is fixed) and the time
     since its previous sample. Returns ``(has_m, Δt_m)``."""
     s.dt_mag += dt
@@ -725,12 +750,12 @@ def _magnetometer(c: np.record, s: np.record, k: np.record, dt: float, wl: tuple
     if has_m:
         s.dt_mag = 0.0
     if c.use_mag and s.heading_fixed and not c.paper_init:
-        has_m = _mag_checks(c, s, k, dt, dtm, wl, Rw, m_body, m_norm, has_m)
+        has_m = _mag_checks(c, s, k, u, dt, dtm, wl, Rw, m_body, m_norm, has_m)
     return has_m, dtm
 
 
 # --- 7. the updates --------------------------------------------------------------------------
-@jit
+@hot
 def _gyro_scale_noise(c: np.record, s: np.record, dt: float, wl: tuple) -> None:
     """The gyro's scale and axis errors: attitude noise growing with the rate turned."""
     if c.algorithm <= ALGO_MUKF and c.gyro_scale_error > 0:
@@ -739,7 +764,44 @@ def _gyro_scale_noise(c: np.record, s: np.record, dt: float, wl: tuple) -> None:
             s.P[i, i] += qs
 
 
+# the MEKF's blocks (spec §5) on the state's covariance and the scratch: compiled once each
+# (the blocks of mkf_ros.core.mekf inlined), called with the records (by pointer)
 @jit
+def _mekf_predict(s: np.record, nx: int, dt: float, q: tuple, wt: tuple, Qw: tuple,
+                  Qb: tuple) -> tuple:
+    """:func:`~mkf_ros.core.mekf.mekf_predict_t` of ``s.P``; returns ``q̄⁻``."""
+    return mekf_predict_t(q, wt, s.P, nx, dt, Qw, Qb)
+
+
+@jit
+def _mekf_rate(s: np.record, w: np.record, nx: int, wt: tuple, b: tuple, wm: tuple, Rw: tuple,
+               with_bias: bool, frozen: int) -> float:
+    """:func:`~mkf_ros.core.mekf.mekf_rate_update_t` into ``w.dx`` (no gate)."""
+    return mekf_rate_update_t(s.P, nx, w.dx, wt, b, wm, Rw, with_bias, np.inf, w.mekf, frozen)
+
+
+@jit
+def _mekf_vector(s: np.record, w: np.record, nx: int, R: tuple, vm: tuple, vref: tuple,
+                 Rv: tuple, Qv: tuple, gate: float, tilt_only: bool) -> float:
+    """:func:`~mkf_ros.core.mekf.mekf_vector_update_t` into ``w.dx``."""
+    return mekf_vector_update_t(s.P, nx, w.dx, R, vm, vref, Rv, Qv, gate, tilt_only, w.mekf)
+
+
+@jit
+def _mekf_heading(s: np.record, w: np.record, nx: int, R: tuple, m: tuple, ref: tuple,
+                  var: float, gate: float) -> float:
+    """:func:`~mkf_ros.core.mekf.mekf_heading_update_t` into ``w.dx``."""
+    return mekf_heading_update_t(s.P, nx, w.dx, R, m, ref, var, gate)
+
+
+@jit
+def _mekf_apply(c: np.record, s: np.record, w: np.record, q: tuple, wt: tuple,
+                b: tuple) -> tuple:
+    """:func:`~mkf_ros.core.mekf.mekf_apply_t` of ``w.dx``: ``(q̄⁺, ω̄⁺, b̄⁺)``."""
+    return mekf_apply_t(c.chart, c.chart_update, q, wt, b, s.P, c.nx, w.dx)
+
+
+@hot
 def _rate_updates(c: np.record, s: np.record, w: np.record, z: Fusion) -> bool:
     """The rate measurements first: a gyro sample is the rate over the interval that ends at
     its stamp (what a MEMS gyro reports), so it observes ω̄ at the start of the step and drives
@@ -747,19 +809,17 @@ def _rate_updates(c: np.record, s: np.record, w: np.record, z: Fusion) -> bool:
     attitude is frozen (it never moves the attitude). Both are linear in the state, so this
     Kalman update is exact for the MUKF too. Returns False if a factorisation failed."""
     nx = c.nx
-    P, dx, work = s.P, w.dx, w.mekf
+    P, dx = s.P, w.dx
     wt, b = t3(s.w), t3(s.b)
     for i in range(nx):
         dx[i] = 0.0
     ok = True
     if z.has_g:
-        ok &= mekf_rate_update_t(P, nx, dx, wt, b, z.g, iso33(c.gyro_var), True, np.inf,
-                                 work) >= 0
+        ok &= _mekf_rate(s, w, nx, wt, b, z.g, iso33(c.gyro_var), True, 0) >= 0
     if z.rest:
-        ok &= mekf_rate_update_t(P, nx, dx, wt, b, ZERO3, iso33(c.rest_rate_var), False,
-                                 np.inf, work, 3) >= 0
+        ok &= _mekf_rate(s, w, nx, wt, b, ZERO3, iso33(c.rest_rate_var), False, 3) >= 0
     if c.algorithm == ALGO_MEKF:
-        q, wt, b = mekf_apply_t(c.chart, c.chart_update, t4(s.q_c), wt, b, P, nx, dx)
+        q, wt, b = _mekf_apply(c, s, w, t4(s.q_c), wt, b)
         for i in range(4):
             s.q_c[i] = q[i]
     else:
@@ -775,32 +835,30 @@ def _rate_updates(c: np.record, s: np.record, w: np.record, z: Fusion) -> bool:
     return ok
 
 
-@jit
+@hot
 def _mekf_update(c: np.record, s: np.record, w: np.record, dt: float,
                  z: Fusion) -> tuple[float, float]:
     """The MEKF (spec §5): prediction over the step, one block per sensor (gravity, the field as
     a vector or a heading), one move back to the manifold. Returns the NIS of the two."""
     nx = c.nx
-    P, dx, work = s.P, w.dx, w.mekf
     wt, b = t3(s.w), t3(s.b)
-    q = mekf_predict_t(t4(s.q_c), wt, P, nx, dt, iso33(c.rate_process_noise),
-                       iso33(c.bias_process_var))
+    q = _mekf_predict(s, nx, dt, t4(s.q_c), wt, iso33(c.rate_process_noise),
+                      iso33(c.bias_process_var))
     R = rotmat_t(q)
     for i in range(nx):
-        dx[i] = 0.0
+        w.dx[i] = 0.0
     acc_nis = 0.0
     mag_nis = 0.0
     if z.has_a:
-        acc_nis = mekf_vector_update_t(P, nx, dx, R, z.a, UP, iso33(c.acc_var), iso33(z.var_a),
-                                       z.acc_gate, c.acc_tilt_only, work)
+        acc_nis = _mekf_vector(s, w, nx, R, z.a, UP, iso33(c.acc_var), iso33(z.var_a),
+                               z.acc_gate, c.acc_tilt_only)
     if z.has_m:
         if c.mag_heading:
-            mag_nis = mekf_heading_update_t(P, nx, dx, R, z.m, z.h_ref, z.var_h, z.mag_gate)
+            mag_nis = _mekf_heading(s, w, nx, R, z.m, z.h_ref, z.var_h, z.mag_gate)
         else:
-            mag_nis = mekf_vector_update_t(P, nx, dx, R, z.m, z.m_ref, iso33(c.mag_var),
-                                           iso33(c.mag_disturbance_var), z.mag_gate, False,
-                                           work)
-    q, wt, b = mekf_apply_t(c.chart, c.chart_update, q, wt, b, P, nx, dx)
+            mag_nis = _mekf_vector(s, w, nx, R, z.m, z.m_ref, iso33(c.mag_var),
+                                   iso33(c.mag_disturbance_var), z.mag_gate, False)
+    q, wt, b = _mekf_apply(c, s, w, q, wt, b)
     for i in range(4):
         s.q_c[i] = q[i]
     for i in range(3):
@@ -809,9 +867,9 @@ def _mekf_update(c: np.record, s: np.record, w: np.record, dt: float,
     return acc_nis, mag_nis
 
 
-@jit
-def _mukf_update(c: np.record, s: np.record, w: np.record, dt: float,
-                 z: Fusion) -> tuple[bool, float, float]:
+@unit(_UPDATE_SIG(CONFIG_T, STATE_T, WORK_T, nt.float64, FUSION_T), cost=18)
+def mukf_update(c: np.record, s: np.record, w: np.record, dt: float,
+                z: Fusion) -> tuple[bool, float, float]:
     """The MUKF (spec §6): the stacked measurement through the sigma points
     (:func:`~mkf_ros.core.mukf.mukf_step_t`). Returns ``(ok, acc NIS, mag NIS)``; on a failed
     factorisation the estimate is still carried over ``Δt`` (the MEKF's linear prediction
@@ -837,8 +895,8 @@ def _mukf_update(c: np.record, s: np.record, w: np.record, dt: float,
         s.b[i] = b[i]
     if not ok:
         recentre(c, s)
-        q = mekf_predict_t(t4(s.q_c), wt, s.P, nx, dt, iso33(c.rate_process_noise),
-                           (ZERO3, ZERO3, ZERO3))
+        q = _mekf_predict(s, nx, dt, t4(s.q_c), wt, iso33(c.rate_process_noise),
+                          (ZERO3, ZERO3, ZERO3))
         for i in range(4):
             s.q_c[i] = q[i]
     acc_nis = nis[B_VEC0] if z.has_a else 0.0
@@ -846,7 +904,7 @@ def _mukf_update(c: np.record, s: np.record, w: np.record, dt: float,
     return ok, acc_nis, mag_nis
 
 
-@jit
+@hot
 def _cap_yaw_variance(s: np.record, nx: int) -> None:
     """An angle uniform over ±180° has variance π²/3 (YAW_VAR_UNKNOWN); a Gaussian heading
     variance beyond that (6D: the unobservable vertical bias integrated for long) means
@@ -872,26 +930,26 @@ def _cap_yaw_variance(s: np.record, nx: int) -> None:
             P[i, j] += t * u[j]
 
 
-@jit
-def _update(c: np.record, s: np.record, k: np.record, w: np.record, dt: float,
+@hot
+def _update(c: np.record, s: np.record, k: np.record, w: np.record, u: tuple, dt: float,
             z: Fusion) -> tuple[bool, float, float]:
     """The filter's own step with this sample's measurements: a baseline's
-    (:func:`~mkf_ros.core.baseline_glue.baseline_update`), or the MKFs' rate updates then the
-    MEKF's or the MUKF's prediction and update. Returns ``(ok, acc NIS, mag NIS)``."""
+    (:func:`baseline_step`), or the MKFs' rate updates then the MEKF's or the MUKF's
+    (:func:`mukf_update`) prediction and update. Returns ``(ok, acc NIS, mag NIS)``."""
     if c.algorithm >= ALGO_EULER_KF:
-        return baseline_update(c, s, k, dt, z)
+        return u.baseline_update(c, s, k, dt, z)
     ok = _rate_updates(c, s, w, z)
     if c.algorithm == ALGO_MEKF:
         acc_nis, mag_nis = _mekf_update(c, s, w, dt, z)
     else:
-        ok_u, acc_nis, mag_nis = _mukf_update(c, s, w, dt, z)
+        ok_u, acc_nis, mag_nis = u.mukf_update(c, s, w, dt, z)
         ok &= ok_u
     _cap_yaw_variance(s, c.nx)
     return ok, acc_nis, mag_nis
 
 
 # --- 8. bookkeeping --------------------------------------------------------------------------
-@jit
+@hot
 def _bookkeeping(c: np.record, s: np.record, k: np.record, z: Fusion, ok: bool,
                  acc_nis: float, mag_nis: float, m_norm: float) -> None:
     """After the update: a failed factorisation regularises ``P`` (so that the next step can
@@ -919,13 +977,11 @@ def _bookkeeping(c: np.record, s: np.record, k: np.record, z: Fusion, ok: bool,
                 _learn_mag_ref(c, s, np.array(z.m), m_norm)
 
 
-@jit
-def _fusion(c: np.record, s: np.record, g: tuple, has_g: bool, rest: bool, acc: tuple,
-            m: tuple, has_m: bool, dtm: float) -> tuple:
-    """What the updates fuse besides the accelerometer: the gyro, rest, the field (with its
-    world reference, horizontal reference and heading variance per sample) and the gates
-    (none for the paper's start). Returns the :data:`~mkf_ros.core.state.Fusion` fields from
-    ``g`` to ``mag_gate`` past the accelerometer's."""
+@hot
+def _fusion(c: np.record, s: np.record, has_m: bool, dtm: float) -> tuple:
+    """The field's world reference, horizontal reference and heading variance per sample,
+    and the gates (none for the paper's start): the last fields of
+    :data:`~mkf_ros.core.state.Fusion`."""
     acc_gate = c.acc_gate if c.acc_gate > 0 else np.inf
     mag_gate = c.mag_gate if c.mag_gate > 0 else np.inf
     if c.paper_init:  # the paper's start has no prior to gate against
@@ -939,43 +995,59 @@ def _fusion(c: np.record, s: np.record, g: tuple, has_g: bool, rest: bool, acc: 
     return m_ref, h_ref, var_h, acc_gate, mag_gate
 
 
+@unit(_UPDATE_SIG(CONFIG_T, STATE_T, COUNTERS_T, nt.float64, FUSION_T), cost=12)
+def baseline_step(c: np.record, s: np.record, k: np.record, dt: float,
+                  z: Fusion) -> tuple[bool, float, float]:
+    """The baselines' update (:func:`~mkf_ros.core.baseline_glue.baseline_update`)."""
+    return baseline_update(c, s, k, dt, z)
+
+
+#: The steps of :func:`step` compiled as units of their own (the rare paths and the large
+#: updates), in the form :func:`step` takes them: :func:`units` holds the compiled ones.
+Units = namedtuple("Units", ("canonical", "start", "acc_recovery", "mag_recovery",
+                             "mukf_update", "baseline_update"))
+_UNITS = (start, acc_recovery, mag_recovery, mukf_update, baseline_step)
+UNITS_T = tuple_type([CANONICAL_T] + [x.type for x in _UNITS], Units)
+_compiled_units: list[Units] = []
+
+
+def units() -> Units:
+    """The compiled :data:`Units` (compiled, or loaded from the kernel cache, once per
+    process)."""
+    if not _compiled_units:
+        _compiled_units.append(Units(canonical(), *(x.compiled for x in _UNITS)))
+    return _compiled_units[0]
+
+
 # --- the step --------------------------------------------------------------------------------
-@jit
-def step(c: np.record, s: np.record, k: np.record, w: np.record, dt: float, gyr: tuple,
-         acc: tuple, mag: tuple) -> None:
+@unit(nt.void(CONFIG_T, STATE_T, COUNTERS_T, WORK_T, UNITS_T, nt.float64, F3, F3, F3), cost=20)
+def step(c: np.record, s: np.record, k: np.record, w: np.record, u: Units, dt: float,
+         gyr: tuple, acc: tuple, mag: tuple) -> None:
     """One sample: any of ``gyr`` (rad/s), ``acc`` (m/s², +g up at rest) and ``mag`` (any unit)
-    may be NaN (missing). ``dt`` is the time since the previous sample. The steps: the
-    readings; gaps and initialisation; the heading; the gyro; the accelerometer; rest; the
-    magnetometer; the filter's update; bookkeeping."""
+    may be NaN (missing). ``dt`` is the time since the previous sample; ``u`` the compiled
+    :data:`Units` (:func:`units`). The steps: the readings; gaps and initialisation; the
+    heading; the gyro; the accelerometer; rest; the magnetometer; the filter's update;
+    bookkeeping."""
     k.samples += 1
     gs, as_, ms, m, m_norm = _read(c, k, gyr, acc, mag)
     has_g, has_a, has_m = gs == VALID, as_ == VALID, ms == VALID
-    if not _start(c, s, k, dt, gyr, has_g, acc, has_a, m, m_norm, has_m):
-        return
-    if has_m and not s.heading_fixed:
-        _fix_heading(c, s, m, m_norm)
-        has_m = False  # this sample set the heading; do not count it twice
+    if not s.initialized or dt > c.max_dt or (has_m and not s.heading_fixed):
+        go = u.start(c, s, k, u.canonical, dt, gyr, has_g, acc, has_a, m, m_norm, has_m)
+        if go == USED:
+            return
+        has_m = has_m and go == GO  # a sample that set the heading is not fused again
     s.t_acc_refused += dt
     if s.t_mag_disagree > 0.0:  # inside a period of disagreement with a plausible field
         s.t_mag_disagree += dt
     g, has_g, wl = _gyro(c, s, k, gyr if has_g else ZERO3, has_g)
     Rw = rotmat_t(q_omega_t(wl, dt))  # R(Δq): body axes of the previous sample → this one
-    a_body, var_a, a_raw, var_a_raw, a_ok, has_a = _accelerometer(c, s, k, dt, wl, Rw, acc,
+    a_body, var_a, a_raw, var_a_raw, a_ok, has_a = _accelerometer(c, s, k, u, dt, wl, Rw, acc,
                                                                    has_a)
     rest = _rest_test(c, s, dt, g, has_g, acc, has_a, gs != VALID, as_ != VALID)
-    has_m, dtm = _magnetometer(c, s, k, dt, wl, Rw, m, m_norm, has_m)
+    has_m, dtm = _magnetometer(c, s, k, u, dt, wl, Rw, m, m_norm, has_m)
     _gyro_scale_noise(c, s, dt, wl)
-    m_ref, h_ref, var_h, acc_gate, mag_gate = _fusion(c, s, g, has_g, rest, acc, m, has_m,
-                                                      dtm)
+    m_ref, h_ref, var_h, acc_gate, mag_gate = _fusion(c, s, has_m, dtm)
     z = Fusion(g, has_g, rest and c.algorithm < ALGO_EULER_KF, a_body, var_a, has_a, a_raw,
                var_a_raw, a_ok, m, has_m, m_ref, h_ref, var_h, acc_gate, mag_gate)
-    ok, acc_nis, mag_nis = _update(c, s, k, w, dt, z)
+    ok, acc_nis, mag_nis = _update(c, s, k, w, u, dt, z)
     _bookkeeping(c, s, k, z, ok, acc_nis, mag_nis, m_norm)
-
-
-@jit
-def sensor_step(cfg: np.ndarray, st: np.ndarray, cnt: np.ndarray, work: np.ndarray,
-                dt: float, gyr: np.ndarray, acc: np.ndarray, mag: np.ndarray) -> None:
-    """:func:`step` on the filter's record arrays (:class:`~mkf_ros.core.filter.AttitudeFilter`)
-    and readings as arrays of 3."""
-    step(cfg[0], st[0], cnt[0], work[0], dt, t3(gyr), t3(acc), t3(mag))

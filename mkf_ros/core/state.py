@@ -21,12 +21,14 @@ from __future__ import annotations
 
 from collections import namedtuple
 
+import numba
 import numpy as np
+from numba import types as nt
 
 from mkf_ros.core._jit import jit
 from mkf_ros.core.charts import chart_id, from_chart, t_matrix
 from mkf_ros.core.frames import FROM_ENU
-from mkf_ros.core.linalg import congruence, mm
+from mkf_ros.core.linalg import congruence, copy_block, copy_into, mm
 from mkf_ros.core.mekf import MEKF_SCRATCH_ROWS, transport_covariance
 from mkf_ros.core.mukf import MUKF_SCRATCH, NOISE_MODES
 from mkf_ros.core.params import ALGORITHMS, FilterParams
@@ -169,6 +171,16 @@ Fusion = namedtuple("Fusion", ("g", "has_g", "rest", "a", "var_a", "has_a", "a_r
                                "a_ok", "m", "has_m", "m_ref", "h_ref", "var_h", "acc_gate",
                                "mag_gate"))
 
+# --- the numba types of the records and tuples above (the signatures of compile units) ------
+CONFIG_T, STATE_T, COUNTERS_T, WORK_T = (numba.from_dtype(d) for d in (CONFIG, STATE, COUNTERS,
+                                                                        WORK))
+F3 = nt.UniTuple(nt.float64, 3)  # a 3-vector
+F4 = nt.UniTuple(nt.float64, 4)  # a quaternion
+F33 = nt.UniTuple(F3, 3)  # a 3×3 matrix (rows)
+_Z3 = (0.0, 0.0, 0.0)
+FUSION_T = numba.typeof(Fusion(_Z3, False, False, _Z3, 0.0, False, _Z3, 0.0, False, _Z3, False,
+                               _Z3, _Z3, 0.0, 0.0, 0.0))
+
 # algorithm ids (index in ALGORITHMS): the paper's filters, then the baselines
 ALGO_MEKF, ALGO_MUKF = ALGORITHMS.index("mekf"), ALGORITHMS.index("mukf")
 ALGO_EULER_KF, ALGO_EULER_UKF = ALGORITHMS.index("euler_kf"), ALGORITHMS.index("euler_ukf")
@@ -292,7 +304,7 @@ def recentre(c: np.record, s: np.record) -> None:
     if e[0] == 0.0 and e[1] == 0.0 and e[2] == 0.0:
         return
     d = from_chart(c.chart, e)
-    s.q_c[:] = qnormalize(qmul(s.q_c, d))
+    copy_into(s.q_c, qnormalize(qmul(s.q_c, d)))
     s.e[:] = 0.0
     transport_covariance(s.P, c.nx, t_matrix(c.chart, d))
 
@@ -316,10 +328,10 @@ def set_world_attitude_cov(s: np.record, nx: int, var_tilt: float, var_yaw: floa
         Sw[i, 2] = 0.0
     Sw[2, 2] = var_yaw
     C[2, :] = 0.0
-    P[0:3, 0:3] = mm(R.T.copy(), mm(Sw, R))
+    copy_block(P, 0, 0, mm(R.T.copy(), mm(Sw, R)), False)
     Ct = mm(R.T.copy(), C)
-    P[0:3, 3:nx] = Ct
-    P[3:nx, 0:3] = Ct.T
+    copy_block(P, 0, 3, Ct, False)
+    copy_block(P, 3, 0, Ct, True)
 
 
 @jit

@@ -66,6 +66,7 @@ from mkf_ros.core.filter import (
     MAX_GYRO_RATE,
     MAX_MAG,
     AttitudeFilter,
+    kernels,
     new_records,
 )
 from mkf_ros.core.frames import FROM_ENU
@@ -554,18 +555,18 @@ class StreamAdapter:
     def _run(self, ev: np.ndarray, out: np.ndarray, k0: int, k1: int) -> None:
         """Events ``k0 … k1-1`` through the compiled rules. Only resets come back here: the
         filter gets new state, then the loop resumes."""
-        resume = False
         while True:
-            k, why = sk.run_events(*self.filter.kernel_arrays(), self._npar, self._ts,
-                                   self._acnt, ev, out, k0, k1, resume)
+            k, why = sk.run_events(kernels(), *self.filter.kernel_arrays(), self._npar,
+                                   self._ts, self._acnt, ev, out, k0, k1)
             if why == sk.R_DONE:
                 return
             if why == sk.R_TIME_JUMP:  # the same sample again, re-initialising from it
                 self.reset("time jump")
-                k0, resume = k, True
+                k0 = k
+                self._ts[0].resume = True
             else:  # R_NONFINITE: nothing published for that sample
                 self.reset("non-finite estimate")
-                k0, resume = k + 1, False
+                k0 = k + 1
 
 
 def _outputs(out: np.ndarray, stamps: np.ndarray) -> StreamOutputs:

@@ -33,6 +33,7 @@ from mkf_ros.core.filter import (
     MAX_GYRO_RATE,
     MAX_MAG,
     YAW_VAR_UNKNOWN,
+    Kernels,
     bias,
     bias_variance,
     classify_reading,
@@ -43,9 +44,8 @@ from mkf_ros.core.filter import (
     max_dt,
     rate,
     rate_covariance,
-    step,
+    run_step,
     uses_mag,
-    world_output_t,
 )
 from mkf_ros.core.quaternion import q_from_rotvec, qmul, rotmat, rotate_inv, t3
 
@@ -123,6 +123,7 @@ STREAM = np.dtype(
         ("dt_max", np.float64),
         ("gyr_seen", np.bool_),
         ("acc_seen", np.bool_),
+        ("resume", np.bool_),  # the next IMU event is the same sample again, after a reset
     ],
     align=True,
 )
@@ -144,8 +145,8 @@ OUTPUT = np.dtype([("present", np.int64), ("q", np.float64, 4), ("cov", np.float
 OF_PUB, OF_W, OF_WCOV, OF_WADD, OF_LIN, OF_HEADING = 1, 2, 4, 8, 16, 32
 
 #: The filter's records (:meth:`mkf_ros.core.filter.AttitudeFilter.kernel_arrays`, element
-#: ``[0]`` of each): configuration, state, counters, scratch.
-FilterRecords = namedtuple("FilterRecords", ("c", "s", "k", "w"))
+#: ``[0]`` of each: configuration, state, counters, scratch) and its compiled kernels.
+FilterRecords = namedtuple("FilterRecords", ("c", "s", "k", "w", "kern"))
 #: The adapter's records: node parameters, time state, counters.
 StreamRecords = namedtuple("StreamRecords", ("p", "t", "a"))
 
@@ -294,7 +295,8 @@ def hold(t: np.record, a: np.record, stamp: float, m: np.ndarray, is_acc: bool) 
 def _filter_step(f: FilterRecords, a: np.record, dt: float, v: np.ndarray,
                  is_acc: bool) -> None:
     """One filter step with only a magnetometer (or accelerometer) sample; counted."""
-    step(f.c, f.s, f.k, f.w, dt, NAN3, t3(v) if is_acc else NAN3, NAN3 if is_acc else t3(v))
+    run_step(f.kern, f.c, f.s, f.k, f.w, dt, NAN3, t3(v) if is_acc else NAN3,
+             NAN3 if is_acc else t3(v))
     if is_acc:
         a.acc_fused += 1
     else:
@@ -563,15 +565,16 @@ def _dt_stats(t: np.record, dt: float) -> None:
 
 @jit_inline
 def imu_event(f: FilterRecords, r: StreamRecords, stamp: float, gyr: np.ndarray,
-              acc: np.ndarray, o: np.record, resume: bool) -> int:
+              acc: np.ndarray, o: np.record) -> int:
     """One IMU sample (split input: a gyro sample; its accelerometer field is ignored): time
     rules, input checks, held magnetometer (and accelerometer) samples, filter step, output.
-    Returns ``_OUT`` (``o`` written), ``_NONE``, or a reset request ``R_*``; ``resume``: the
-    same sample again after a time-jump reset (already counted). A reading that is not
-    usable goes to the filter as missing (all NaN)."""
+    Returns ``_OUT`` (``o`` written), ``_NONE``, or a reset request ``R_*``; with
+    ``r.t.resume`` the same sample again after a time-jump reset (already counted). A reading
+    that is not usable goes to the filter as missing (all NaN)."""
     o.present = 0
     t = r.t
-    status, t_new, dt = _imu_time(r, stamp, resume)
+    status, t_new, dt = _imu_time(r, stamp, t.resume)
+    t.resume = False
     if status != _OUT:
         return status
     t.backwards = 0
@@ -592,8 +595,8 @@ def imu_event(f: FilterRecords, r: StreamRecords, stamp: float, gyr: np.ndarray,
             a_held = True
     gaps = gap_count(f.k)
     dt_step = dt if not t.valid or r.p.constant_dt > 0.0 else t_new - t.t
-    step(f.c, f.s, f.k, f.w, dt_step, t3(gyr) if has_g else NAN3, a_in,
-         t3(mag) if has_m else NAN3)
+    run_step(f.kern, f.c, f.s, f.k, f.w, dt_step, t3(gyr) if has_g else NAN3, a_in,
+             t3(mag) if has_m else NAN3)
     if gap_count(f.k) != gaps:
         t.yaw_lost = True
     if has_m:
@@ -670,7 +673,7 @@ def output(f: FilterRecords, r: StreamRecords, g: np.ndarray, has_g: bool, a: np
     s, t, p = f.s, r.t, r.p
     if not is_initialized(s):
         return _NONE
-    qt, ct = world_output_t(f.c, s)
+    qt, ct = f.kern.output(f.c, s)
     cov = np.empty((3, 3))
     tot = qt[0] + qt[1] + qt[2] + qt[3]
     for i in range(3):
@@ -708,14 +711,15 @@ def output(f: FilterRecords, r: StreamRecords, g: np.ndarray, has_g: bool, a: np
 
 
 @jit
-def run_events(cfg: np.ndarray, st: np.ndarray, cnt: np.ndarray, work: np.ndarray,
-               npar: np.ndarray, ts: np.ndarray, acnt: np.ndarray, ev: np.ndarray,
-               out: np.ndarray, k0: int, k1: int, resume: bool) -> tuple[int, int]:
-    """Events ``k0 … k1-1`` in order (the filter's record arrays, the adapter's, the events
-    and the outputs); returns ``(k, R_DONE)`` at the end, or the index and reason of an event
-    that needs a reset (``R_TIME_JUMP``: call again from ``k`` with ``resume``;
-    ``R_NONFINITE``: the event is done, call again from ``k + 1``)."""
-    f = FilterRecords(cfg[0], st[0], cnt[0], work[0])
+def run_events(kern: Kernels, cfg: np.ndarray, st: np.ndarray, cnt: np.ndarray,
+               work: np.ndarray, npar: np.ndarray, ts: np.ndarray, acnt: np.ndarray,
+               ev: np.ndarray, out: np.ndarray, k0: int, k1: int) -> tuple[int, int]:
+    """Events ``k0 … k1-1`` in order (the filter's compiled kernels and record arrays, the
+    adapter's, the events and the outputs); returns ``(k, R_DONE)`` at the end, or the index
+    and reason of an event that needs a reset (``R_TIME_JUMP``: call again from ``k`` with
+    the time state's ``resume`` set; ``R_NONFINITE``: the event is done, call again from
+    ``k + 1``)."""
+    f = FilterRecords(cfg[0], st[0], cnt[0], work[0], kern)
     r = StreamRecords(npar[0], ts[0], acnt[0])
     for k in range(k0, k1):
         e = ev[k]
@@ -725,8 +729,7 @@ def run_events(cfg: np.ndarray, st: np.ndarray, cnt: np.ndarray, work: np.ndarra
         if e.kind == EV_ACC:
             acc_event(f, r, e.stamp, e.v)
             continue
-        res = imu_event(f, r, e.stamp, e.v, e.a, out[e.row], resume)
-        resume = False
+        res = imu_event(f, r, e.stamp, e.v, e.a, out[e.row])
         if res >= R_TIME_JUMP:
             return k, res
     return k1, R_DONE

@@ -1,0 +1,146 @@
+"""The install-time kernel compile: wall time, CPU time and peak memory, from an empty cache.
+
+    ./run bench compile_time [--jobs N] [--tasks]
+
+Copies the package (without its compiled kernels, ``mkf_ros/_kernels``) to a temporary
+directory and runs the install-time compile there as ``pip install`` and ``colcon build`` do
+(``mkf_ros.core._jit.precompile`` into the copy's ``_kernels``). Prints the wall time, the CPU
+time of every compiling process, and the peak resident memory, both of the largest process
+and of all of them together (sampled from /proc every 20 ms). Then, in a fresh process on the
+compiled cache, the time ``mkf_ros.warmup()`` takes and how many kernels it still had to
+compile (0: the install-time compile left nothing for the first start). ``--tasks`` adds
+each compile task's own wall, CPU and peak memory.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import shutil
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+_COMPILE = """
+import json, sys
+from pathlib import Path
+import mkf_ros.core._jit as j
+j.precompile(j.PACKAGED_CACHE_ROOT, jobs=int(sys.argv[1]) or None,
+             report=lambda r: print("TASK " + json.dumps(r), flush=True))
+"""
+
+_CHECK = """
+import json, time
+import numba.core.event as ev
+n = [0]
+class Count(ev.Listener):
+    def on_start(self, event):
+        n[0] += 1
+    def on_end(self, event):
+        pass
+ev.register("numba:compile", Count())
+t0 = time.perf_counter()
+import mkf_ros
+mkf_ros.warmup()
+from mkf_ros.core.filter import kernels
+kernels()
+print(json.dumps({"seconds": time.perf_counter() - t0, "compiled": n[0]}))
+"""
+
+
+def _tree_rss_kib(pid: int) -> tuple[int, int]:
+    """(sum, max) of the resident memory (KiB) of ``pid`` and its descendants."""
+    children: dict[int, list[int]] = {}
+    rss: dict[int, int] = {}
+    for d in Path("/proc").iterdir():
+        if not d.name.isdigit():
+            continue
+        try:
+            stat = (d / "stat").read_text()
+            status = (d / "status").read_text()
+        except OSError:
+            continue
+        ppid = int(stat.rsplit(")", 1)[1].split()[1])
+        children.setdefault(ppid, []).append(int(d.name))
+        for line in status.splitlines():
+            if line.startswith("VmRSS:"):
+                rss[int(d.name)] = int(line.split()[1])
+    todo, total, largest = [pid], 0, 0
+    while todo:
+        p = todo.pop()
+        total += rss.get(p, 0)
+        largest = max(largest, rss.get(p, 0))
+        todo.extend(children.get(p, []))
+    return total, largest
+
+
+def compile_copy(jobs: int) -> dict:
+    """The install-time compile of a fresh copy of the package; its figures."""
+    with tempfile.TemporaryDirectory(prefix="mkf-compile-") as tmp:
+        shutil.copytree(ROOT / "mkf_ros", Path(tmp) / "mkf_ros",
+                        ignore=shutil.ignore_patterns("_kernels", "__pycache__"))
+        env = dict(os.environ, PYTHONPATH=tmp, MKF_ROS_CACHE_DIR=str(Path(tmp) / "user-cache"))
+        before = resource.getrusage(resource.RUSAGE_CHILDREN)
+        t0 = time.perf_counter()
+        proc = subprocess.Popen([sys.executable, "-c", _COMPILE, str(jobs)], cwd=tmp, env=env,
+                                stdout=subprocess.PIPE, text=True)
+        peak = [0, 0]
+        done = threading.Event()
+
+        def sample() -> None:
+            while not done.is_set():
+                total, largest = _tree_rss_kib(proc.pid)
+                peak[0], peak[1] = max(peak[0], total), max(peak[1], largest)
+                time.sleep(0.02)
+
+        sampler = threading.Thread(target=sample, daemon=True)
+        sampler.start()
+        out, _ = proc.communicate()
+        wall = time.perf_counter() - t0
+        done.set()
+        sampler.join()
+        after = resource.getrusage(resource.RUSAGE_CHILDREN)
+        if proc.returncode:
+            sys.exit(f"compile_time: the compile failed (exit {proc.returncode})")
+        tasks = [json.loads(line[5:]) for line in out.splitlines() if line.startswith("TASK ")]
+        check = subprocess.run([sys.executable, "-c", _CHECK], cwd=tmp, env=env,
+                               capture_output=True, text=True, check=True)
+        cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+        return {"wall": wall, "cpu": cpu, "peak_sum_mb": peak[0] / 1024,
+                "peak_max_mb": peak[1] / 1024, "tasks": tasks,
+                "check": json.loads(check.stdout.strip().splitlines()[-1])}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--jobs", type=int, default=0,
+                    help="compiling processes (default: the install's, mkf_ros.core._jit."
+                         "compile_jobs)")
+    ap.add_argument("--tasks", action="store_true", help="print every compile task's figures")
+    args = ap.parse_args()
+    r = compile_copy(args.jobs)
+    from mkf_ros.core._jit import compile_jobs
+
+    jobs = args.jobs or compile_jobs()
+    print(f"\ninstall-time compile of every kernel, empty cache, {jobs} process(es) at a time, "
+          f"{os.cpu_count()} CPUs\n")
+    print("| wall | CPU (all processes) | peak RSS, all processes | peak RSS, largest process |"
+          " warmup() after it | kernels compiled by that warmup |")
+    print("|---:|---:|---:|---:|---:|---:|")
+    print(f"| {r['wall']:.1f} s | {r['cpu']:.1f} s | {r['peak_sum_mb']:.0f} MB | "
+          f"{r['peak_max_mb']:.0f} MB | {r['check']['seconds']:.2f} s | {r['check']['compiled']} |")
+    if args.tasks:
+        print("\n| task | wall | CPU | peak RSS |\n|---|---:|---:|---:|")
+        for name, wall, cpu, rss in r["tasks"]:
+            print(f"| {name} | {wall:.1f} s | {cpu:.1f} s | {rss / 1024:.0f} MB |")
+
+
+if __name__ == "__main__":
+    main()
