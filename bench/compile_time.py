@@ -49,8 +49,8 @@ ev.register("numba:compile", Count())
 t0 = time.perf_counter()
 import mkf_ros
 mkf_ros.warmup()
-from mkf_ros.core.filter import kernels
-kernels()
+from mkf_ros.core.filter import kernel_table
+kernel_table()
 print(json.dumps({"seconds": time.perf_counter() - t0, "compiled": n[0]}))
 """
 

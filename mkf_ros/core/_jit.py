@@ -43,7 +43,8 @@ from pathlib import Path
 from types import FunctionType
 
 import numba
-from numba.core import caching, types
+from numba.core import caching, cgutils, types
+from numba.extending import intrinsic
 from numba.core.registry import CPUDispatcher
 
 _PACKAGE_DIR = Path(__file__).resolve().parents[1]
@@ -336,6 +337,23 @@ class Unit:
             self._compiled = numba.cfunc(self.signature, cache=True, error_model="numpy")(
                 self.py_func)
         return self._compiled
+
+
+@intrinsic
+def function_at(typingctx: object, addr: types.Type, fntype: types.Type) -> tuple:
+    """``function_at(address, FUNCTION_TYPE)`` in compiled code: the compiled unit at that
+    address (an int64, ``Unit.compiled.address``) as a value of the numba ``FunctionType`` given
+    (a unit's :attr:`Unit.type`). Lets Python hand compiled code its units as an array of
+    addresses: numba types that in well under a microsecond, where it types a tuple of units
+    anew at every call (measured: 11 µs per unit)."""
+    ft = fntype.instance_type
+
+    def codegen(context: object, builder: object, sig: object, args: tuple) -> object:
+        fn = cgutils.create_struct_proxy(ft)(context, builder)
+        fn.c_addr = builder.inttoptr(args[0], fn.c_addr.type)
+        return fn._getvalue()
+
+    return ft(addr, fntype), codegen
 
 
 def tuple_type(members: list, cls: type) -> types.Type:

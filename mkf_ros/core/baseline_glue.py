@@ -152,14 +152,9 @@ def restore(c: np.record, s: np.record) -> None:
 
 
 #: The conversions of a baseline's state to and from the canonical form, compiled once each
-#: and handed to the sensor layer's rare paths (:func:`canonical`).
+#: and handed to the sensor layer's rare paths.
 Canonical = namedtuple("Canonical", ("export", "restore"))
 CANONICAL_T = tuple_type([export.type, restore.type], Canonical)
-
-
-def canonical() -> Canonical:
-    """The compiled :data:`Canonical` conversions."""
-    return Canonical(export.compiled, restore.compiled)
 
 
 @jit

@@ -16,10 +16,13 @@ from typing import NamedTuple
 import numpy as np
 from numba import types as nt
 
-from mkf_ros.core._jit import jit, tuple_type, unit
+from mkf_ros.core._jit import JIT_DISABLED, function_at, jit, tuple_type, unit
 from mkf_ros.core.baseline_glue import (
+    Canonical,
     baseline_estimate,
+    export,
     from_canonical,
+    restore,
     to_canonical,
 )
 from mkf_ros.core.charts import from_chart_t, t_matrix_t
@@ -33,7 +36,16 @@ from mkf_ros.core.quaternion import (
     t4,
     t33,
 )
-from mkf_ros.core.sensor import UNITS_T, Units, step, units
+from mkf_ros.core.sensor import (
+    UNITS_T,
+    Units,
+    acc_recovery,
+    baseline_step,
+    mag_recovery,
+    mukf_update,
+    start,
+    step,
+)
 from mkf_ros.core.state import (
     ALGO_EULER_KF,
     ALGO_MADGWICK,
@@ -54,6 +66,7 @@ from mkf_ros.core.state import (
     build_config,
     classify_reading,
     new_records,
+    record,
 )
 
 #: The stateful filter and its batch loop, the plausibility contract of a reading and the
@@ -85,8 +98,10 @@ __all__ = [
     "sensor_step",
     "uses_mag",
     "new_records",
+    "record",
     "Kernels",
-    "kernels",
+    "kernel_table",
+    "kernels_at",
     "output",
     "run_step",
     "world_output",
@@ -128,18 +143,51 @@ def output(c: np.record, s: np.record) -> tuple[tuple, tuple]:
 
 
 #: The compiled kernels a front end hands to the compiled loops: :func:`step` and its
-#: :data:`~mkf_ros.core.sensor.Units`, and :func:`output` (:func:`kernels`).
+#: :data:`~mkf_ros.core.sensor.Units`, and :func:`output`.
 Kernels = namedtuple("Kernels", ("step", "units", "output"))
 KERNELS_T = tuple_type([step.type, UNITS_T, output.type], Kernels)
-_compiled_kernels: list[Kernels] = []
+#: Every unit of :data:`Kernels`, in the order of :func:`kernel_table`'s addresses.
+_TABLE = (step, start, acc_recovery, mag_recovery, mukf_update, baseline_step, export, restore,
+          output)
+_table: list = []
 
 
-def kernels() -> Kernels:
-    """The compiled :data:`Kernels` (compiled, or loaded from the kernel cache, once per
-    process)."""
-    if not _compiled_kernels:
-        _compiled_kernels.append(Kernels(step.compiled, units(), output.compiled))
-    return _compiled_kernels[0]
+def kernel_table() -> np.ndarray:
+    """The compiled units of :data:`Kernels` (compiled, or loaded from the kernel cache, once
+    per process) as the array of their addresses that the compiled loops take
+    (:func:`kernels_at` makes them :data:`Kernels` again); the :data:`Kernels` of Python
+    functions with ``NUMBA_DISABLE_JIT=1``."""
+    if not _table:
+        units = [u.compiled for u in _TABLE]
+        _table.append(Kernels(*_assemble(units)) if JIT_DISABLED
+                      else np.array([u.address for u in units], dtype=np.int64))
+    return _table[0]
+
+
+def _assemble(u: list) -> tuple:
+    """``(step, units, output)`` of :data:`Kernels` from the units in :data:`_TABLE` order."""
+    return u[0], Units(Canonical(u[6], u[7]), u[1], u[2], u[3], u[4], u[5]), u[8]
+
+
+if JIT_DISABLED:
+    def kernels_at(table: Kernels) -> Kernels:
+        return table
+else:
+    @jit
+    def kernels_at(table: np.ndarray) -> Kernels:
+        """The :data:`Kernels` at the addresses of :func:`kernel_table` (compiled code)."""
+        a = table
+        return Kernels(function_at(a[0], _STEP_T),
+                       Units(Canonical(function_at(a[6], _EXPORT_T),
+                                       function_at(a[7], _RESTORE_T)),
+                             function_at(a[1], _START_T), function_at(a[2], _ACC_RECOVERY_T),
+                             function_at(a[3], _MAG_RECOVERY_T), function_at(a[4], _MUKF_T),
+                             function_at(a[5], _BASELINE_T)),
+                       function_at(a[8], _OUTPUT_T))
+
+
+(_STEP_T, _START_T, _ACC_RECOVERY_T, _MAG_RECOVERY_T, _MUKF_T, _BASELINE_T, _EXPORT_T,
+ _RESTORE_T, _OUTPUT_T) = (u.type for u in _TABLE)
 
 
 @jit
@@ -150,20 +198,20 @@ def run_step(kern: Kernels, c: np.record, s: np.record, k: np.record, w: np.reco
 
 
 @jit
-def sensor_step(kern: Kernels, cfg: np.ndarray, st: np.ndarray, cnt: np.ndarray,
+def sensor_step(table: np.ndarray, cfg: np.ndarray, st: np.ndarray, cnt: np.ndarray,
                 work: np.ndarray, dt: float, gyr: np.ndarray, acc: np.ndarray,
                 mag: np.ndarray) -> None:
     """One sample on the filter's record arrays (:class:`AttitudeFilter`), readings as arrays
-    of 3."""
-    run_step(kern, cfg[0], st[0], cnt[0], work[0], dt, t3(gyr), t3(acc), t3(mag))
+    of 3; ``table``: :func:`kernel_table`."""
+    run_step(kernels_at(table), cfg[0], st[0], cnt[0], work[0], dt, t3(gyr), t3(acc), t3(mag))
 
 
 @jit
-def world_output(kern: Kernels, cfg: np.ndarray, st: np.ndarray, q_out: np.ndarray,
+def world_output(table: np.ndarray, cfg: np.ndarray, st: np.ndarray, q_out: np.ndarray,
                  cov_out: np.ndarray) -> None:
     """:func:`output` of the filter's record arrays, into ``q_out`` (4) and ``cov_out``
-    (3×3)."""
-    q, cov = kern.output(cfg[0], st[0])
+    (3×3); ``table``: :func:`kernel_table`."""
+    q, cov = kernels_at(table).output(cfg[0], st[0])
     for i in range(4):
         q_out[i] = q[i]
     for i in range(3):
@@ -173,8 +221,8 @@ def world_output(kern: Kernels, cfg: np.ndarray, st: np.ndarray, q_out: np.ndarr
 
 # --- the kernel interface of compiled front ends (mkf_ros.stream.kernel) ---------------------
 # A front end that runs its own compiled loop holds the filter's records
-# (:meth:`AttitudeFilter.kernel_arrays`) and the compiled :data:`Kernels` (:func:`kernels`),
-# calls :func:`run_step` and ``Kernels.output``; what else it reads of the filter it reads
+# (:meth:`AttitudeFilter.kernel_arrays`) and the compiled :data:`Kernels` (:func:`kernel_table`,
+# :func:`kernels_at`), calls :func:`run_step` and ``Kernels.output``; what else it reads of the filter it reads
 # through these.
 
 
@@ -270,10 +318,12 @@ def _write_output(kern: Kernels, c: np.record, s: np.record, out: BatchOutputs, 
 
 
 @jit
-def run_batch(kern: Kernels, cfg: np.ndarray, st: np.ndarray, cnt: np.ndarray,
+def run_batch(table: np.ndarray, cfg: np.ndarray, st: np.ndarray, cnt: np.ndarray,
               work: np.ndarray, dts: np.ndarray, gyr: np.ndarray, acc: np.ndarray,
               mag: np.ndarray, out: BatchOutputs) -> None:
-    """:func:`step` over a whole recording, writing the outputs of every sample."""
+    """:func:`step` over a whole recording, writing the outputs of every sample; ``table``:
+    :func:`kernel_table`."""
+    kern = kernels_at(table)
     c, s, k, w = cfg[0], st[0], cnt[0], work[0]
     for n in range(dts.shape[0]):
         run_step(kern, c, s, k, w, dts[n], (gyr[n, 0], gyr[n, 1], gyr[n, 2]),
@@ -323,7 +373,7 @@ class AttitudeFilter:
     def reset(self) -> None:
         """Forget the estimate: the next accelerometer sample re-initialises (bias kept at 0)."""
         self._st = new_records(STATE)
-        self._st[0].q_c[0] = 1.0
+        record(self._st).q_c[0] = 1.0
 
     @property
     def counters(self) -> np.ndarray:
@@ -347,7 +397,7 @@ class AttitudeFilter:
         """
         new = self._params.replace(**changes)
         cfg = build_config(new, self._split)
-        old_c, c, s = self._cfg[0], cfg[0], self._st[0]
+        old_c, c, s = record(self._cfg), record(cfg), record(self._st)
         switch = new.algorithm != self._params.algorithm
         if switch or old_c.algorithm < ALGO_EULER_KF:
             _to_canonical(self._cfg, self._st)
@@ -369,7 +419,7 @@ class AttitudeFilter:
         (split input): each sensor's part of the test is then held across the steps without
         its reading. Kept across :meth:`set_params`."""
         self._split = bool(split)
-        self._cfg[0].split_input = self._split
+        record(self._cfg).split_input = self._split
 
     def kernel_arrays(self) -> KernelArrays:
         """The filter's record arrays, for a front end running its own compiled loop around
@@ -387,7 +437,7 @@ class AttitudeFilter:
         n = len(dts)
         out = BatchOutputs(np.empty((n, 4)), np.empty((n, 3, 3)), np.empty((n, 3)),
                            np.empty((n, 3)), np.empty((n, 3)), np.empty(n, dtype=np.bool_))
-        run_batch(kernels(), self._cfg, self._st, self._counters, self._work, dts, gyr,
+        run_batch(kernel_table(), self._cfg, self._st, self._counters, self._work, dts, gyr,
                   acc, mag, out)
         return out
 
@@ -403,16 +453,16 @@ class AttitudeFilter:
         the argument and leaves the filter exactly as it was."""
         d = _dt(dt)
         g, a, m = _vec(gyr, "gyr"), _vec(acc, "acc"), _vec(mag, "mag")
-        sensor_step(kernels(), self._cfg, self._st, self._counters, self._work, d, g, a, m)
+        sensor_step(kernel_table(), self._cfg, self._st, self._counters, self._work, d, g, a, m)
 
     @property
     def initialized(self) -> bool:
-        return bool(self._st[0].initialized)
+        return bool(record(self._st).initialized)
 
     @property
     def heading_initialized(self) -> bool:
         """True once the magnetometer has fixed the heading (always False without it)."""
-        return bool(self._st[0].heading_fixed) and self._params.use_mag
+        return bool(record(self._st).heading_fixed) and self._params.use_mag
 
     @property
     def quaternion(self) -> np.ndarray:
@@ -429,32 +479,33 @@ class AttitudeFilter:
     @property
     def omega(self) -> np.ndarray:
         """Estimated angular velocity, body frame (rad/s)."""
-        return self._st[0].w.copy()
+        return record(self._st).w.copy()
 
     @property
     def bias(self) -> np.ndarray:
         """Estimated gyro bias (rad/s); zero unless ``estimate_gyro_bias``."""
-        return self._st[0].b.copy()
+        return record(self._st).b.copy()
 
     @property
     def bias_stddev(self) -> np.ndarray:
-        return (np.sqrt(np.diag(self._st[0].P)[6:9]) if self._cfg[0].nx == 9
+        return (np.sqrt(np.diag(record(self._st).P)[6:9]) if record(self._cfg).nx == 9
                 else np.zeros(3))
 
     @property
     def state_covariance(self) -> np.ndarray:
         """The filter's covariance of ``(e, ω[, b])`` in its current chart."""
-        n = int(self._cfg[0].nx)
-        return self._st[0].P[:n, :n].copy()
+        n = int(record(self._cfg).nx)
+        return record(self._st).P[:n, :n].copy()
 
     def counter_dict(self) -> dict[str, int]:
-        return {name: int(self._counters[0][name]) for name in COUNTER_NAMES}
+        c = record(self._counters)
+        return {name: int(c[name]) for name in COUNTER_NAMES}
 
     def _output(self) -> tuple[np.ndarray, np.ndarray]:
         q = np.empty(4)
         c = np.empty((3, 3))
-        world_output(kernels(), self._cfg, self._st, q, c)
-        if not self._st[0].initialized:
+        world_output(kernel_table(), self._cfg, self._st, q, c)
+        if not record(self._st).initialized:
             c = ATTITUDE_VAR_UNKNOWN * np.eye(3)
         return q, c
 

@@ -35,7 +35,6 @@ from mkf_ros.core.baseline_glue import (
     Canonical,
     baseline_realign,
     baseline_update,
-    canonical,
 )
 from mkf_ros.core.frames import align_tilt, heading_correction, keep_yaw
 from mkf_ros.core.linalg import copy_block, copy_into, eye, symmetrize_leading
@@ -1003,20 +1002,11 @@ def baseline_step(c: np.record, s: np.record, k: np.record, dt: float,
 
 
 #: The steps of :func:`step` compiled as units of their own (the rare paths and the large
-#: updates), in the form :func:`step` takes them: :func:`units` holds the compiled ones.
+#: updates), in the form :func:`step` takes them (:func:`mkf_ros.core.filter.kernels_at`).
 Units = namedtuple("Units", ("canonical", "start", "acc_recovery", "mag_recovery",
                              "mukf_update", "baseline_update"))
-_UNITS = (start, acc_recovery, mag_recovery, mukf_update, baseline_step)
-UNITS_T = tuple_type([CANONICAL_T] + [x.type for x in _UNITS], Units)
-_compiled_units: list[Units] = []
-
-
-def units() -> Units:
-    """The compiled :data:`Units` (compiled, or loaded from the kernel cache, once per
-    process)."""
-    if not _compiled_units:
-        _compiled_units.append(Units(canonical(), *(x.compiled for x in _UNITS)))
-    return _compiled_units[0]
+UNITS_T = tuple_type([CANONICAL_T] + [x.type for x in (start, acc_recovery, mag_recovery,
+                                                        mukf_update, baseline_step)], Units)
 
 
 # --- the step --------------------------------------------------------------------------------
@@ -1025,7 +1015,7 @@ def step(c: np.record, s: np.record, k: np.record, w: np.record, u: Units, dt: f
          gyr: tuple, acc: tuple, mag: tuple) -> None:
     """One sample: any of ``gyr`` (rad/s), ``acc`` (m/s², +g up at rest) and ``mag`` (any unit)
     may be NaN (missing). ``dt`` is the time since the previous sample; ``u`` the compiled
-    :data:`Units` (:func:`units`). The steps: the readings; gaps and initialisation; the
+    :data:`Units`. The steps: the readings; gaps and initialisation; the
     heading; the gyro; the accelerometer; rest; the magnetometer; the filter's update;
     bookkeeping."""
     k.samples += 1

@@ -25,7 +25,7 @@ import numba
 import numpy as np
 from numba import types as nt
 
-from mkf_ros.core._jit import jit
+from mkf_ros.core._jit import JIT_DISABLED, jit
 from mkf_ros.core.charts import chart_id, from_chart, t_matrix
 from mkf_ros.core.frames import FROM_ENU
 from mkf_ros.core.linalg import congruence, copy_block, copy_into, mm
@@ -248,17 +248,27 @@ def iso33(v: float) -> tuple:
     return ((v, 0.0, 0.0), (0.0, v, 0.0), (0.0, 0.0, v))
 
 
-def new_records(dtype: np.dtype) -> np.recarray:
-    """One zeroed record of ``dtype`` as an array of length 1 (what the kernels take: its
-    element ``[0]`` is the record, passed by pointer)."""
-    return np.zeros(1, dtype).view(np.recarray)
+def new_records(dtype: np.dtype, n: int = 1) -> np.ndarray:
+    """``n`` zeroed records of ``dtype`` (by default one, in an array of length 1: what the
+    kernels take, its element ``[0]`` is the record, passed by pointer). A plain structured array: numba types a
+    ``recarray`` argument by attribute look-ups that cost microseconds at every call; with
+    ``NUMBA_DISABLE_JIT=1`` a ``recarray``, whose element has the attribute access the kernels
+    use. Python code reads and writes fields with :func:`record`."""
+    arr = np.zeros(n, dtype)
+    return arr.view(np.recarray) if JIT_DISABLED else arr
 
 
-def build_config(p: FilterParams, split_input: bool = False) -> np.recarray:
+def record(arr: np.ndarray) -> np.record:
+    """The record of a one-element record array (:func:`new_records`) with attribute access
+    (``record(cfg).nx``), a view: assignments write into ``arr``."""
+    return arr.view(np.recarray)[0]
+
+
+def build_config(p: FilterParams, split_input: bool = False) -> np.ndarray:
     """The kernels' configuration (:data:`CONFIG`) from validated parameters (units converted
     here; the cross-parameter rules are :class:`~mkf_ros.core.params.FilterParams`')."""
     rec = new_records(CONFIG)
-    c = rec[0]
+    c = record(rec)
     c.algorithm = ALGORITHMS.index(p.algorithm)
     c.chart = chart_id(p.chart)
     c.chart_update = p.chart_update

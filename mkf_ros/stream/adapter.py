@@ -66,8 +66,9 @@ from mkf_ros.core.filter import (
     MAX_GYRO_RATE,
     MAX_MAG,
     AttitudeFilter,
-    kernels,
+    kernel_table,
     new_records,
+    record,
 )
 from mkf_ros.core.frames import FROM_ENU
 from mkf_ros.core.params import BY_NAME, PARAMS, FilterParams, Param
@@ -249,6 +250,12 @@ _NO_ADD = np.zeros((0, 9))
 _NAN3 = np.full(3, math.nan)
 
 
+#: The fields of an :data:`~mkf_ros.stream.kernel.OUTPUT` record viewed as float64 values.
+_Q, _COV, _W, _WCOV, _WADD, _LIN, _OMEGA, _BIAS, _BSTD = (
+    sk.float_slice(sk.OUTPUT, name)
+    for name in ("q", "cov", "w", "wcov", "wadd", "lin", "omega", "bias", "bstd"))
+
+
 def _vec(v: Any, kind: str) -> Any:
     """One sensor vector as 3 numbers; None (not reported) as all NaN, which the rules treat
     alike (missing). ValueError for another number of components."""
@@ -272,7 +279,7 @@ def _rows(v: Any, n: int, kind: str) -> np.ndarray:
 def _ts_value(field: str, doc: str) -> property:
     """A read-only float property of :class:`StreamAdapter` reading ``field`` of its compiled
     rules' time state (:data:`mkf_ros.stream.kernel.STREAM`)."""
-    return property(lambda self: float(self._ts[0][field]), doc=doc)
+    return property(lambda self: float(record(self._ts)[field]), doc=doc)
 
 
 class StreamAdapter:
@@ -303,13 +310,19 @@ class StreamAdapter:
         self._acnt = new_records(sk.ADAPTER_COUNTER_RECORD)
         self._ts = new_records(sk.STREAM)
         for name in ("acc_norm", "mag_norm", "mag_offset", "last_imu", "last_mag", "last_acc"):
-            self._ts[0][name] = math.nan
+            record(self._ts)[name] = math.nan
         self._reset_dt_stats()
         # the one-event sequences of on_imu / on_mag / on_accel
-        self._ev_imu, self._ev_mag, self._ev_acc = (new_records(sk.EVENT) for _ in range(3))
-        self._ev_mag[0].kind = sk.EV_MAG
-        self._ev_acc[0].kind = sk.EV_ACC
+        # (the per-message path reads and writes them through field views: a numpy record's
+        # attribute access costs microseconds)
+        self._ev = {kind: new_records(sk.EVENT) for kind in (sk.EV_IMU, sk.EV_MAG, sk.EV_ACC)}
+        self._ev_views = {kind: (ev["stamp"], ev["v"][0], ev["a"][0])
+                          for kind, ev in self._ev.items()}
+        for kind, ev in self._ev.items():
+            ev["kind"] = kind
         self._out = new_records(sk.OUTPUT)
+        self._out_present = self._out["present"]
+        self._out_flat = self._out.view(np.float64)
         self._derive()
 
     # --- parameters ------------------------------------------------------------------------
@@ -326,9 +339,9 @@ class StreamAdapter:
             self.filter.set_params(**filt)
         self._node.update({k: v for k, v in vals.items() if BY_NAME[k].scope == "node"})
         if not self.filter.params.use_mag:
-            self._ts[0].n_mag = 0
+            record(self._ts).n_mag = 0
         if not self.split:
-            self._ts[0].n_acc = 0
+            record(self._ts).n_acc = 0
         self._derive()
 
     @property
@@ -349,7 +362,7 @@ class StreamAdapter:
         qz = np.array([math.cos(psi / 2), 0.0, 0.0, math.sin(psi / 2)])
         q_off = qmul_np(qmul_np(q_w, qz), qconj_np(q_w))  # about world up, in W axes
         rec = new_records(sk.NODE)
-        p = rec[0]
+        p = record(rec)
         for name in ("constant_dt", "time_jump_threshold", "acc_magnitude_tolerance",
                      "mag_max_delay", "acc_max_delay", "orientation_stddev",
                      "remove_gravity_vector"):
@@ -368,8 +381,8 @@ class StreamAdapter:
         """Forget the estimate; the next IMU sample re-initialises. Counters are kept."""
         self.filter.reset()
         for name in sk.RESET_FIELDS:
-            self._ts[0][name] = 0
-        self._acnt[0].resets += 1
+            record(self._ts)[name] = 0
+        record(self._acnt).resets += 1
         self.last_reset_reason = reason
 
     @property
@@ -379,7 +392,7 @@ class StreamAdapter:
     @property
     def time(self) -> float | None:
         """Stamp (s) of the filter's state, None before the first IMU sample."""
-        t = self._ts[0]
+        t = record(self._ts)
         return float(t.t) if t.valid else None
 
     acc_norm = _ts_value("acc_norm", "m/s², magnitude of the latest finite accelerometer "
@@ -393,12 +406,12 @@ class StreamAdapter:
                                            "input (NaN: none yet).")
 
     def _reset_dt_stats(self) -> None:
-        t = self._ts[0]
+        t = record(self._ts)
         t.dt_n, t.dt_min, t.dt_sum, t.dt_max = 0, math.inf, 0.0, 0.0
 
     def pop_dt_stats(self) -> tuple[int, float, float, float]:
         """``(n, min, mean, max)`` of the IMU time steps (s) since the previous call."""
-        t = self._ts[0]
+        t = record(self._ts)
         n, lo, s, hi = int(t.dt_n), float(t.dt_min), float(t.dt_sum), float(t.dt_max)
         self._reset_dt_stats()
         return (n, lo, s / n, hi) if n else (0, math.nan, math.nan, math.nan)
@@ -406,7 +419,7 @@ class StreamAdapter:
     @property
     def counters(self) -> dict[str, int]:
         """Every counter of :data:`COUNTER_REASONS` (the adapter's and the filter's)."""
-        a, f = self._acnt[0], self.filter.counter_dict()
+        a, f = record(self._acnt), self.filter.counter_dict()
         return {n: int(a[n]) if own else f[n] for n, own in _COUNTER_OWN.items()}
 
     def all_counters(self) -> dict[str, int]:
@@ -419,7 +432,7 @@ class StreamAdapter:
         accelerometer sample), judged once :data:`INPUT_CHECK_MESSAGES` messages have
         arrived; empty: nothing wrong. The topic names, if given, go into the text
         (``imu_topic``: the IMU, or with split input the gyro topic)."""
-        a, ts = self._acnt[0], self._ts[0]
+        a, ts = record(self._acnt), record(self._ts)
         out = {}
         n_imu = int(a.imu_received)
         imu = f" on {imu_topic}" if imu_topic else ""
@@ -448,23 +461,22 @@ class StreamAdapter:
         Returns the estimate at ``stamp``, or None when nothing is to be published (sample
         dropped, filter not initialised yet).
         """
-        ev = self._ev_imu
-        e = ev[0]
-        e.v[:] = _vec(gyr, "gyr")
-        e.a[:] = _vec(acc, "acc")
-        e.stamp = stamp = float(stamp)
-        self._run(ev, self._out, 0, 1)
-        if not self._out[0].present:
+        stamp_v, v, a = self._ev_views[sk.EV_IMU]
+        v[:] = _vec(gyr, "gyr")
+        a[:] = _vec(acc, "acc")
+        stamp_v[0] = stamp = float(stamp)
+        self._run(self._ev[sk.EV_IMU], self._out, 0, 1)
+        if not self._out_present[0]:
             return None
-        o = self._out.copy()[0]  # the fields below are views of this copy
-        flags = int(o.present)
+        o = self._out_flat.copy()  # the fields below are views of this copy
+        flags = int(self._out_present[0])
         return StreamOutput(
-            stamp=stamp, quat_wxyz=o.q, orientation_cov=o.cov,
-            angular_velocity=o.w if flags & sk.OF_W else None,
-            angular_velocity_cov=o.wcov if flags & sk.OF_WCOV else None,
-            angular_velocity_cov_add=np.diag(o.wadd) if flags & sk.OF_WADD else None,
-            linear_acceleration=o.lin if flags & sk.OF_LIN else None,
-            omega=o.omega, bias=o.bias, bias_stddev=o.bstd,
+            stamp=stamp, quat_wxyz=o[_Q], orientation_cov=o[_COV].reshape(3, 3),
+            angular_velocity=o[_W] if flags & sk.OF_W else None,
+            angular_velocity_cov=o[_WCOV].reshape(3, 3) if flags & sk.OF_WCOV else None,
+            angular_velocity_cov_add=np.diag(o[_WADD]) if flags & sk.OF_WADD else None,
+            linear_acceleration=o[_LIN] if flags & sk.OF_LIN else None,
+            omega=o[_OMEGA], bias=o[_BIAS], bias_stddev=o[_BSTD],
             heading_initialized=bool(flags & sk.OF_HEADING))
 
     def on_gyro(self, stamp: float, gyr: Any) -> StreamOutput | None:
@@ -477,17 +489,17 @@ class StreamAdapter:
         if not self.split:
             raise ValueError("on_accel needs input_mode split (with input_mode imu the "
                              "accelerometer comes with the gyro in on_imu)")
-        ev = self._ev_acc
-        ev[0].v[:] = _vec(acc, "acc")
-        ev[0].stamp = stamp
-        self._run(ev, self._out, 0, 1)
+        stamp_v, v, _ = self._ev_views[sk.EV_ACC]
+        v[:] = _vec(acc, "acc")
+        stamp_v[0] = stamp
+        self._run(self._ev[sk.EV_ACC], self._out, 0, 1)
 
     def on_mag(self, stamp: float, mag: Any) -> None:
         """Process one magnetometer sample (any unit, tesla by REP-145; all NaN = none)."""
-        ev = self._ev_mag
-        ev[0].v[:] = _vec(mag, "mag")
-        ev[0].stamp = stamp
-        self._run(ev, self._out, 0, 1)
+        stamp_v, v, _ = self._ev_views[sk.EV_MAG]
+        v[:] = _vec(mag, "mag")
+        stamp_v[0] = stamp
+        self._run(self._ev[sk.EV_MAG], self._out, 0, 1)
 
     def process(self, imu_stamp: Any, gyr: Any, acc: Any, mag_stamp: Any = None,
                 mag: Any = None, *, imu_arrival: Any = None, mag_arrival: Any = None,
@@ -516,7 +528,7 @@ class StreamAdapter:
                              "acc_stamp is for split input (input_mode split)")
         k = 0 if mag_stamp is None else len(mag_stamp)
         j = 0 if acc_stamp is None else len(acc_stamp)
-        ev = np.zeros(n + k + j, sk.EVENT)
+        ev = new_records(sk.EVENT, n + k + j)
         ev["stamp"][:n] = ts
         ev["v"][:n] = _rows(gyr, n, "gyr")
         ev["a"][:] = math.nan
@@ -543,7 +555,7 @@ class StreamAdapter:
             ev = ev[np.lexsort((rank, when))]
         elif imu_arrival is not None:
             ev = ev[np.argsort(imu_arrival, kind="stable")]
-        out = np.zeros(n, sk.OUTPUT)
+        out = new_records(sk.OUTPUT, n)
         total = n + k + j
         for k0 in range(0, total, chunk):
             k1 = min(k0 + chunk, total)
@@ -556,14 +568,14 @@ class StreamAdapter:
         """Events ``k0 … k1-1`` through the compiled rules. Only resets come back here: the
         filter gets new state, then the loop resumes."""
         while True:
-            k, why = sk.run_events(kernels(), *self.filter.kernel_arrays(), self._npar,
+            k, why = sk.run_events(kernel_table(), *self.filter.kernel_arrays(), self._npar,
                                    self._ts, self._acnt, ev, out, k0, k1)
             if why == sk.R_DONE:
                 return
             if why == sk.R_TIME_JUMP:  # the same sample again, re-initialising from it
                 self.reset("time jump")
                 k0 = k
-                self._ts[0].resume = True
+                record(self._ts).resume = True
             else:  # R_NONFINITE: nothing published for that sample
                 self.reset("non-finite estimate")
                 k0 = k + 1

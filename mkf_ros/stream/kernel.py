@@ -35,6 +35,7 @@ from mkf_ros.core.filter import (
     YAW_VAR_UNKNOWN,
     Kernels,
     bias,
+    kernels_at,
     bias_variance,
     classify_reading,
     gap_count,
@@ -143,6 +144,13 @@ OUTPUT = np.dtype([("present", np.int64), ("q", np.float64, 4), ("cov", np.float
                    ("lin", np.float64, 3), ("omega", np.float64, 3), ("bias", np.float64, 3),
                    ("bstd", np.float64, 3)])
 OF_PUB, OF_W, OF_WCOV, OF_WADD, OF_LIN, OF_HEADING = 1, 2, 4, 8, 16, 32
+
+
+def float_slice(dtype: np.dtype, name: str) -> slice:
+    """Where field ``name`` of a record of 8-byte fields lies in the record viewed as float64
+    values (``array.view(np.float64)``)."""
+    sub, offset = dtype.fields[name][:2]
+    return slice(offset // 8, offset // 8 + sub.itemsize // 8)
 
 #: The filter's records (:meth:`mkf_ros.core.filter.AttitudeFilter.kernel_arrays`, element
 #: ``[0]`` of each: configuration, state, counters, scratch) and its compiled kernels.
@@ -711,15 +719,16 @@ def output(f: FilterRecords, r: StreamRecords, g: np.ndarray, has_g: bool, a: np
 
 
 @jit
-def run_events(kern: Kernels, cfg: np.ndarray, st: np.ndarray, cnt: np.ndarray,
+def run_events(table: np.ndarray, cfg: np.ndarray, st: np.ndarray, cnt: np.ndarray,
                work: np.ndarray, npar: np.ndarray, ts: np.ndarray, acnt: np.ndarray,
                ev: np.ndarray, out: np.ndarray, k0: int, k1: int) -> tuple[int, int]:
-    """Events ``k0 … k1-1`` in order (the filter's compiled kernels and record arrays, the
-    adapter's, the events and the outputs); returns ``(k, R_DONE)`` at the end, or the index
+    """Events ``k0 … k1-1`` in order (the filter's compiled kernels,
+    :func:`~mkf_ros.core.filter.kernel_table`, and record arrays, the adapter's, the events
+    and the outputs); returns ``(k, R_DONE)`` at the end, or the index
     and reason of an event that needs a reset (``R_TIME_JUMP``: call again from ``k`` with
     the time state's ``resume`` set; ``R_NONFINITE``: the event is done, call again from
     ``k + 1``)."""
-    f = FilterRecords(cfg[0], st[0], cnt[0], work[0], kern)
+    f = FilterRecords(cfg[0], st[0], cnt[0], work[0], kernels_at(table))
     r = StreamRecords(npar[0], ts[0], acnt[0])
     for k in range(k0, k1):
         e = ev[k]

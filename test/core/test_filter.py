@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from rest_readings import reading
 
-from mkf_ros.core.filter import AttitudeFilter
+from mkf_ros.core.filter import AttitudeFilter, record
 from mkf_ros.core.frames import FROM_ENU
 from mkf_ros.core.quaternion import angle_between, q_from_rotvec, qmul
 from mkf_ros.sim import simulate
@@ -126,37 +126,35 @@ def test_kernel_interface_reads_what_the_properties_say() -> None:
 
     s = simulate("wiener", duration=3.0, rate=100.0, mag_rate=25.0, seed=5)
     f = AttitudeFilter(use_mag=True, estimate_gyro_bias=True, max_dt=0.2, gravity=9.79)
-    assert not kf.is_initialized(f.kernel_arrays().fl)
+    assert not kf.is_initialized(record(f.kernel_arrays().st))
     for k in range(len(s.gyr)):
         f.step(0.01 if k != 150 else 0.5, s.gyr[k], s.acc[k], s.mag[k])  # one gap
-    cfg, _, st, P, fl, cnt, _ = f.kernel_arrays()
+    cfg, st, cnt, _ = (record(a) for a in f.kernel_arrays())
     assert kf.gravity(cfg) == 9.79 and kf.max_dt(cfg) == 0.2 and kf.uses_mag(cfg)
-    assert kf.is_initialized(fl) == f.initialized is True
-    assert kf.heading_fixed(cfg, fl) == f.heading_initialized is True
+    assert kf.is_initialized(st) == f.initialized is True
+    assert kf.heading_fixed(cfg, st) == f.heading_initialized is True
     assert kf.gap_count(cnt) == f.counter_dict()["gaps"] == 1
     np.testing.assert_array_equal([kf.rate(st, i) for i in range(3)], f.omega)
     np.testing.assert_array_equal([kf.bias(st, i) for i in range(3)], f.bias)
-    np.testing.assert_allclose(np.sqrt([kf.bias_variance(cfg, P, i) for i in range(3)]),
+    np.testing.assert_allclose(np.sqrt([kf.bias_variance(cfg, st, i) for i in range(3)]),
                                f.bias_stddev, rtol=1e-15)
     np.testing.assert_array_equal(
-        [[kf.rate_covariance(P, i, j) for j in range(3)] for i in range(3)],
+        [[kf.rate_covariance(st, i, j) for j in range(3)] for i in range(3)],
         f.state_covariance[3:6, 3:6])
     f.set_params(estimate_gyro_bias=False, use_mag=False)
-    cfg, _, st, P, fl, *_ = f.kernel_arrays()
-    assert [kf.bias_variance(cfg, P, i) for i in range(3)] == [0.0, 0.0, 0.0]
+    cfg, st, *_ = (record(a) for a in f.kernel_arrays())
+    assert [kf.bias_variance(cfg, st, i) for i in range(3)] == [0.0, 0.0, 0.0]
     assert not kf.uses_mag(cfg)
-    assert kf.heading_fixed(cfg, fl) == f.heading_initialized is False
+    assert kf.heading_fixed(cfg, st) == f.heading_initialized is False
 
 
 def test_split_input_is_kept_across_parameter_changes() -> None:
     """The rest test's split-input flag (set by the stream adapter) survives set_params, which
     rebuilds the configuration."""
-    from mkf_ros.core.state import C_REST_SPLIT
-
     f = AttitudeFilter()
     f.set_split_input(True)
     f.set_params(gyro_noise=0.02)
-    assert f.kernel_arrays().cfg[C_REST_SPLIT] == 1.0
+    assert record(f.kernel_arrays().cfg).split_input
     f.set_split_input(False)
     f.set_params(gyro_noise=0.03)
-    assert f.kernel_arrays().cfg[C_REST_SPLIT] == 0.0
+    assert not record(f.kernel_arrays().cfg).split_input
