@@ -7,8 +7,8 @@ directory and runs the install-time compile there as ``pip install`` and ``colco
 (``mkf_ros.core._jit.precompile`` into the copy's ``_kernels``). Prints the wall time, the CPU
 time of every compiling process, and the peak resident memory, both of the largest process
 and of all of them together (sampled from /proc every 20 ms). Then, in a fresh process on the
-compiled cache, the time ``mkf_ros.warmup()`` takes and how many kernels it still had to
-compile (0: the install-time compile left nothing for the first start). ``--tasks`` adds
+compiled cache, the time ``mkf_ros.warmup()`` takes and how many numba compiler passes it still
+ran (0: the install-time compile left nothing to compile for the first start). ``--tasks`` adds
 each compile task's own wall, CPU and peak memory.
 """
 
@@ -40,12 +40,12 @@ _CHECK = """
 import json, time
 import numba.core.event as ev
 n = [0]
-class Count(ev.Listener):
+class Count(ev.Listener):  # a compiler pass runs only when something compiles (not on a load)
     def on_start(self, event):
         n[0] += 1
     def on_end(self, event):
         pass
-ev.register("numba:compile", Count())
+ev.register("numba:run_pass", Count())
 t0 = time.perf_counter()
 import mkf_ros
 mkf_ros.warmup()
@@ -132,7 +132,7 @@ def main() -> None:
     print(f"\ninstall-time compile of every kernel, empty cache, {jobs} process(es) at a time, "
           f"{os.cpu_count()} CPUs\n")
     print("| wall | CPU (all processes) | peak RSS, all processes | peak RSS, largest process |"
-          " warmup() after it | kernels compiled by that warmup |")
+          " warmup() after it | compiler passes run by that warmup |")
     print("|---:|---:|---:|---:|---:|---:|")
     print(f"| {r['wall']:.1f} s | {r['cpu']:.1f} s | {r['peak_sum_mb']:.0f} MB | "
           f"{r['peak_max_mb']:.0f} MB | {r['check']['seconds']:.2f} s | {r['check']['compiled']} |")

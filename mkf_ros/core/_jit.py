@@ -24,9 +24,9 @@ directory instead (seeded the same way) and one warning says where it looked.
 Compile units. numba links the machine code of every compiled function into each compiled
 function that calls it, directly or through others, and optimises and compiles it there again
 (measured: 3–10 s for each caller of the sensor step). The large kernels are therefore
-:func:`unit`\ s: each is compiled once, on its own, as a C callable (a numba ``cfunc``), and its
-callers receive it as an argument and call it through its address (a few nanoseconds per
-call). Its callers' compile no longer includes it, and the units compile independently of each
+units (:func:`unit`): each is compiled once, on its own, as a C callable (a numba ``cfunc``),
+and its callers receive it as an argument and call it through its address (a few nanoseconds
+per call). Its callers' compile no longer includes it, and the units compile independently of each
 other, so :func:`precompile` spreads them over processes.
 """
 
@@ -34,21 +34,22 @@ from __future__ import annotations
 
 import hashlib
 import os
-from collections.abc import Callable
 import shutil
 import sys
 import tempfile
 import warnings
+from collections.abc import Callable
 from pathlib import Path
 from types import FunctionType
+from typing import Any
 
 import numba
 from numba.core import caching, cgutils, types
-from numba.extending import intrinsic
 from numba.core.registry import CPUDispatcher
+from numba.extending import intrinsic
 
 _PACKAGE_DIR = Path(__file__).resolve().parents[1]
-_MARKER = "core._jit import jit"
+_MARKER = "from mkf_ros.core._jit import"
 #: Where the install-time compile puts its cache, inside the package.
 PACKAGED_CACHE_ROOT = _PACKAGE_DIR / "_kernels"
 
@@ -216,7 +217,7 @@ def run_compile_task(task: str) -> tuple[str, float, float, int]:
 
     kind, name = task.split(":", 1)
     if kind == "unit":
-        next(u for u in UNITS if f"{u.__module__}.{u.__qualname__}" == name).compiled
+        _ = next(u for u in UNITS if f"{u.__module__}.{u.__qualname__}" == name).compiled
     else:
         api.warmup((name,))
     return (task, time.perf_counter() - t0, time.process_time() - c0,
@@ -271,13 +272,17 @@ _prune_old_caches(_cache_root())
 if KernelCacheLocator not in caching.CacheImpl._locator_classes:
     caching.CacheImpl._locator_classes.insert(0, KernelCacheLocator)
 
+#: Whether kernels run as plain Python (``NUMBA_DISABLE_JIT=1``).
+JIT_DISABLED = bool(vars(numba.config)["DISABLE_JIT"])
+
+
 class _Dispatcher(CPUDispatcher):
     """numba's dispatcher, compiling one version per argument *types* for calls from compiled
     code too: numba compiles a separate version of a function for each constant (literal)
     argument of a compiled caller (``f(x, True)`` and ``f(x, False)``: two versions; measured:
     up to 10 of one small kernel, a quarter of the compile time)."""
 
-    def get_call_template(self, args: tuple, kws: dict) -> tuple:
+    def get_call_template(self, args: Any, kws: Any) -> Any:
         return super().get_call_template(tuple(types.unliteral(a) for a in args),
                                          {k: types.unliteral(v) for k, v in kws.items()})
 
@@ -287,7 +292,7 @@ _OPTIONS = {"nopython": True, "nogil": True, "error_model": "numpy"}
 
 def _kernel(inline: str) -> Callable[[Callable], Callable]:
     def decorate(fn: Callable) -> Callable:
-        if numba.config.DISABLE_JIT:
+        if JIT_DISABLED:
             return fn
         disp = _Dispatcher(py_func=fn, locals={}, targetoptions=dict(_OPTIONS, inline=inline))
         disp.enable_caching()
@@ -298,8 +303,6 @@ def _kernel(inline: str) -> Callable[[Callable], Callable]:
 #: Compile options shared by every kernel: no Python objects, cached, GIL released, one
 #: version per argument types (:class:`_Dispatcher`).
 jit = _kernel("never")
-#: Whether kernels run as plain Python (``NUMBA_DISABLE_JIT=1``).
-JIT_DISABLED = bool(numba.config.DISABLE_JIT)
 
 
 #: Every :class:`Unit`, in the order their modules defined them.
@@ -339,8 +342,7 @@ class Unit:
         return self._compiled
 
 
-@intrinsic
-def function_at(typingctx: object, addr: types.Type, fntype: types.Type) -> tuple:
+def _function_at(typingctx: Any, addr: Any, fntype: Any) -> tuple:
     """``function_at(address, FUNCTION_TYPE)`` in compiled code: the compiled unit at that
     address (an int64, ``Unit.compiled.address``) as a value of the numba ``FunctionType`` given
     (a unit's :attr:`Unit.type`). Lets Python hand compiled code its units as an array of
@@ -348,12 +350,15 @@ def function_at(typingctx: object, addr: types.Type, fntype: types.Type) -> tupl
     anew at every call (measured: 11 µs per unit)."""
     ft = fntype.instance_type
 
-    def codegen(context: object, builder: object, sig: object, args: tuple) -> object:
+    def codegen(context: Any, builder: Any, sig: Any, args: tuple) -> Any:
         fn = cgutils.create_struct_proxy(ft)(context, builder)
         fn.c_addr = builder.inttoptr(args[0], fn.c_addr.type)
         return fn._getvalue()
 
     return ft(addr, fntype), codegen
+
+
+function_at: Any = intrinsic(_function_at)
 
 
 def tuple_type(members: list, cls: type) -> types.Type:

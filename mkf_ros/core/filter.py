@@ -11,7 +11,8 @@ from __future__ import annotations
 
 import contextlib
 from collections import namedtuple
-from typing import NamedTuple
+from collections.abc import Callable
+from typing import Any, NamedTuple
 
 import numpy as np
 from numba import types as nt
@@ -52,15 +53,15 @@ from mkf_ros.core.state import (
     ATTITUDE_VAR_UNKNOWN,
     CONFIG,
     CONFIG_T,
-    F4,
-    F33,
-    STATE_T,
     COUNTER_NAMES,
     COUNTERS,
+    F4,
+    F33,
     MAX_ACC_G,
     MAX_GYRO_RATE,
     MAX_MAG,
     STATE,
+    STATE_T,
     WORK,
     YAW_VAR_UNKNOWN,
     build_config,
@@ -84,6 +85,7 @@ __all__ = [
     "AttitudeFilter",
     "BatchOutputs",
     "KernelArrays",
+    "Kernels",
     "bias",
     "bias_variance",
     "classify_reading",
@@ -91,19 +93,18 @@ __all__ = [
     "gravity",
     "heading_fixed",
     "is_initialized",
-    "max_dt",
-    "rate",
-    "rate_covariance",
-    "run_batch",
-    "sensor_step",
-    "uses_mag",
-    "new_records",
-    "record",
-    "Kernels",
     "kernel_table",
     "kernels_at",
+    "max_dt",
+    "new_records",
     "output",
+    "rate",
+    "rate_covariance",
+    "record",
+    "run_batch",
     "run_step",
+    "sensor_step",
+    "uses_mag",
     "world_output",
 ]
 
@@ -158,7 +159,7 @@ def kernel_table() -> np.ndarray:
     (:func:`kernels_at` makes them :data:`Kernels` again); the :data:`Kernels` of Python
     functions with ``NUMBA_DISABLE_JIT=1``."""
     if not _table:
-        units = [u.compiled for u in _TABLE]
+        units: list[Any] = [u.compiled for u in _TABLE]
         _table.append(Kernels(*_assemble(units)) if JIT_DISABLED
                       else np.array([u.address for u in units], dtype=np.int64))
     return _table[0]
@@ -169,21 +170,19 @@ def _assemble(u: list) -> tuple:
     return u[0], Units(Canonical(u[6], u[7]), u[1], u[2], u[3], u[4], u[5]), u[8]
 
 
-if JIT_DISABLED:
-    def kernels_at(table: Kernels) -> Kernels:
-        return table
-else:
-    @jit
-    def kernels_at(table: np.ndarray) -> Kernels:
-        """The :data:`Kernels` at the addresses of :func:`kernel_table` (compiled code)."""
-        a = table
-        return Kernels(function_at(a[0], _STEP_T),
-                       Units(Canonical(function_at(a[6], _EXPORT_T),
-                                       function_at(a[7], _RESTORE_T)),
-                             function_at(a[1], _START_T), function_at(a[2], _ACC_RECOVERY_T),
-                             function_at(a[3], _MAG_RECOVERY_T), function_at(a[4], _MUKF_T),
-                             function_at(a[5], _BASELINE_T)),
-                       function_at(a[8], _OUTPUT_T))
+def _kernels_at(a: np.ndarray) -> Kernels:
+    """The :data:`Kernels` at the addresses of :func:`kernel_table` (compiled code)."""
+    return Kernels(function_at(a[0], _STEP_T),
+                   Units(Canonical(function_at(a[6], _EXPORT_T), function_at(a[7], _RESTORE_T)),
+                         function_at(a[1], _START_T), function_at(a[2], _ACC_RECOVERY_T),
+                         function_at(a[3], _MAG_RECOVERY_T), function_at(a[4], _MUKF_T),
+                         function_at(a[5], _BASELINE_T)),
+                   function_at(a[8], _OUTPUT_T))
+
+
+#: :func:`kernel_table`'s :data:`Kernels` in compiled code (the table itself without JIT).
+kernels_at: Callable[[Any], Kernels] = (
+    (lambda table: table) if JIT_DISABLED else jit(_kernels_at))
 
 
 (_STEP_T, _START_T, _ACC_RECOVERY_T, _MAG_RECOVERY_T, _MUKF_T, _BASELINE_T, _EXPORT_T,
@@ -222,8 +221,8 @@ def world_output(table: np.ndarray, cfg: np.ndarray, st: np.ndarray, q_out: np.n
 # --- the kernel interface of compiled front ends (mkf_ros.stream.kernel) ---------------------
 # A front end that runs its own compiled loop holds the filter's records
 # (:meth:`AttitudeFilter.kernel_arrays`) and the compiled :data:`Kernels` (:func:`kernel_table`,
-# :func:`kernels_at`), calls :func:`run_step` and ``Kernels.output``; what else it reads of the filter it reads
-# through these.
+# :func:`kernels_at`), calls :func:`run_step` and ``Kernels.output``; what else it reads of the
+# filter it reads through these.
 
 
 @jit

@@ -60,15 +60,13 @@ from mkf_ros.core.quaternion import (
 )
 from mkf_ros.core.state import (
     ALGO_EULER_KF,
+    ALGO_MEKF,
+    ALGO_MUKF,
     CONFIG_T,
     COUNTERS_T,
     F3,
     F33,
     FUSION_T,
-    STATE_T,
-    WORK_T,
-    ALGO_MEKF,
-    ALGO_MUKF,
     INVALID,
     LP_ACC,
     LP_MAG,
@@ -82,8 +80,10 @@ from mkf_ros.core.state import (
     P0_PAPER,
     REST_CHI2,
     REST_LP_TAU,
+    STATE_T,
     UP,
     VALID,
+    WORK_T,
     YAW0_STDDEV,
     YAW_VAR_UNKNOWN,
     Fusion,
@@ -552,7 +552,7 @@ def acc_recovery(c: np.record, s: np.record, cn: Canonical, a: tuple, a_body: tu
 
 
 @hot
-def _accelerometer(c: np.record, s: np.record, k: np.record, u: tuple, dt: float, wl: tuple,
+def _accelerometer(c: np.record, s: np.record, k: np.record, u: Units, dt: float, wl: tuple,
                    Rw: tuple, a: tuple, has_a: bool) -> tuple:
     """The accelerometer's view of gravity (:func:`_acc_measurement`), the recovery of a
     long-refused tilt (:func:`acc_recovery`) and the magnitude test's count. Returns
@@ -705,7 +705,7 @@ def mag_recovery(c: np.record, s: np.record, cn: Canonical, Rq: tuple, m_body: t
 
 
 @hot
-def _mag_checks(c: np.record, s: np.record, k: np.record, u: tuple, dt: float, dtm: float,
+def _mag_checks(c: np.record, s: np.record, k: np.record, u: Units, dt: float, dtm: float,
                 wl: tuple, Rw: tuple, m_body: tuple, m_norm: float, has_m: bool) -> bool:
     """Whether this magnetometer sample may be fused (extension), in this order:
 
@@ -740,7 +740,7 @@ def _mag_checks(c: np.record, s: np.record, k: np.record, u: tuple, dt: float, d
 
 
 @hot
-def _magnetometer(c: np.record, s: np.record, k: np.record, u: tuple, dt: float, wl: tuple,
+def _magnetometer(c: np.record, s: np.record, k: np.record, u: Units, dt: float, wl: tuple,
                   Rw: tuple, m_body: tuple, m_norm: float, has_m: bool) -> tuple:
     """The magnetometer's checks (:func:`_mag_checks`, once the heading is fixed) and the time
     since its previous sample. Returns ``(has_m, Δt_m)``."""
@@ -930,7 +930,7 @@ def _cap_yaw_variance(s: np.record, nx: int) -> None:
 
 
 @hot
-def _update(c: np.record, s: np.record, k: np.record, w: np.record, u: tuple, dt: float,
+def _update(c: np.record, s: np.record, k: np.record, w: np.record, u: Units, dt: float,
             z: Fusion) -> tuple[bool, float, float]:
     """The filter's own step with this sample's measurements: a baseline's
     (:func:`baseline_step`), or the MKFs' rate updates then the MEKF's or the MUKF's
@@ -1010,7 +1010,8 @@ UNITS_T = tuple_type([CANONICAL_T] + [x.type for x in (start, acc_recovery, mag_
 
 
 # --- the step --------------------------------------------------------------------------------
-@unit(nt.void(CONFIG_T, STATE_T, COUNTERS_T, WORK_T, UNITS_T, nt.float64, F3, F3, F3), cost=20)
+@unit(nt.void(CONFIG_T, STATE_T, COUNTERS_T, WORK_T, UNITS_T, nt.float64, F3, F3, F3),
+      cost=20)
 def step(c: np.record, s: np.record, k: np.record, w: np.record, u: Units, dt: float,
          gyr: tuple, acc: tuple, mag: tuple) -> None:
     """One sample: any of ``gyr`` (rad/s), ``acc`` (m/s², +g up at rest) and ``mag`` (any unit)

@@ -250,10 +250,10 @@ def iso33(v: float) -> tuple:
 
 def new_records(dtype: np.dtype, n: int = 1) -> np.ndarray:
     """``n`` zeroed records of ``dtype`` (by default one, in an array of length 1: what the
-    kernels take, its element ``[0]`` is the record, passed by pointer). A plain structured array: numba types a
-    ``recarray`` argument by attribute look-ups that cost microseconds at every call; with
-    ``NUMBA_DISABLE_JIT=1`` a ``recarray``, whose element has the attribute access the kernels
-    use. Python code reads and writes fields with :func:`record`."""
+    kernels take, its element ``[0]`` is the record, passed by pointer). A plain structured
+    array: numba types a ``recarray`` argument by attribute look-ups that cost microseconds at
+    every call; with ``NUMBA_DISABLE_JIT=1`` a ``recarray``, whose element has the attribute
+    access the kernels use. Python code reads and writes fields with :func:`record`."""
     arr = np.zeros(n, dtype)
     return arr.view(np.recarray) if JIT_DISABLED else arr
 

@@ -33,22 +33,21 @@ from mkf_ros.core.filter import (
     MAX_GYRO_RATE,
     MAX_MAG,
     YAW_VAR_UNKNOWN,
-    Kernels,
     bias,
-    kernels_at,
     bias_variance,
     classify_reading,
     gap_count,
     gravity,
     heading_fixed,
     is_initialized,
+    kernels_at,
     max_dt,
     rate,
     rate_covariance,
     run_step,
     uses_mag,
 )
-from mkf_ros.core.quaternion import q_from_rotvec, qmul, rotmat, rotate_inv, t3
+from mkf_ros.core.quaternion import q_from_rotvec, qmul, rotate_inv, rotmat, t3
 
 #: Out-of-order IMU samples in a row after which the stream is taken to have jumped back.
 MAX_BACKWARDS = 10
@@ -149,6 +148,7 @@ OF_PUB, OF_W, OF_WCOV, OF_WADD, OF_LIN, OF_HEADING = 1, 2, 4, 8, 16, 32
 def float_slice(dtype: np.dtype, name: str) -> slice:
     """Where field ``name`` of a record of 8-byte fields lies in the record viewed as float64
     values (``array.view(np.float64)``)."""
+    assert dtype.fields is not None
     sub, offset = dtype.fields[name][:2]
     return slice(offset // 8, offset // 8 + sub.itemsize // 8)
 

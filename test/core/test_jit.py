@@ -33,13 +33,14 @@ def _child(code: str, **env: str) -> dict:
 
 
 def _decorated_with_jit(path: Path) -> bool:
-    """True if any function in ``path`` carries ``@jit`` / ``@jit_inline`` (read by AST)."""
+    """True if any function in ``path`` carries ``@jit`` / ``@jit_inline`` / ``@unit(...)``
+    (read by AST)."""
     tree = ast.parse(path.read_text(encoding="utf-8"))
     for node in ast.walk(tree):
         if isinstance(node, ast.FunctionDef):
             for d in node.decorator_list:
                 d = d.func if isinstance(d, ast.Call) else d
-                if isinstance(d, ast.Name) and d.id in ("jit", "jit_inline"):
+                if isinstance(d, ast.Name) and d.id in ("jit", "jit_inline", "unit"):
                     return True
     return False
 
