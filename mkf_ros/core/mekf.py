@@ -548,18 +548,19 @@ def transport_covariance(P: np.ndarray, nx: int, T: np.ndarray) -> None:
 
 
 @jit_inline
-def mekf_update(
-    chart: int, chart_update: bool, qc: np.ndarray, w: np.ndarray, b: np.ndarray, P: np.ndarray,
-    nx: int, vm: np.ndarray, vref: np.ndarray, Rv: np.ndarray, Qv: np.ndarray, use_v: np.ndarray,
-    wm: np.ndarray, use_w: bool, Rw: np.ndarray,
-) -> bool:
-    """Kalman update in the chart centred at ``q̄⁻`` and the move back to the manifold (§5).
+def mekf_update(chart: int, chart_update: bool, x: tuple, P: np.ndarray, nx: int,
+                vectors: tuple, gyro: tuple) -> bool:
+    """Kalman update in the chart centred at ``q̄⁻`` and the move back to the manifold (§5), in
+    place: the state ``x = (q̄, ω̄, b̄)`` (arrays) and ``P``.
 
-    Vector sensor ``k`` (used when ``use_v[k]``) has reading ``vm[k]`` (body), reference
-    ``vref[k]`` (world), noise ``Rv[k]`` and external disturbance ``Qv[k]`` (world frame, §8
-    item 4). Returns False if an innovation covariance was not positive definite (that block is
-    skipped).
+    ``vectors = (vm, vref, Rv, Qv, use_v)``: vector sensor ``k`` (used when ``use_v[k]``) has
+    reading ``vm[k]`` (body), reference ``vref[k]`` (world), noise ``Rv[k]`` and external
+    disturbance ``Qv[k]`` (world frame, §8 item 4); ``gyro = (wm, use_w, Rw)``. Returns False if
+    an innovation covariance was not positive definite (that block is skipped).
     """
+    qc, w, b = x
+    vm, vref, Rv, Qv, use_v = vectors
+    wm, use_w, Rw = gyro
     q, wt, bt = t4(qc), t3(w), t3(b)
     R = rotmat_t(q)
     dx = np.zeros(nx)

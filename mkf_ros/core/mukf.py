@@ -18,6 +18,8 @@ not need).
 
 from __future__ import annotations
 
+from collections import namedtuple
+
 import numpy as np
 
 from mkf_ros.core._jit import jit, jit_inline
@@ -40,18 +42,30 @@ NOISE_CONSISTENT, NOISE_PUBLISHED, NOISE_INTEGRATED = 0, 1, 2
 NOISE_MODES = ("consistent", "published", "integrated")
 
 
-@jit_inline
-def mukf_step(
-    chart: int, chart_update: bool, noise_mode: int, w0: float,
-    qc: np.ndarray, ebar: np.ndarray, w: np.ndarray, b: np.ndarray, P: np.ndarray, nx: int,
-    dt: float, Qw: np.ndarray, Qb: np.ndarray,
-    vm: np.ndarray, vref: np.ndarray, Rv: np.ndarray, Qv: np.ndarray, use_v: np.ndarray,
-    wm: np.ndarray, use_w: bool, Rw: np.ndarray,
-) -> bool:
-    """One MUKF prediction + update over ``dt`` (§6 steps 0–7), in place.
+#: The measurements of one MUKF step (§6 and the real-sensor extensions): up to two vector
+#: sensors (eq. 24: readings ``vm``, world references ``vref``, noise ``Rv``, external
+#: disturbance ``Qv``, which are present ``use_v``), the gyro (eq. 23: ``wm``, ``use_w``,
+#: ``Rw``), the field for heading only (``hm`` body, ``href`` horizontal world reference,
+#: ``use_h``, variance ``var_h``), rest's zero rate (``use_z``, ``var_z``), a χ² gate per block
+#: (``gates``, vector 0, vector 1, heading, gyro; only with ``gated``) and gravity's tilt-only
+#: gain (``tilt_v0``). Tuples for :func:`mukf_step_t` (a pair of 3-tuples, of rows, of flags
+#: for the vectors), arrays for :func:`mukf_step_ext` (``(k, 3)``, ``(k, 3, 3)``, ``(k,)``;
+#: ``gated`` there: ``gates`` not empty).
+MukfMeasurement = namedtuple("MukfMeasurement", (
+    "vm", "vref", "Rv", "Qv", "use_v", "wm", "use_w", "Rw", "hm", "href", "use_h", "var_h",
+    "use_z", "var_z", "gates", "gated", "tilt_v0"))
 
-    Measurement arguments as in :func:`mkf_ros.core.mekf.mekf_update`. ``noise_mode`` says how
-    the angular-velocity noise enters (§8 item 3):
+
+@jit_inline
+def mukf_step(chart: int, chart_update: bool, noise_mode: int, w0: float, x: tuple,
+              P: np.ndarray, nx: int, dt: float, Qw: np.ndarray, Qb: np.ndarray, vectors: tuple,
+              gyro: tuple) -> bool:
+    """One MUKF prediction + update over ``dt`` (§6 steps 0–7), in place: the state
+    ``x = (q̄_c, ē, ω̄, b̄)`` (arrays) and ``P``.
+
+    The measurement as in :func:`mkf_ros.core.mekf.mekf_update`: ``vectors = (vm, vref, Rv,
+    Qv, use_v)`` and ``gyro = (wm, use_w, Rw)``. ``noise_mode`` says how the angular-velocity
+    noise enters (§8 item 3):
 
     * ``NOISE_CONSISTENT`` (0, the spec's recommendation): ``Q_ωᵃ = Q_ω Δt``, ``ω_j⁻ = ω_j + n``;
     * ``NOISE_PUBLISHED`` (1, also ``True``): the authors' ``Q_ωᵃ = Q_ω``, ``ω_j⁻ = ω_j + n Δt``
@@ -65,10 +79,12 @@ def mukf_step(
 
     Returns False (state untouched) if a factorisation fails.
     """
-    none = qc[:0]  # no heading sensor (hm, href unused), no gates (nis unused)
-    return mukf_step_ext(chart, chart_update, noise_mode, w0, qc, ebar, w, b, P, nx, dt, Qw, Qb,
-                         vm, vref, Rv, Qv, use_v, wm, use_w, Rw, none, none, False, 0.0, False,
-                         0.0, none, none, False)
+    vm, vref, Rv, Qv, use_v = vectors
+    wm, use_w, Rw = gyro
+    none = x[0][:0]  # no heading sensor (hm, href unused), no gates (nis unused)
+    return mukf_step_ext(chart, chart_update, noise_mode, w0, x, P, nx, dt, Qw, Qb,
+                         MukfMeasurement(vm, vref, Rv, Qv, use_v, wm, use_w, Rw, none, none,
+                                         False, 0.0, False, 0.0, none, False, False), none)
 
 
 # measurement rows at most: two vectors, heading, gyro, zero rate
@@ -181,46 +197,41 @@ def _row_kept(r: int, first: tuple, rejected: int) -> bool:
 
 
 @jit_inline
-def mukf_step_ext(
-    chart: int, chart_update: bool, noise_mode: int, w0: float,
-    qc: np.ndarray, ebar: np.ndarray, w: np.ndarray, b: np.ndarray, P: np.ndarray, nx: int,
-    dt: float, Qw: np.ndarray, Qb: np.ndarray,
-    vm: np.ndarray, vref: np.ndarray, Rv: np.ndarray, Qv: np.ndarray, use_v: np.ndarray,
-    wm: np.ndarray, use_w: bool, Rw: np.ndarray,
-    hm: np.ndarray, href: np.ndarray, use_h: bool, var_h: float,
-    use_z: bool, var_z: float, gates: np.ndarray, nis: np.ndarray, tilt_v0: bool = False,
-) -> bool:
-    """:func:`mukf_step` with the real-sensor extensions: with ``tilt_v0`` the first vector
-    sensor (gravity) corrects tilt only — its gain is kept off the world vertical for attitude,
-    rate and bias, as in :func:`mkf_ros.core.mekf.mekf_vector_update`; a magnetometer for
-    heading only
-    (``hm``: body field, ``href``: horizontal world reference, the pseudo-measurement
-    ``0 = ψ(q) + n`` of :func:`mkf_ros.core.mekf.mekf_heading_update`, the gain of attitude,
-    rate and bias each projected onto the vertical, Joseph-form covariance), the zero-rate
-    pseudo-measurement ``0 = ω + n`` of rest detection, and a χ² gate per block (vector 0,
-    vector 1, heading, gyro; a block whose ``rᵀ P_yy⁻¹ r`` exceeds its gate is left out;
-    ``nis`` receives every block's value). At most two vector sensors (``use_v`` of length 1
-    or 2). With ``gates`` empty no block is gated and ``nis`` is not written.
+def mukf_step_ext(chart: int, chart_update: bool, noise_mode: int, w0: float, x: tuple,
+                  P: np.ndarray, nx: int, dt: float, Qw: np.ndarray, Qb: np.ndarray,
+                  z: MukfMeasurement, nis: np.ndarray) -> bool:
+    """:func:`mukf_step` with the real-sensor extensions (``z``, a :data:`MukfMeasurement` of
+    arrays): with ``tilt_v0`` the first vector sensor (gravity) corrects tilt only — its gain
+    is kept off the world vertical for attitude, rate and bias, as in
+    :func:`mkf_ros.core.mekf.mekf_vector_update`; a magnetometer for heading only (the
+    pseudo-measurement ``0 = ψ(q) + n`` of :func:`mkf_ros.core.mekf.mekf_heading_update`, the
+    gain of attitude, rate and bias each projected onto the vertical, Joseph-form covariance),
+    the zero-rate pseudo-measurement ``0 = ω + n`` of rest detection, and a χ² gate per block
+    (vector 0, vector 1, heading, gyro; a block whose ``rᵀ P_yy⁻¹ r`` exceeds its gate is left
+    out; ``nis`` receives every block's value). At most two vector sensors (``use_v`` of
+    length 1 or 2). With ``gates`` empty no block is gated and ``nis`` is not written.
 
-    The arrays as tuples for :func:`mukf_step_t` (inlined into :func:`mukf_step`; at most 30
-    arguments: numba cannot inline a call with more)."""
+    The arrays as tuples for :func:`mukf_step_t`."""
     z3 = (0.0, 0.0, 0.0)
     z33 = (z3, z3, z3)
-    nv = use_v.shape[0]
-    v0, v1 = nv > 0 and bool(use_v[0]), nv > 1 and bool(use_v[1])
-    gated = gates.shape[0] > 0
+    qc, ebar, w, b = x
+    nv = z.use_v.shape[0]
+    v0, v1 = nv > 0 and bool(z.use_v[0]), nv > 1 and bool(z.use_v[1])
+    gated = z.gates.shape[0] > 0
     inf4 = (np.inf, np.inf, np.inf, np.inf)
-    ok, q, e, w_, b_, nis_ = mukf_step_t(
-        chart, chart_update, noise_mode, w0, (t4(qc), t3(ebar), t3(w), t3(b)), P, nx, dt,
-        t33(Qw), t33(Qb),
+    vm, vref, Rv, Qv = z.vm, z.vref, z.Rv, z.Qv
+    zt = MukfMeasurement(
         (t3(vm[0]) if v0 else z3, t3(vm[1]) if v1 else z3),
         (t3(vref[0]) if v0 else z3, t3(vref[1]) if v1 else z3),
         (t33(Rv[0]) if v0 else z33, t33(Rv[1]) if v1 else z33),
         (t33(Qv[0]) if v0 else z33, t33(Qv[1]) if v1 else z33), (v0, v1),
-        t3(wm) if use_w else z3, use_w, t33(Rw) if use_w else z33,
-        t3(hm) if use_h else z3, t3(href) if use_h else z3, use_h, var_h, use_z, var_z,
-        (gates[0], gates[1], gates[2], gates[3]) if gated else inf4, gated, tilt_v0,
-        mukf_scratch(nx))
+        t3(z.wm) if z.use_w else z3, z.use_w, t33(z.Rw) if z.use_w else z33,
+        t3(z.hm) if z.use_h else z3, t3(z.href) if z.use_h else z3, z.use_h, z.var_h,
+        z.use_z, z.var_z, (z.gates[0], z.gates[1], z.gates[2], z.gates[3]) if gated else inf4,
+        gated, z.tilt_v0)
+    ok, q, e, w_, b_, nis_ = mukf_step_t(
+        chart, chart_update, noise_mode, w0, (t4(qc), t3(ebar), t3(w), t3(b)), P, nx, dt,
+        t33(Qw), t33(Qb), zt, mukf_scratch(nx))
     if gated:
         for i in range(4):
             nis[i] = nis_[i]
@@ -234,18 +245,12 @@ def mukf_step_ext(
 
 
 @jit
-def mukf_step_t(
-    chart: int, chart_update: bool, noise_mode: int, w0: float, x: tuple, P: np.ndarray,
-    nx: int, dt: float, Qw: tuple, Qb: tuple,
-    vm: tuple, vref: tuple, Rv: tuple, Qv: tuple, use_v: tuple,
-    wm: tuple, use_w: bool, Rw: tuple,
-    hm: tuple, href: tuple, use_h: bool, var_h: float,
-    use_z: bool, var_z: float, gates: tuple, gated: bool, tilt_v0: bool, scratch: tuple,
-) -> tuple:
-    """:func:`mukf_step_ext` on tuples: ``x = (q̄_c, ē, ω̄, b̄)``; ``Qw``, ``Qb``, ``Rw`` and the
-    two vector sensors' ``Rv[k]``, ``Qv[k]`` tuples of rows, ``vm``, ``vref`` pairs of 3-tuples,
-    ``use_v`` a pair of flags; ``gates`` one per block, used only if ``gated``; ``scratch`` from
-    :func:`mukf_scratch` for ``nx`` states. ``P`` is updated in place. Returns
+def mukf_step_t(chart: int, chart_update: bool, noise_mode: int, w0: float, x: tuple,
+                P: np.ndarray, nx: int, dt: float, Qw: tuple, Qb: tuple, z: MukfMeasurement,
+                scratch: tuple) -> tuple:
+    """:func:`mukf_step_ext` on tuples: ``x = (q̄_c, ē, ω̄, b̄)``; ``Qw``, ``Qb`` tuples of rows,
+    ``z`` a :data:`MukfMeasurement` of tuples; ``scratch`` from :func:`mukf_scratch` for ``nx``
+    states. ``P`` is updated in place. Returns
     ``(ok, q̄_c, ē, ω̄, b̄, nis)``; if a factorisation fails, ``ok`` is False and the rest as far
     as computed (step 0's re-centring, the bias noise added to ``P``). Speed: no allocation,
     no views; every small input a tuple (no reference counting).
@@ -263,28 +268,27 @@ def mukf_step_t(
     if not chart_update:
         qc, ebar = _reset(chart, qc, ebar)
     _add_process_noise(P, nx, dt, Qw, Qb, noise_mode)
-    nvec, row_h, row_g, row_z, m, first = _measurement_rows(use_v, use_h, use_w, use_z)
-    L, X, Pxy, Pyy, Ly, KPyy, Pxx, Kt = scratch  # (see "Scratch layout" below)
+    nvec, row_h, row_g, row_z, m, first = _measurement_rows(z.use_v, z.use_h, z.use_w, z.use_z)
+    L, X, Pxy, Pyy, Ly, KPyy, Pxx, _ = scratch  # (see "Scratch layout" below)
     qa = _rate_noise_scale(noise_mode, dt)
     if not _augmented_factor(P, L, nx, Qw, qa):
         return False, qc, ebar, w, b, nis
     c, wj, w_0 = _weights(w0, nx, nvec)
     _sigma_points(X, L, ebar, c, nx)
     _propagate(X, chart, qc, ebar, w, dt, noise_mode, nx)
-    _predict_measurements(X, first, vref, use_h, hm, href, row_h)
+    _predict_measurements(X, first, z.vref, z.use_h, z.hm, z.href, row_h)
     ns = 2 * _NDA + 1  # the points' rows; row ns: means, row ns + 1: update and innovation
     _align_hemispheres(X, ns)
-    qm = _means(X, ns, w_0, wj, w, b, row_g, row_z, use_w, use_z)
+    qm = _means(X, ns, w_0, wj, w, b, row_g, row_z, z.use_w, z.use_z)
     _to_chart_of_mean(X, ns, chart, qm, row_g)
     _sigma_covariances(X, Pxx, Pxy, Pyy, ns, w_0, wj, nx, row_g)
     _linear_covariances(P, Pxx, Pxy, Pyy, nx, m, Qw, qa, row_g, row_z)
-    _noise_and_innovation(X, Pyy, ns, first, vm, Rv, Qv, use_h, var_h, row_h, wm, use_w, Rw,
-                          row_g, use_z, var_z, row_z)
-    ok, nis, rejected = _chi2_gate(X, Pyy, Ly, KPyy, ns, first, gates, gated)
+    _noise_and_innovation(X, Pyy, ns, first, z, (row_h, row_g, row_z))
+    ok, nis, rejected = _chi2_gate(X, Pyy, Ly, KPyy, ns, first, z.gates, z.gated)
     if not ok:
         return False, qc, ebar, w, b, nis
     ma, row_v0k, row_hk = _keep_rows(X, Pxy, Pyy, ns, nx, m, first, rejected)
-    if not _update(X, Pxx, Pxy, Pyy, Ly, KPyy, Kt, ns, nx, ma, qm, tilt_v0, row_v0k, row_hk):
+    if not _update(X, scratch, ns, nx, ma, qm, z.tilt_v0, row_v0k, row_hk):
         return False, qc, ebar, w, b, nis
     e, w, b = _new_state(X, P, Pxx, ns, nx, chart, w, b)
     return True, qm, e, w, b, nis
@@ -571,15 +575,15 @@ def _linear_covariances(P: np.ndarray, Pxx: np.ndarray, Pxy: np.ndarray, Pyy: np
 
 
 @jit_inline
-def _noise_and_innovation(
-    X: np.ndarray, Pyy: np.ndarray, ns: int, first: tuple, vm: tuple, Rv: tuple, Qv: tuple,
-    use_h: bool, var_h: float, row_h: int, wm: tuple, use_w: bool, Rw: tuple, row_g: int,
-    use_z: bool, var_z: float, row_z: int,
-) -> None:
+def _noise_and_innovation(X: np.ndarray, Pyy: np.ndarray, ns: int, first: tuple,
+                          z: MukfMeasurement, rows: tuple) -> None:
     """Step 6's ``+ blockdiag(R_v, R_ω)`` in ``P_yy`` (and the disturbance sigma pairs of the
     vectors, summed exactly: ``R(q_0⁻)ᵀ Q_v R(q_0⁻)``, :func:`_weights`; the heading and
     zero-rate variances), and step 7's innovation ``y − ȳ`` into row ``ns + 1`` of ``X`` (the
-    heading and zero-rate pseudo-measurements are 0)."""
+    heading and zero-rate pseudo-measurements are 0); ``rows``: the first rows of the heading,
+    gyro and zero-rate blocks."""
+    row_h, row_g, row_z = rows
+    vm, Rv, Qv = z.vm, z.Rv, z.Qv
     R0 = rotmat_t((X[0, _CQ], X[0, _CQ + 1], X[0, _CQ + 2], X[0, _CQ + 3]))
     for k in range(2):
         r0 = first[k]
@@ -589,17 +593,17 @@ def _noise_and_innovation(
                 for jj in range(3):
                     Pyy[r0 + i, r0 + jj] += Rv[k][i][jj] + QB[i][jj]
                 X[ns + 1, _CY + r0 + i] = vm[k][i] - X[ns, _CY + r0 + i]
-    if use_h:
-        Pyy[row_h, row_h] += var_h
+    if z.use_h:
+        Pyy[row_h, row_h] += z.var_h
         X[ns + 1, _CY + row_h] = -X[ns, _CY + row_h]
-    if use_w:
+    if z.use_w:
         for i in range(3):
             for jj in range(3):
-                Pyy[row_g + i, row_g + jj] += Rw[i][jj]
-            X[ns + 1, _CY + row_g + i] = wm[i] - X[ns, _CY + row_g + i]
-    if use_z:
+                Pyy[row_g + i, row_g + jj] += z.Rw[i][jj]
+            X[ns + 1, _CY + row_g + i] = z.wm[i] - X[ns, _CY + row_g + i]
+    if z.use_z:
         for i in range(3):
-            Pyy[row_z + i, row_z + i] += var_z
+            Pyy[row_z + i, row_z + i] += z.var_z
             X[ns + 1, _CY + row_z + i] = -X[ns, _CY + row_z + i]
 
 
@@ -668,13 +672,14 @@ def _keep_rows(X: np.ndarray, Pxy: np.ndarray, Pyy: np.ndarray, ns: int, nx: int
 
 
 @jit_inline
-def _update(X: np.ndarray, Pxx: np.ndarray, Pxy: np.ndarray, Pyy: np.ndarray, Ly: np.ndarray,
-            KPyy: np.ndarray, Kt: np.ndarray, ns: int, nx: int, ma: int, qm: tuple,
+def _update(X: np.ndarray, scratch: tuple, ns: int, nx: int, ma: int, qm: tuple,
             tilt_v0: bool, row_v0k: int, row_hk: int) -> bool:
     """Step 7 with the ``ma`` kept rows: ``K = P_xy P_yy⁻¹`` (:func:`_gain`), projected for the
     tilt-only gravity and the heading rows (:func:`_gain_projection`), ``Δx = K (y − ȳ)`` into
     row ``ns + 1`` of ``X`` (:func:`_correction`), ``P ← P_xx − K P_yy Kᵀ`` in ``Pxx``
-    (:func:`_covariance_update`). False if ``P_yy`` is not positive definite."""
+    (:func:`_covariance_update`); ``scratch`` as in :func:`mukf_step_t`. False if ``P_yy`` is
+    not positive definite."""
+    _, _, Pxy, Pyy, Ly, KPyy, Pxx, Kt = scratch
     if ma == 0:
         for i in range(nx):
             X[ns + 1, _CX + i] = 0.0  # Δx

@@ -47,7 +47,7 @@ from mkf_ros.core.mekf import (
     mekf_rate_update_t,
     mekf_vector_update_t,
 )
-from mkf_ros.core.mukf import B_HEADING, B_VEC0, B_VEC1, mukf_step_t
+from mkf_ros.core.mukf import B_HEADING, B_VEC0, B_VEC1, MukfMeasurement, mukf_step_t
 from mkf_ros.core.quaternion import (
     q_omega_t,
     qmul,
@@ -877,15 +877,16 @@ def mukf_update(c: np.record, s: np.record, w: np.record, dt: float,
     heading_m = z.has_m and c.mag_heading
     use_vm = z.has_m and not c.mag_heading
     x = (t4(s.q_c), t3(s.e), t3(s.w), t3(s.b))
+    meas = MukfMeasurement(
+        (z.a, z.m if z.has_m else ZERO3), (UP, z.m_ref if z.has_m else ZERO3),
+        (iso33(c.acc_var), iso33(c.mag_var)), (iso33(z.var_a), iso33(c.mag_disturbance_var)),
+        (z.has_a, use_vm), z.g, False, iso33(c.gyro_var), z.m if z.has_m else ZERO3,
+        z.h_ref if z.has_m else ZERO3, heading_m, z.var_h, False, c.rest_rate_var,
+        (z.acc_gate, z.mag_gate, z.mag_gate, np.inf), True, c.acc_tilt_only)
     ok, q, e, wt, b, nis = mukf_step_t(
         c.chart, c.chart_update, c.mukf_noise, c.mukf_w0, x, s.P, nx, dt,
-        iso33(c.rate_process_noise), iso33(c.bias_process_var),
-        (z.a, z.m if z.has_m else ZERO3), (UP, z.m_ref if z.has_m else ZERO3),
-        (iso33(c.acc_var), iso33(c.mag_var)),
-        (iso33(z.var_a), iso33(c.mag_disturbance_var)), (z.has_a, use_vm), z.g, False,
-        iso33(c.gyro_var), z.m if z.has_m else ZERO3, z.h_ref if z.has_m else ZERO3, heading_m,
-        z.var_h, False, c.rest_rate_var, (z.acc_gate, z.mag_gate, z.mag_gate, np.inf), True,
-        c.acc_tilt_only, (w.L, w.X, w.Pxy, w.Pyy, w.Ly, w.KPyy, w.Pxx, w.Kt))
+        iso33(c.rate_process_noise), iso33(c.bias_process_var), meas,
+        (w.L, w.X, w.Pxy, w.Pyy, w.Ly, w.KPyy, w.Pxx, w.Kt))
     for i in range(4):  # (on failure as far as changed: the reset variant's re-centring)
         s.q_c[i] = q[i]
     for i in range(3):

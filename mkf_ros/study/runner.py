@@ -311,9 +311,8 @@ def run_unit(unit: Unit) -> dict[str, np.ndarray]:
     for i, traj in enumerate(range(unit.t0, unit.t1)):
         inp = sim.trajectory_inputs(unit.seed, unit.rate_hz, traj, unit.sampling)
         sig_w[i], sig_v[i] = inp["sigma_w"], inp["sigma_v"]
-        sim.run_trajectory(specs, rs, dt, inp["q0"], inp["sigma_v"], inp["conv_seed"],
-                           unit.cap, inp["q_true"], inp["w_true"], inp["vref"], inp["vbody"],
-                           inp["z_noise"], err[i], conv[i], status[i])
+        sim.run_trajectory(specs, rs, dt, _convergence(inp, unit.cap), _truth(inp),
+                           (err[i], conv[i], status[i]))
     vi = {v: k for k, v in enumerate(variants)}
     ri = {r: k for k, r in enumerate(rs.tolist())}
     idx = [(vi[c.variant], ri[c.r]) for c in unit.cells]
@@ -336,9 +335,17 @@ def warm_up() -> None:
     inp = sim.trajectory_inputs(0, 10.0, 0, "sigma")
     specs = np.array([[sim.MEKF, 1, 1, 1], [sim.MUKF, 1, 1, 1]], dtype=np.int64)
     out = (np.empty((2, 1)), np.empty((2, 1), dtype=np.int64), np.empty((2, 1), dtype=np.int8))
-    sim.run_trajectory(specs, np.array([1e-4]), 0.1, inp["q0"], inp["sigma_v"],
-                       inp["conv_seed"], 3, inp["q_true"], inp["w_true"], inp["vref"],
-                       inp["vbody"], inp["z_noise"], *out)
+    sim.run_trajectory(specs, np.array([1e-4]), 0.1, _convergence(inp, 3), _truth(inp), out)
+
+
+def _convergence(inp: dict, cap: int) -> tuple:
+    """The convergence phase's inputs of :func:`~mkf_ros.study.sim.run_trajectory`."""
+    return inp["q0"], inp["sigma_v"], inp["conv_seed"], cap
+
+
+def _truth(inp: dict) -> tuple:
+    """The estimation phase's inputs of :func:`~mkf_ros.study.sim.run_trajectory`."""
+    return inp["q_true"], inp["w_true"], inp["vref"], inp["vbody"], inp["z_noise"]
 
 
 def plan(cells: Sequence[Cell], n_s: int, seed: int, cap: int, parts: Parts,

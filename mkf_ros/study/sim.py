@@ -185,19 +185,22 @@ def _angle(p: np.ndarray, q: np.ndarray) -> float:
 
 
 @jit
-def _step(kind: int, chart: int, cu: bool, pub: bool, qc: np.ndarray, eb: np.ndarray,
-          w: np.ndarray, b: np.ndarray, P: np.ndarray, dt: float, Qw: np.ndarray,
-          Qb: np.ndarray, vm: np.ndarray, vref: np.ndarray, Rv: np.ndarray, Qv: np.ndarray,
-          use_v: np.ndarray, wm: np.ndarray, Rw: np.ndarray, qhat: np.ndarray) -> bool:
-    """One filter update with (Δt, v_m, ω_m, v) through the core kernels (§5, §6); writes the
+def _step(spec: tuple, state: tuple, dt: float, noise: tuple, vectors: tuple, wm: np.ndarray,
+          qhat: np.ndarray) -> bool:
+    """One filter update with (Δt, v_m, ω_m, v) through the core kernels (§5, §6): the variant
+    ``spec = (kind, chart, chart_update, published scaling)``, the state ``(q̄_c, ē, ω̄, b̄,
+    P)``, ``noise = (Q_ω, Q_b, R_ω)``, ``vectors = (v_m, v, R_v, Q_v, use_v)``; writes the
     estimate into ``qhat``. False on a kernel failure or a non-finite estimate."""
+    kind, chart, cu, pub = spec
+    qc, eb, w, b, P = state
+    Qw, Qb, Rw = noise
     if kind == MEKF:
         mekf_predict(qc, w, P, 6, dt, Qw, Qb)
-        ok = mekf_update(chart, cu, qc, w, b, P, 6, vm, vref, Rv, Qv, use_v, wm, True, Rw)
+        ok = mekf_update(chart, cu, (qc, w, b), P, 6, vectors, (wm, True, Rw))
         qhat[:] = qc
     else:
-        ok = mukf_step(chart, cu, pub, W0, qc, eb, w, b, P, 6, dt, Qw, Qb, vm, vref, Rv, Qv,
-                       use_v, wm, True, Rw)
+        ok = mukf_step(chart, cu, pub, W0, (qc, eb, w, b), P, 6, dt, Qw, Qb, vectors,
+                       (wm, True, Rw))
         qhat[:] = from_chart_at(chart, qc, eb)
     return ok and np.isfinite(qhat[0] + qhat[1] + qhat[2] + qhat[3])
 
@@ -249,14 +252,12 @@ def _init_state(kind: int, qc: np.ndarray, eb: np.ndarray, w: np.ndarray,
 
 
 @jit
-def run_trajectory(
-    specs: np.ndarray, rs: np.ndarray, dt: float, q0: np.ndarray, sigma_v: float,
-    conv_seed: int, cap: int, q_true: np.ndarray, w_true: np.ndarray, vref: np.ndarray,
-    vbody: np.ndarray, z_noise: np.ndarray, out_err: np.ndarray, out_conv: np.ndarray,
-    out_status: np.ndarray,
-) -> None:
+def run_trajectory(specs: np.ndarray, rs: np.ndarray, dt: float, convergence: tuple,
+                   truth: tuple, out: tuple) -> None:
     """Run every filter variant ``specs[i] = (kind, chart, chart_update, published_scaling)``
-    at every sensor grade ``rs[j]`` on one trajectory (§7.2 steps 1–4).
+    at every sensor grade ``rs[j]`` on one trajectory (§7.2 steps 1–4): ``convergence = (q0,
+    sigma_v, conv_seed, cap)``, ``truth = (q_true, w_true, vref, vbody, z_noise)`` (the
+    estimation phase's), ``out = (out_err, out_conv, out_status)``.
 
     Convergence phase: fixed truth ``q0``, ``ω = 0``; measurement k uses the k-th draw of the
     numba generator seeded with ``conv_seed`` (order: v, w_v, r_v, r_ω), replayed identically for
@@ -265,6 +266,9 @@ def run_trajectory(
     the precomputed truth. Outputs: mean error ``(1/(T f)) Σ θ_n`` in rad (NaN if crashed), the
     number of convergence updates, and the status code.
     """
+    q0, sigma_v, conv_seed, cap = convergence
+    q_true, w_true, vref, vbody, z_noise = truth
+    out_err, out_conv, out_status = out
     theta0 = np.deg2rad(THETA_E0_DEG)
     Qw, Qb, Rw, Rv, Qv = _filter_noise()
     use_v, vm, vr, wm, qc, eb, w, b, P, qhat = _buffers()
@@ -273,6 +277,8 @@ def run_trajectory(
     for iv in range(specs.shape[0]):
         kind, chart = specs[iv, 0], specs[iv, 1]
         cu, pub = specs[iv, 2] != 0, specs[iv, 3] != 0
+        spec = (kind, chart, cu, pub)
+        state, noise, vectors = (qc, eb, w, b, P), (Qw, Qb, Rw), (vm, vr, Rv, Qv, use_v)
         for ir in range(rs.shape[0]):
             r = rs[ir]
             sr = np.sqrt(r)
@@ -297,8 +303,7 @@ def run_trajectory(
                 for i in range(3):
                     wm[i] = sr * np.random.standard_normal()
                 k += 1
-                if not _step(kind, chart, cu, pub, qc, eb, w, b, P, dt, Qw, Qb, vm, vr, Rv, Qv,
-                             use_v, wm, Rw, qhat):
+                if not _step(spec, state, dt, noise, vectors, wm, qhat):
                     status = CRASHED_CONV
                     break
                 if _angle(qhat, q0) < theta0:
@@ -325,8 +330,7 @@ def run_trajectory(
                     vr[0, i] = vref[n, i]
                     vm[0, i] = vbody[n, i] + sr * z_noise[n, i]
                     wm[i] = w_true[n, i] + sr * z_noise[n, 3 + i]
-                if not _step(kind, chart, cu, pub, qc, eb, w, b, P, dt, Qw, Qb, vm, vr, Rv, Qv,
-                             use_v, wm, Rw, qhat):
+                if not _step(spec, state, dt, noise, vectors, wm, qhat):
                     status = CRASHED_EST
                     break
                 acc += _angle(qhat, q_true[n])
@@ -351,6 +355,6 @@ def run_updates(spec: np.ndarray, r: float, dt: float, vref: np.ndarray, vbody: 
             vr[0, i] = vref[n, i]
             vm[0, i] = vbody[n, i] + sr * z_noise[n, i]
             wm[i] = w_true[n, i] + sr * z_noise[n, 3 + i]
-        _step(kind, chart, cu, pub, qc, eb, w, b, P, dt, Qw, Qb, vm, vr, Rv, Qv, use_v, wm,
-              Rw, qhat)
+        _step((kind, chart, cu, pub), (qc, eb, w, b, P), dt, (Qw, Qb, Rw),
+              (vm, vr, Rv, Qv, use_v), wm, qhat)
     return qhat

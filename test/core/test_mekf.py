@@ -34,10 +34,11 @@ def _kat_step(chart: str, cu: bool) -> tuple:
     P = np.zeros((9, 9))
     P[:6, :6] = P6
     mekf_predict(q, w, P, 6, 0.01, np.eye(3), np.zeros((3, 3)))
-    ok = mekf_update(chart_id(chart), cu, q, w, b, P, 6, np.array([[0.1, -0.2, 0.97]]),
-                     np.array([[0.0, 0.0, 1.0]]), np.array([1e-4 * np.eye(3)]),
-                     np.array([0.01 * np.eye(3)]), np.array([True]),
-                     np.array([0.52, -0.18, 0.12]), True, 1e-4 * np.eye(3))
+    ok = mekf_update(chart_id(chart), cu, (q, w, b), P, 6,
+                     (np.array([[0.1, -0.2, 0.97]]), np.array([[0.0, 0.0, 1.0]]),
+                      np.array([1e-4 * np.eye(3)]), np.array([0.01 * np.eye(3)]),
+                      np.array([True])),
+                     (np.array([0.52, -0.18, 0.12]), True, 1e-4 * np.eye(3)))
     assert ok
     return q, w, P[:6, :6]
 
@@ -97,9 +98,9 @@ def test_kernel_equals_joint_update(nx: int, chart: str, cu: bool) -> None:
         Pk = np.zeros((9, 9))
         Pk[:nx, :nx] = P0
         mekf_predict(qk, wk, Pk, nx, dt, Qw, Qb)
-        assert mekf_update(chart_id(chart), cu, qk, wk, bk, Pk, nx, np.array(vms),
-                           np.array(vrefs), np.array(Rvs), np.array(Qvs),
-                           np.array([True, True]), wm, True, Rw)
+        assert mekf_update(chart_id(chart), cu, (qk, wk, bk), Pk, nx,
+                           (np.array(vms), np.array(vrefs), np.array(Rvs), np.array(Qvs),
+                            np.array([True, True])), (wm, True, Rw))
         np.testing.assert_allclose(qk, qr, atol=1e-10)
         np.testing.assert_allclose(wk, wr, atol=1e-10)
         np.testing.assert_allclose(bk, br, atol=1e-10)
@@ -121,14 +122,14 @@ def test_any_subset_of_sensors() -> None:
         qk, wk, bk = q.copy(), w.copy(), b.copy()
         Pk = np.zeros((9, 9))
         Pk[:6, :6] = P0
-        mekf_update(1, True, qk, wk, bk, Pk, 6, vm, vr, Rv, Rv, np.array(use_v), w + 0.1,
-                    use_w, 1e-4 * np.eye(3))
+        mekf_update(1, True, (qk, wk, bk), Pk, 6, (vm, vr, Rv, Rv, np.array(use_v)),
+                    (w + 0.1, use_w, 1e-4 * np.eye(3)))
         np.testing.assert_allclose(qk, qr, atol=1e-12)
         np.testing.assert_allclose(Pk[:6, :6], Pr, atol=1e-12)
     qk, Pk = q.copy(), np.zeros((9, 9))
     Pk[:6, :6] = P0
-    mekf_update(1, True, qk, w.copy(), b.copy(), Pk, 6, vm, vr, Rv, Rv, np.array([False]), w,
-                False, 1e-4 * np.eye(3))
+    mekf_update(1, True, (qk, w.copy(), b.copy()), Pk, 6, (vm, vr, Rv, Rv, np.array([False])),
+                (w, False, 1e-4 * np.eye(3)))
     np.testing.assert_allclose(qk, q, atol=1e-15)
     np.testing.assert_allclose(Pk[:6, :6], P0, atol=1e-15)
 
@@ -137,9 +138,9 @@ def test_not_positive_definite_is_reported_not_nan() -> None:
     q, w, b, _ = _random_case(np.random.default_rng(1), 6)
     P = np.zeros((9, 9))
     P[0, 0] = -1.0  # corrupt
-    ok = mekf_update(1, True, q, w, b, P, 6, np.array([[0, 0, 1.0]]), np.array([[0, 0, 1.0]]),
-                     np.zeros((1, 3, 3)), np.zeros((1, 3, 3)), np.array([True]), w, False,
-                     np.eye(3))
+    ok = mekf_update(1, True, (q, w, b), P, 6,
+                     (np.array([[0, 0, 1.0]]), np.array([[0, 0, 1.0]]), np.zeros((1, 3, 3)),
+                      np.zeros((1, 3, 3)), np.array([True])), (w, False, np.eye(3)))
     assert not ok
     assert np.all(np.isfinite(q)) and np.all(np.isfinite(P))
 
@@ -168,8 +169,8 @@ def test_update_equals_public_blocks(nx: int) -> None:
             assert mekf_gyro_update(Pk, nx, dx, wk, bk, wm, Rw, np.inf) >= 0
             mekf_apply(2, True, qk, wk, bk, Pk, nx, dx)
         else:
-            assert mekf_update(2, True, qk, wk, bk, Pk, nx, vms, vrefs, Rv, Qv,
-                               np.array([True, True]), wm, True, Rw)
+            assert mekf_update(2, True, (qk, wk, bk), Pk, nx,
+                               (vms, vrefs, Rv, Qv, np.array([True, True])), (wm, True, Rw))
         out.append(np.concatenate([qk, wk, bk, Pk.ravel()]))
     np.testing.assert_array_equal(out[0], out[1])
 

@@ -7,7 +7,7 @@ import pytest
 from spec_reference import mukf_step_ref
 
 from mkf_ros.core.charts import CHART_NAMES, chart_id, from_chart_at
-from mkf_ros.core.mukf import mukf_step, mukf_step_ext
+from mkf_ros.core.mukf import MukfMeasurement, mukf_step, mukf_step_ext
 from mkf_ros.core.quaternion import angle_between, rotmat_np
 
 DT, QW, QB = 0.02, np.diag([1.0, 2.0, 0.5]), 1e-6 * np.eye(3)
@@ -77,9 +77,9 @@ def test_kernel_equals_full_augmentation(nx: int, chart: str, cu: bool, publishe
             qc, e, wk, bk, P = _kernel_state(q, ebar, w, b, P0, nx)
             vm_a, vr_a, Rv_a, Qv_a = _packed(vms, vrefs, Rvs, Qvs)
             use_v = np.array([nvec > 0, nvec > 1])
-            ok = mukf_step(chart_id(chart), cu, published, 1 / 25, qc, e, wk, bk, P, nx, dt, Qw,
-                           Qb, vm_a, vr_a, Rv_a, Qv_a, use_v,
-                           wm if use_w else np.zeros(3), use_w, Rw)
+            ok = mukf_step(chart_id(chart), cu, published, 1 / 25, (qc, e, wk, bk), P, nx, dt,
+                           Qw, Qb, (vm_a, vr_a, Rv_a, Qv_a, use_v),
+                           (wm if use_w else np.zeros(3), use_w, Rw))
             assert ok
             _assert_equals_ref(qc, e, wk, bk, P, nx, ref)
 
@@ -101,10 +101,10 @@ def test_converges_from_the_paper_start(chart: str, cu: bool) -> None:
         v = rng.normal(size=3)
         v /= np.linalg.norm(v)
         vm = rotmat(qt).T @ v + rng.normal(size=3) * np.sqrt(R)
-        mukf_step(chart_id(chart), cu, False, 1 / 25, qc, e, w, b, P, 6, 0.01, np.eye(3),
-                  np.zeros((3, 3)), vm[None], v[None], np.array([R * np.eye(3)]),
-                  np.array([1e-2 * np.eye(3)]), np.array([True]),
-                  rng.normal(size=3) * np.sqrt(R), True, R * np.eye(3))
+        mukf_step(chart_id(chart), cu, False, 1 / 25, (qc, e, w, b), P, 6, 0.01, np.eye(3),
+                  np.zeros((3, 3)), (vm[None], v[None], np.array([R * np.eye(3)]),
+                                     np.array([1e-2 * np.eye(3)]), np.array([True])),
+                  (rng.normal(size=3) * np.sqrt(R), True, R * np.eye(3)))
     assert np.degrees(angle_between(from_chart_at(chart_id(chart), qc, e), qt)) < 1.0
 
 
@@ -144,9 +144,11 @@ def test_ext_equals_full_augmentation(nx: int, chart: str, cu: bool, mode: int) 
         qc, e, wk, bk, P = _kernel_state(q, ebar, w, b, P0, nx)
         vm_a, vr_a, Rv_a, Qv_a = _packed(vms, vrefs, Rvs, Qvs)
         nis = np.zeros(4)
-        ok = mukf_step_ext(chart_id(chart), cu, mode, 1 / 25, qc, e, wk, bk, P, nx, dt, Qw, Qb,
-                           vm_a, vr_a, Rv_a, Qv_a, np.array([nvec > 0, nvec > 1]), wm, use_w, Rw,
-                           np.zeros(3), np.zeros(3), False, 0.0, use_z, z_var, gates, nis)
+        meas = MukfMeasurement(vm_a, vr_a, Rv_a, Qv_a, np.array([nvec > 0, nvec > 1]), wm,
+                               use_w, Rw, np.zeros(3), np.zeros(3), False, 0.0, use_z, z_var,
+                               gates, True, False)
+        ok = mukf_step_ext(chart_id(chart), cu, mode, 1 / 25, (qc, e, wk, bk), P, nx, dt, Qw,
+                           Qb, meas, nis)
         assert ok
         _assert_equals_ref(qc, e, wk, bk, P, nx, ref)
         np.testing.assert_allclose(nis[blocks], nis_ref[:len(blocks)], rtol=1e-9)
@@ -165,13 +167,15 @@ def test_step_equals_ext_without_gates() -> None:
     out = []
     for ext in (False, True):
         qc, e, wk, bk, P = q.copy(), np.full(3, 0.05), w.copy(), b.copy(), P0.copy()
-        common = (1, True, 1, 1 / 25, qc, e, wk, bk, P, 9, 0.01, np.eye(3), 1e-6 * np.eye(3),
-                  vm, vr, Rv, Qv, np.array([True, True]), w + 0.1, True, 1e-4 * np.eye(3))
+        common = (1, True, 1, 1 / 25, (qc, e, wk, bk), P, 9, 0.01, np.eye(3), 1e-6 * np.eye(3))
+        vectors, gyro = (vm, vr, Rv, Qv, np.array([True, True])), (w + 0.1, True,
+                                                                    1e-4 * np.eye(3))
         if ext:
-            assert mukf_step_ext(*common, np.zeros(3), np.zeros(3), False, 0.0, False, 0.0,
-                                 np.full(4, np.inf), np.zeros(4))
+            assert mukf_step_ext(*common, MukfMeasurement(
+                *vectors, *gyro, np.zeros(3), np.zeros(3), False, 0.0, False, 0.0,
+                np.full(4, np.inf), True, False), np.zeros(4))
         else:
-            assert mukf_step(*common)
+            assert mukf_step(*common, vectors, gyro)
         out.append(np.concatenate([qc, e, wk, bk, P.ravel()]))
     np.testing.assert_array_equal(out[0], out[1])
 
@@ -183,10 +187,11 @@ def _ext(chart: str, q, P0, ebar, w, b, vm, vr, Rv, Qv, use_v, heading=None,
     P = np.zeros((9, 9))
     P[:nx, :nx] = P0
     hm, href, var_h = heading if heading is not None else (np.zeros(3), np.zeros(3), 0.0)
-    assert mukf_step_ext(chart_id(chart), cu, 2, 1 / 25, qc, e, wk, bk, P, nx, DT, QW, QB,
-                         vm, vr, Rv, Qv, use_v, wm if wm is not None else w, wm is not None,
-                         1e-4 * np.eye(3), hm, href, heading is not None, var_h, False, 0.0,
-                         np.full(4, np.inf), np.zeros(4), tilt)
+    meas = MukfMeasurement(vm, vr, Rv, Qv, use_v, wm if wm is not None else w, wm is not None,
+                           1e-4 * np.eye(3), hm, href, heading is not None, var_h, False, 0.0,
+                           np.full(4, np.inf), True, tilt)
+    assert mukf_step_ext(chart_id(chart), cu, 2, 1 / 25, (qc, e, wk, bk), P, nx, DT, QW, QB,
+                         meas, np.zeros(4))
     return qc, e, wk, bk, P[:nx, :nx]
 
 
