@@ -366,18 +366,10 @@ def euler_ukf_predict(x: np.ndarray, P: np.ndarray, dt: float, q_w: float) -> bo
 
 
 @jit
-def euler_ukf_update(x: np.ndarray, P: np.ndarray, use: np.ndarray, z: np.ndarray,
-                     Rd: np.ndarray, gates: np.ndarray, nis: np.ndarray) -> bool:
-    """Update, eqs. (30)–(39), over the measurement blocks ``use`` = (accelerometer,
-    gyroscope, heading): sigma points redrawn from (μ̄, Σ̄) (fix 8); ``Z_i = g(χ̄_i)`` with
-    ``g(1:3) = R(χ)ᵀ ẑ`` (eqs. (33)–(35), normalised by g), ``g(4:6) = χ(4:6)`` (the gyro,
-    fix 7) and ``g(7) = ψ`` (heading, extension; ``z[6]`` is the residual ψ_m − ψ̄).
-    ``z`` (7) holds the readings, ``Rd`` (7) the diagonal of R_t. Each block's NIS
-    ``r_bᵀ S_bb⁻¹ r_b`` goes to ``nis``; a block above its gate is left out, the others are
-    fused jointly. Returns False if a factorisation failed (``nis`` of the block −1)."""
-    X, ok = sigma_points(x, P)
-    if not ok:
-        return False
+def _ukf_innovation(X: np.ndarray, x: np.ndarray, z: np.ndarray,
+                    Rd: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Eqs. (33)–(37) over the sigma points ``X``: ``Z_i = g(χ̄_i)``, the cross covariance
+    ``C_xz``, ``S = S_zz + R_t`` and the innovation ``r`` (heading wrapped)."""
     wm, wc = ukf_weights()
     Z = np.empty((UKF_NS, UKF_M))
     for s in range(UKF_NS):
@@ -403,7 +395,15 @@ def euler_ukf_update(x: np.ndarray, P: np.ndarray, use: np.ndarray, z: np.ndarra
     for j in range(6):
         r[j] = z[j] - zh[j]
     r[6] = wrap(z[6] + x[2] - zh[6])
-    # blocks: (first row, rows)
+    return Cxz, Szz, r
+
+
+@jit
+def _ukf_gated_rows(Szz: np.ndarray, r: np.ndarray, use: np.ndarray, gates: np.ndarray,
+                    nis: np.ndarray) -> tuple[np.ndarray, int, bool]:
+    """The rows of the blocks (accelerometer, gyroscope, heading) in use that pass their χ²
+    gate (each block's NIS into ``nis``); returns ``(rows, m, good)``: the rows, their number,
+    False if a block's ``S`` was not positive definite."""
     first = (0, 3, 6)
     size = (3, 3, 1)
     rows = np.zeros(UKF_M, dtype=np.int64)
@@ -425,6 +425,24 @@ def euler_ukf_update(x: np.ndarray, P: np.ndarray, use: np.ndarray, z: np.ndarra
         for k in range(nb):
             rows[m] = f0 + k
             m += 1
+    return rows, m, good
+
+
+@jit
+def euler_ukf_update(x: np.ndarray, P: np.ndarray, use: np.ndarray, z: np.ndarray,
+                     Rd: np.ndarray, gates: np.ndarray, nis: np.ndarray) -> bool:
+    """Update, eqs. (30)–(39), over the measurement blocks ``use`` = (accelerometer,
+    gyroscope, heading): sigma points redrawn from (μ̄, Σ̄) (fix 8); ``Z_i = g(χ̄_i)`` with
+    ``g(1:3) = R(χ)ᵀ ẑ`` (eqs. (33)–(35), normalised by g), ``g(4:6) = χ(4:6)`` (the gyro,
+    fix 7) and ``g(7) = ψ`` (heading, extension; ``z[6]`` is the residual ψ_m − ψ̄).
+    ``z`` (7) holds the readings, ``Rd`` (7) the diagonal of R_t. Each block's NIS
+    ``r_bᵀ S_bb⁻¹ r_b`` goes to ``nis``; a block above its gate is left out, the others are
+    fused jointly. Returns False if a factorisation failed (``nis`` of the block −1)."""
+    X, ok = sigma_points(x, P)
+    if not ok:
+        return False
+    Cxz, Szz, r = _ukf_innovation(X, x, z, Rd)
+    rows, m, good = _ukf_gated_rows(Szz, r, use, gates, nis)
     if m == 0:
         return good
     Ss = np.empty((m, m))

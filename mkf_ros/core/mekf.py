@@ -255,7 +255,6 @@ def _joseph_projected(P: np.ndarray, nx: int, dx: np.ndarray, work: np.ndarray, 
     go, nis, Si = _innovation_test(work, nx, r, gate)
     if not go:
         return nis
-    s0 = 2 * nx
     ng = nx // 3
     for i in range(nx):  # K₀
         work[nx + i, 0], work[nx + i, 1], work[nx + i, 2] = _gain_row(work, i, Si)
@@ -270,6 +269,18 @@ def _joseph_projected(P: np.ndarray, nx: int, dx: np.ndarray, work: np.ndarray, 
             dx[i] += work[nx + i, 0] * r[0] + work[nx + i, 1] * r[1] + work[nx + i, 2] * r[2]
         _joseph(P, nx, work, H_VECTOR, vb)
         return nis
+    _projected_correction(P, nx, dx, work, r, u, Si)
+    return nis
+
+
+@jit_inline
+def _projected_correction(P: np.ndarray, nx: int, dx: np.ndarray, work: np.ndarray, r: tuple,
+                          u: tuple, Si: tuple) -> None:
+    """:func:`_joseph_projected`'s correction and covariance by the expansion (the exact
+    ``K₀`` in ``work``): ``Δx_g += (I − u uᵀ) K₀_g r`` and
+    ``P_gh ← P_gh − M_gh + c_gh u uᵀ``."""
+    s0 = 2 * nx
+    ng = nx // 3
     for g in range(ng):
         # Δx_g += (I − u uᵀ) K₀_g r
         k = nx + 3 * g
@@ -300,7 +311,6 @@ def _joseph_projected(P: np.ndarray, nx: int, dx: np.ndarray, work: np.ndarray, 
                  + work[s0 + 6 + i // 3, j // 3] * cu * u[j % 3])
             P[i, j] = p
             P[j, i] = p
-    return nis
 
 
 @jit_inline
@@ -420,17 +430,9 @@ def mekf_heading_update_t(
 ) -> float:
     """:func:`mekf_heading_update` on tuples (``R`` a tuple of rows)."""
     psi, _ = heading_residual_t(R, m_body, ref)
-    # horizontal part of the field in world axes, and d = R(q̄)ᵀ (m_y, −m_x, 0)/|m_h|²
-    mx = R[0][0] * m_body[0] + R[0][1] * m_body[1] + R[0][2] * m_body[2]
-    my = R[1][0] * m_body[0] + R[1][1] * m_body[1] + R[1][2] * m_body[2]
-    h2 = mx * mx + my * my
-    if not h2 > 0.0:
+    ok, He = _heading_jacobian(R, m_body)
+    if not ok:
         return -1.0
-    c0, c1 = my / h2, -mx / h2
-    d = (R[0][0] * c0 + R[1][0] * c1, R[0][1] * c0 + R[1][1] * c1, R[0][2] * c0 + R[1][2] * c1)
-    # H_e = −(d × m): ∂ψ/∂e of ψ(q̄ * δ(e)), R(q̄ δ) m ≈ R(q̄)(m + e × m)
-    He = (-(d[1] * m_body[2] - d[2] * m_body[1]), -(d[2] * m_body[0] - d[0] * m_body[2]),
-          -(d[0] * m_body[1] - d[1] * m_body[0]))
     r = -psi - (He[0] * dx[0] + He[1] * dx[1] + He[2] * dx[2])  # 0 − h(x̄ + Δx)
     # v = P Hᵀ (attitude columns only); S = H P Hᵀ + var
     v = np.empty(NX_MAX_HEADING)
@@ -451,6 +453,33 @@ def mekf_heading_update_t(
         k[o], k[o + 1], k[o + 2] = u[0] * ku, u[1] * ku, u[2] * ku
     for i in range(nx):
         dx[i] += k[i] * r
+    _heading_covariance(P, nx, He, k, v, S, var)
+    return nis
+
+
+@jit_inline
+def _heading_jacobian(R: tuple, m_body: tuple) -> tuple[bool, tuple]:
+    """``H_e = −(d × m)``, ``d = R(q̄)ᵀ (m_y, −m_x, 0)/|m_h|²`` (``m_x, m_y`` the horizontal
+    part of the field in world axes): ``∂ψ/∂e`` of ``ψ(q̄ * δ(e))``,
+    ``R(q̄ δ) m ≈ R(q̄)(m + e × m)``. False when the field has no horizontal part."""
+    mx = R[0][0] * m_body[0] + R[0][1] * m_body[1] + R[0][2] * m_body[2]
+    my = R[1][0] * m_body[0] + R[1][1] * m_body[1] + R[1][2] * m_body[2]
+    h2 = mx * mx + my * my
+    if not h2 > 0.0:
+        return False, (0.0, 0.0, 0.0)
+    c0, c1 = my / h2, -mx / h2
+    d = (R[0][0] * c0 + R[1][0] * c1, R[0][1] * c0 + R[1][1] * c1, R[0][2] * c0 + R[1][2] * c1)
+    return True, (-(d[1] * m_body[2] - d[2] * m_body[1]), -(d[2] * m_body[0] - d[0] * m_body[2]),
+                  -(d[0] * m_body[1] - d[1] * m_body[0]))
+
+
+@jit_inline
+def _heading_covariance(P: np.ndarray, nx: int, He: tuple, k: np.ndarray, v: np.ndarray,
+                        S: float, var: float) -> None:
+    """The heading update's covariance for its (projected) gain ``k`` (``v = P Hᵀ``), the
+    Joseph form, valid for any gain: ``P − k vᵀ − v kᵀ + S k kᵀ``; as the product (see
+    :func:`_joseph`) where ``var`` is too small against the prior (:data:`JOSEPH_TAU`).
+    Overwrites ``v`` then."""
     tr = S
     for i in range(nx):
         tr += P[i, i]
@@ -465,14 +494,12 @@ def mekf_heading_update_t(
                 p = P[i, j] - v[i] * k[j]
                 P[i, j] = p
                 P[j, i] = p
-        return nis
-    # Joseph form for any gain: P − K vᵀ − v Kᵀ + S K Kᵀ
+        return
     for i in range(nx):
         for j in range(i, nx):
             p = P[i, j] - k[i] * v[j] - v[i] * k[j] + S * k[i] * k[j]
             P[i, j] = p
             P[j, i] = p
-    return nis
 
 
 NX_MAX_HEADING = 9

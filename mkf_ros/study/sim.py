@@ -266,76 +266,92 @@ def run_trajectory(specs: np.ndarray, rs: np.ndarray, dt: float, convergence: tu
     the precomputed truth. Outputs: mean error ``(1/(T f)) Σ θ_n`` in rad (NaN if crashed), the
     number of convergence updates, and the status code.
     """
-    q0, sigma_v, conv_seed, cap = convergence
-    q_true, w_true, vref, vbody, z_noise = truth
     out_err, out_conv, out_status = out
-    theta0 = np.deg2rad(THETA_E0_DEG)
     Qw, Qb, Rw, Rv, Qv = _filter_noise()
     use_v, vm, vr, wm, qc, eb, w, b, P, qhat = _buffers()
-    d = np.empty(3)
-    n_est = q_true.shape[0]
     for iv in range(specs.shape[0]):
         kind, chart = specs[iv, 0], specs[iv, 1]
         cu, pub = specs[iv, 2] != 0, specs[iv, 3] != 0
-        spec = (kind, chart, cu, pub)
-        state, noise, vectors = (qc, eb, w, b, P), (Qw, Qb, Rw), (vm, vr, Rv, Qv, use_v)
+        run = ((kind, chart, cu, pub), (qc, eb, w, b, P), dt, (Qw, Qb, Rw),
+               (vm, vr, Rv, Qv, use_v), wm, qhat)
         for ir in range(rs.shape[0]):
             r = rs[ir]
-            sr = np.sqrt(r)
             _set_grade(Rw, Rv, r)
             _init_state(kind, qc, eb, w, P)
-            # §7.2 step 2: convergence phase
-            np.random.seed(conv_seed)
-            status = NON_CONVERGED
-            k = 0
-            same = 0  # consecutive updates that left diag(P_ee) unchanged
-            p_prev = np.empty(3)
-            for i in range(3):
-                p_prev[i] = P[i, i]
-            while k < cap:
-                _unit_vector(np.random.standard_normal(), np.random.standard_normal(),
-                             np.random.standard_normal(), vr[0])
-                for i in range(3):
-                    d[i] = vr[0, i] + sigma_v * np.random.standard_normal()
-                _body_of(q0, d, vm[0])
-                for i in range(3):
-                    vm[0, i] += sr * np.random.standard_normal()
-                for i in range(3):
-                    wm[i] = sr * np.random.standard_normal()
-                k += 1
-                if not _step(spec, state, dt, noise, vectors, wm, qhat):
-                    status = CRASHED_CONV
-                    break
-                if _angle(qhat, q0) < theta0:
-                    status = OK
-                    break
-                moved = False
-                for i in range(3):
-                    if abs(P[i, i] - p_prev[i]) > STALL_RTOL * abs(p_prev[i]):
-                        moved = True
-                    p_prev[i] = P[i, i]
-                same = 0 if moved else same + 1
-                if same >= STALL_WINDOW:
-                    status = STALLED
-                    break
+            k, status = _converge(run, convergence, np.sqrt(r))
             out_conv[iv, ir] = k
             if status == CRASHED_CONV:
                 out_status[iv, ir] = status
                 out_err[iv, ir] = np.nan
                 continue
-            # §7.2 step 3: estimation phase on the shared truth
-            acc = 0.0
-            for n in range(n_est):
-                for i in range(3):
-                    vr[0, i] = vref[n, i]
-                    vm[0, i] = vbody[n, i] + sr * z_noise[n, i]
-                    wm[i] = w_true[n, i] + sr * z_noise[n, 3 + i]
-                if not _step(spec, state, dt, noise, vectors, wm, qhat):
-                    status = CRASHED_EST
-                    break
-                acc += _angle(qhat, q_true[n])
+            status, err = _estimate(run, truth, np.sqrt(r), status)
             out_status[iv, ir] = status
-            out_err[iv, ir] = np.nan if status == CRASHED_EST else acc / n_est
+            out_err[iv, ir] = err
+
+
+@jit
+def _converge(run: tuple, convergence: tuple, sr: float) -> tuple[int, int]:
+    """§7.2 step 2, the convergence phase of one variant (``run``: the arguments of
+    :func:`_step`) at one sensor grade (``sr``, the noise's standard deviation): returns the
+    number of updates and the status."""
+    spec, state, dt, noise, vectors, wm, qhat = run
+    q0, sigma_v, conv_seed, cap = convergence
+    vm, vr = vectors[0], vectors[1]
+    P = state[4]
+    theta0 = np.deg2rad(THETA_E0_DEG)
+    d = np.empty(3)
+    np.random.seed(conv_seed)
+    status = NON_CONVERGED
+    k = 0
+    same = 0  # consecutive updates that left diag(P_ee) unchanged
+    p_prev = np.empty(3)
+    for i in range(3):
+        p_prev[i] = P[i, i]
+    while k < cap:
+        _unit_vector(np.random.standard_normal(), np.random.standard_normal(),
+                     np.random.standard_normal(), vr[0])
+        for i in range(3):
+            d[i] = vr[0, i] + sigma_v * np.random.standard_normal()
+        _body_of(q0, d, vm[0])
+        for i in range(3):
+            vm[0, i] += sr * np.random.standard_normal()
+        for i in range(3):
+            wm[i] = sr * np.random.standard_normal()
+        k += 1
+        if not _step(spec, state, dt, noise, vectors, wm, qhat):
+            return k, CRASHED_CONV
+        if _angle(qhat, q0) < theta0:
+            return k, OK
+        moved = False
+        for i in range(3):
+            if abs(P[i, i] - p_prev[i]) > STALL_RTOL * abs(p_prev[i]):
+                moved = True
+            p_prev[i] = P[i, i]
+        same = 0 if moved else same + 1
+        if same >= STALL_WINDOW:
+            return k, STALLED
+    return k, status
+
+
+@jit
+def _estimate(run: tuple, truth: tuple, sr: float, status: int) -> tuple[int, float]:
+    """§7.2 step 3, the estimation phase on the shared truth: returns the status (``status``
+    of the convergence phase, or :data:`CRASHED_EST`) and the mean error (rad; NaN if
+    crashed)."""
+    spec, state, dt, noise, vectors, wm, qhat = run
+    q_true, w_true, vref, vbody, z_noise = truth
+    vm, vr = vectors[0], vectors[1]
+    n_est = q_true.shape[0]
+    acc = 0.0
+    for n in range(n_est):
+        for i in range(3):
+            vr[0, i] = vref[n, i]
+            vm[0, i] = vbody[n, i] + sr * z_noise[n, i]
+            wm[i] = w_true[n, i] + sr * z_noise[n, 3 + i]
+        if not _step(spec, state, dt, noise, vectors, wm, qhat):
+            return CRASHED_EST, np.nan
+        acc += _angle(qhat, q_true[n])
+    return status, acc / n_est
 
 
 @jit
