@@ -134,8 +134,43 @@ FIRST_COMPILE_TIME = "about three minutes"
 
 #: The kernel families :func:`warmup` can prepare: :func:`estimate`'s batch loop,
 #: :class:`~mkf_ros.core.filter.AttitudeFilter`'s step, and the streaming front end of the node
-#: and of ``mkf process``. Each compiles the whole filter once (numba inlines it into the loop).
+#: and of ``mkf process``. They share the filter's compile units (:mod:`mkf_ros.core._jit`).
 WARMUP_PARTS = ("estimate", "filter", "stream")
+
+
+def compile_entries(part: str) -> None:
+    """Compile the compiled loops of ``part`` (:data:`WARMUP_PARTS`) for the argument types
+    the front ends call them with, without running them: they take the filter's compile units
+    as addresses, so they compile without those (the install-time compile,
+    :func:`mkf_ros.core._jit.precompile`, does both at once). Nothing to do without JIT."""
+    import numba
+
+    from mkf_ros.core import filter as kf
+    from mkf_ros.stream import kernel as sk
+    from mkf_ros.stream.adapter import StreamAdapter
+
+    if kf.JIT_DISABLED:
+        return
+    table = np.zeros(len(kf.KERNEL_TABLE_ORDER), dtype=np.int64)
+    arrays = AttitudeFilter().kernel_arrays()
+    v3, m33, rows = np.zeros(3), np.zeros((3, 3)), np.zeros((1, 3))
+    calls: list[tuple] = []
+    if part == "estimate":
+        out = kf.BatchOutputs(np.zeros((1, 4)), np.zeros((1, 3, 3)), rows, rows, rows,
+                              np.zeros(1, dtype=np.bool_))
+        calls = [(kf.run_batch, (table, *arrays, np.zeros(1), rows, rows, rows, out))]
+    elif part == "filter":
+        calls = [(kf.sensor_step, (table, *arrays, 0.0, v3, v3, v3)),
+                 (kf.world_output, (table, arrays.cfg, arrays.st, np.zeros(4), m33)),
+                 (kf.to_canonical_entry, (arrays.cfg, arrays.st)),
+                 (kf.from_canonical_entry, (arrays.cfg, arrays.st))]
+    elif part == "stream":
+        s = StreamAdapter()
+        calls = [(sk.run_events, (table, *arrays, s._npar, s._ts, s._acnt, s._ev[sk.EV_IMU],
+                                  s._out, 0, 1)),
+                 (sk.covariance_rows, (np.zeros((1, 9)), 0.0, np.zeros((0, 9))))]
+    for dispatcher, args in calls:
+        dispatcher.compile(tuple(numba.typeof(a) for a in args))
 
 
 def warmup(parts: tuple[str, ...] | list[str] = WARMUP_PARTS) -> None:

@@ -190,20 +190,22 @@ def _prune_old_caches(root: Path, keep_days: float = 7.0) -> None:
         pass
 
 
-#: The kernel families :func:`mkf_ros.api.warmup` prepares after the units (the compiled loops
-#: that take them): the second phase of :func:`precompile`.
-_ENTRY_PARTS = ("estimate", "filter", "stream")
+#: The compiled loops that take the units (:func:`mkf_ros.api.compile_entries`), and their
+#: compile times on the reference machine (``./run bench compile_time --tasks``).
+_ENTRY_COSTS = {"estimate": 1.6, "filter": 3.0, "stream": 11.0}
 
 
 def compile_tasks() -> tuple[list[str], list[str]]:
-    """The install-time compile as two lists of independent tasks: every :class:`Unit`
-    (``"unit:MODULE.NAME"``, largest first: they compile in any order), then the compiled
-    loops that take them (``"warmup:PART"``, :func:`mkf_ros.api.warmup`)."""
+    """The install-time compile as two lists of tasks: first every :class:`Unit`
+    (``"unit:MODULE.NAME"``) and the compiled loops that take them (``"entries:PART"``,
+    :func:`mkf_ros.api.compile_entries`), independent of each other, largest first (so that
+    the processes end together); then ``"warmup:all"`` (:func:`mkf_ros.api.warmup`: loads
+    them all and compiles whatever they missed)."""
     import mkf_ros.api  # noqa: F401  (defines every unit)
 
-    return [f"unit:{u.__module__}.{u.__qualname__}"
-            for u in sorted(UNITS, key=lambda u: -u.cost)], [
-        f"warmup:{p}" for p in _ENTRY_PARTS]
+    costs = {f"unit:{u.__module__}.{u.__qualname__}": u.cost for u in UNITS}
+    costs.update({f"entries:{p}": c for p, c in _ENTRY_COSTS.items()})
+    return sorted(costs, key=lambda t: -costs[t]), ["warmup:all"]
 
 
 def run_compile_task(task: str) -> tuple[str, float, float, int]:
@@ -218,8 +220,10 @@ def run_compile_task(task: str) -> tuple[str, float, float, int]:
     kind, name = task.split(":", 1)
     if kind == "unit":
         _ = next(u for u in UNITS if f"{u.__module__}.{u.__qualname__}" == name).compiled
+    elif kind == "entries":
+        api.compile_entries(name)
     else:
-        api.warmup((name,))
+        api.warmup()
     return (task, time.perf_counter() - t0, time.process_time() - c0,
             resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)
 
@@ -241,8 +245,8 @@ def precompile(root: Path, jobs: int | None = None,
                report: Callable[[tuple[str, float, float, int]], object] | None = None) -> None:
     """Compile every kernel into ``root/numba-<hash>/`` (the install-time step; see the module
     docstring), dropping other versions there: the tasks of :func:`compile_tasks`, each in a
-    fresh process whose cache is ``root``, ``jobs`` at a time (:func:`compile_jobs`), the
-    units first. ``report`` receives each task's result (:func:`run_compile_task`)."""
+    fresh process whose cache is ``root``, ``jobs`` at a time (:func:`compile_jobs`).
+    ``report`` receives each task's result (:func:`run_compile_task`)."""
     import concurrent.futures
     import multiprocessing
 

@@ -148,8 +148,8 @@ def output(c: np.record, s: np.record) -> tuple[tuple, tuple]:
 Kernels = namedtuple("Kernels", ("step", "units", "output"))
 KERNELS_T = tuple_type([step.type, UNITS_T, output.type], Kernels)
 #: Every unit of :data:`Kernels`, in the order of :func:`kernel_table`'s addresses.
-_TABLE = (step, start, acc_recovery, mag_recovery, mukf_update, baseline_step, export, restore,
-          output)
+KERNEL_TABLE_ORDER = _TABLE = (step, start, acc_recovery, mag_recovery, mukf_update,
+                               baseline_step, export, restore, output)
 _table: list = []
 
 
@@ -331,12 +331,14 @@ def run_batch(table: np.ndarray, cfg: np.ndarray, st: np.ndarray, cnt: np.ndarra
 
 
 @jit
-def _to_canonical(cfg: np.ndarray, st: np.ndarray) -> None:
+def to_canonical_entry(cfg: np.ndarray, st: np.ndarray) -> None:
+    """:func:`~mkf_ros.core.baseline_glue.to_canonical` of the filter's record arrays."""
     to_canonical(cfg[0], st[0])
 
 
 @jit
-def _from_canonical(cfg: np.ndarray, st: np.ndarray) -> None:
+def from_canonical_entry(cfg: np.ndarray, st: np.ndarray) -> None:
+    """:func:`~mkf_ros.core.baseline_glue.from_canonical` of the filter's record arrays."""
     from_canonical(cfg[0], st[0])
 
 
@@ -399,7 +401,7 @@ class AttitudeFilter:
         old_c, c, s = record(self._cfg), record(cfg), record(self._st)
         switch = new.algorithm != self._params.algorithm
         if switch or old_c.algorithm < ALGO_EULER_KF:
-            _to_canonical(self._cfg, self._st)
+            to_canonical_entry(self._cfg, self._st)
         if c.nx > old_c.nx and s.initialized:
             s.P[6:9, :] = 0.0
             s.P[:, 6:9] = 0.0
@@ -409,7 +411,7 @@ class AttitudeFilter:
         ):
             s.heading_fixed = False  # re-establish heading from the next magnetometer sample
         if switch:
-            _from_canonical(cfg, self._st)
+            from_canonical_entry(cfg, self._st)
         self._params, self._cfg = new, cfg
         return new
 

@@ -170,14 +170,15 @@ def _needs_joseph(P: np.ndarray, nx: int, work: np.ndarray) -> bool:
     return not lo >= JOSEPH_TAU * tr
 
 
-@jit_inline
+@jit
 def _joseph(P: np.ndarray, nx: int, work: np.ndarray, hk: int, vb: tuple) -> None:
     """``P ← (I − K H) P (I − K H)ᵀ + K R Kᵀ`` for any gain ``K`` (rows ``nx:2nx`` of ``work``),
     ``R`` in rows ``2nx+9…``, ``H`` of kind ``hk`` (``vb`` = v̄ for :data:`H_VECTOR`): PSD for
     any gain, and computed as that product, so that the rounding of the large prior terms is
     multiplied by the small ``I − K H`` rather than left in a difference: ``B = P − K (PHᵀ)ᵀ``
     (``= (I − K H) P``, in place), then ``P' = B − (B Hᵀ − K R) Kᵀ`` (the upper triangle from
-    ``B``'s, mirrored). Overwrites ``P Hᵀ`` (rows ``0:nx``)."""
+    ``B``'s, mirrored). Overwrites ``P Hᵀ`` (rows ``0:nx``). Compiled on its own, not inlined:
+    the rare ill-conditioned case, called from several updates."""
     r0 = 2 * nx + 9
     for i in range(nx):  # B = P − K Cᵀ, C = P Hᵀ (full: B is not symmetric)
         k0, k1, k2 = work[nx + i, 0], work[nx + i, 1], work[nx + i, 2]
