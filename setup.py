@@ -18,12 +18,12 @@ package_name = "mkf_ros"
 
 
 class BuildPyWithKernels(build_py):
-    """``build_py`` plus the install-time kernel compile (``mkf_ros.core._jit.precompile``):
-    the numba kernels are compiled into the built package (``mkf_ros/_kernels/``) so that the
-    first start of the installed node loads them instead of compiling for minutes. Skipped,
-    with a note, when numba cannot be imported by the build (e.g. pip's isolated build env;
-    use ``pip install --no-build-isolation`` or ``colcon build``) or when
-    ``MKF_ROS_NO_PRECOMPILE=1``; the kernels are then compiled on first use."""
+    """``build_py`` plus the install-time kernel compile (``mkf_ros.core._jit.precompile``,
+    about a minute on 2 cores): the numba kernels are compiled into the built package
+    (``mkf_ros/_kernels/``) so that the first start of the installed node loads them instead
+    of compiling. pip's isolated build environment gets numba and NumPy from pyproject.toml's
+    build requirements. Skipped, with a note, when numba cannot be imported by the build or
+    when ``MKF_ROS_NO_PRECOMPILE=1``; the kernels are then compiled on first use."""
 
     def run(self) -> None:
         super().run()
@@ -44,8 +44,8 @@ class BuildPyWithKernels(build_py):
         here = os.path.join(os.path.dirname(os.path.abspath(__file__)), package_name, "_kernels")
         if os.path.isdir(here):  # a checkout that compiled them already (./run setup): reuse
             shutil.copytree(here, os.path.join(lib, package_name, "_kernels"), dirs_exist_ok=True)
-        print("mkf_ros: compiling the filter kernels into the package (minutes; once per "
-              "kernel version) ...", file=sys.stderr)
+        print("mkf_ros: compiling the filter kernels into the package (about a minute; once "
+              "per kernel version) ...", file=sys.stderr)
         subprocess.run([sys.executable, "-c", code], env=env, cwd=lib, check=True)
 
 

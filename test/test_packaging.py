@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import ast
 import contextlib
+import json
 import os
 import shutil
 import subprocess
@@ -373,3 +374,57 @@ def test_rclpy_pub_sub_in_one_process(ros_context) -> None:
         executor.shutdown()
         talker.destroy_node()
         listener.destroy_node()
+
+
+# ---------------------------------------------------------------- (c) pip, build isolation
+
+_LOAD_CHECK = """
+import json, numba.core.event as ev
+passes = [0]
+class Count(ev.Listener):  # a compiler pass runs only when something compiles, not on a load
+    def on_start(self, event):
+        passes[0] += 1
+    def on_end(self, event):
+        pass
+ev.register("numba:run_pass", Count())
+import mkf_ros
+from mkf_ros.core import _jit
+mkf_ros.warmup()
+print(json.dumps({"file": mkf_ros.__file__, "passes": passes[0],
+                  "packaged": (_jit.PACKAGED_CACHE_ROOT / f"numba-{_jit.KERNEL_HASH}").is_dir()}))
+"""
+
+
+def test_pip_install_with_build_isolation_ships_the_compiled_kernels(tmp_path: Path) -> None:
+    """``pip install .`` with pip's default build isolation, the most common install path: the
+    isolated build environment gets numba from pyproject.toml's build requirements, so
+    ``build_py`` compiles the kernels into the package, and the first start of the installed
+    package loads them from there into an empty user cache (no compiler pass runs). The build
+    environment is held to the running numba and NumPy (``PIP_CONSTRAINT``, which pip passes
+    on to it): kernels compiled by another numba version are not loaded."""
+    import numba
+    import numpy
+
+    src = tmp_path / "src"  # pip builds a local project in place: keep the checkout clean
+    shutil.copytree(REPO, src, ignore=shutil.ignore_patterns(
+        ".git", ".venv", "build", "install", "log", "*.egg-info", "__pycache__",
+        ".pytest_cache", ".ruff_cache", ".mypy_cache", ".hypothesis"))
+    constraints = tmp_path / "constraints.txt"
+    constraints.write_text(f"numba=={numba.__version__}\nnumpy=={numpy.__version__}\n")
+    target = tmp_path / "site"
+    env = dict(os.environ, PIP_CONSTRAINT=str(constraints))
+    env.pop("MKF_ROS_NO_PRECOMPILE", None)
+    proc = subprocess.run([sys.executable, "-m", "pip", "install", "--no-deps", "--target",
+                           str(target), str(src)], env=env, capture_output=True, text=True,
+                          timeout=900, check=False)
+    assert proc.returncode == 0, (
+        f"pip install failed:\n{proc.stdout[-3000:]}\n{proc.stderr[-3000:]}")
+    assert "numba not importable" not in proc.stderr, proc.stderr[-2000:]
+    run_env = dict(os.environ, PYTHONPATH=str(target),
+                   MKF_ROS_CACHE_DIR=str(tmp_path / "user-cache"))
+    out = subprocess.run([sys.executable, "-c", _LOAD_CHECK], env=run_env, cwd=tmp_path,
+                         capture_output=True, text=True, timeout=300, check=True)
+    got = json.loads(out.stdout.strip().splitlines()[-1])
+    assert Path(got["file"]).is_relative_to(target), got
+    assert got["packaged"], f"no compiled kernels in the installed package: {got}"
+    assert got["passes"] == 0, f"the first start compiled ({got['passes']} compiler passes)"
