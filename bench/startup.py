@@ -124,8 +124,10 @@ def installed_estimator(work: Path, precompile: bool) -> tuple[list[str], float]
     # the layered venv sees this environment's packages (rclpy, numba, ...) after its own
     Path(site, "_parent_env.pth").write_text(sysconfig.get_paths()["purelib"] + "\n")
     wheel = next(wheels.glob("mkf_ros-*.whl"))
-    subprocess.run([sys.executable, "-m", "pip", "install", "--no-deps", "-q", "--prefix",
-                    str(venv), str(wheel)], check=True)
+    # --ignore-installed: otherwise pip, seeing mkf_ros installed in this environment (the
+    # checkout's editable install), uninstalls it from here
+    subprocess.run([sys.executable, "-m", "pip", "install", "--no-deps", "--ignore-installed",
+                    "-q", "--prefix", str(venv), str(wheel)], check=True)
     where = subprocess.run([str(vpy), "-c", "import mkf_ros; print(mkf_ros.__file__)"],
                            check=True, capture_output=True, text=True, cwd=work).stdout.strip()
     assert Path(where).is_relative_to(venv), f"the layered venv imports mkf_ros from {where}"

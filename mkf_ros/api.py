@@ -126,10 +126,11 @@ def estimate(
 
 
 #: How long compiling the kernels takes where the install-time compile did not run (see
-#: :mod:`mkf_ros.core._jit`; ``pip install`` from an isolated build env, ``colcon build
-#: --symlink-install``): the node's streaming kernels alone took 157 s on the 2-core reference
-#: machine (``./run bench startup --installed --no-precompile``); the messages quote it.
-FIRST_COMPILE_TIME = "about three minutes"
+#: :mod:`mkf_ros.core._jit`; ``colcon build --symlink-install``, ``MKF_ROS_NO_PRECOMPILE=1``, a
+#: build environment whose numba differs from the one at run time): the node's first start
+#: took 80 s on the 2-core reference machine (``./run bench startup --installed
+#: --no-precompile``); the messages quote it.
+FIRST_COMPILE_TIME = "about a minute and a half"
 
 
 #: The kernel families :func:`warmup` can prepare: :func:`estimate`'s batch loop,
