@@ -48,6 +48,7 @@ from mkf_ros.core.sensor import (
     step,
 )
 from mkf_ros.core.state import (
+    ACC,
     ALGO_EULER_KF,
     ALGO_MADGWICK,
     ATTITUDE_VAR_UNKNOWN,
@@ -57,6 +58,8 @@ from mkf_ros.core.state import (
     COUNTERS,
     F4,
     F33,
+    GYR,
+    MAG,
     MAX_ACC_G,
     MAX_GYRO_RATE,
     MAX_MAG,
@@ -66,6 +69,7 @@ from mkf_ros.core.state import (
     YAW_VAR_UNKNOWN,
     build_config,
     classify_reading,
+    count_reading,
     new_records,
     record,
 )
@@ -73,9 +77,12 @@ from mkf_ros.core.state import (
 #: The stateful filter and its batch loop, the plausibility contract of a reading and the
 #: kernel interface of compiled front ends.
 __all__ = [
+    "ACC",
     "CONFIG",
     "COUNTERS",
     "COUNTER_NAMES",
+    "GYR",
+    "MAG",
     "MAX_ACC_G",
     "MAX_GYRO_RATE",
     "MAX_MAG",
@@ -89,6 +96,7 @@ __all__ = [
     "bias",
     "bias_variance",
     "classify_reading",
+    "count_reading",
     "gap_count",
     "gravity",
     "heading_fixed",

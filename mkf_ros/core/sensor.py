@@ -59,6 +59,7 @@ from mkf_ros.core.quaternion import (
     t4,
 )
 from mkf_ros.core.state import (
+    ACC,
     ALGO_EULER_KF,
     ALGO_MEKF,
     ALGO_MUKF,
@@ -67,11 +68,12 @@ from mkf_ros.core.state import (
     F3,
     F33,
     FUSION_T,
-    INVALID,
+    GYR,
     LP_ACC,
     LP_MAG,
     LP_RATE,
     LP_REST,
+    MAG,
     MAG_REF_SAMPLES,
     MAX_ACC_G,
     MAX_GYRO_RATE,
@@ -88,6 +90,7 @@ from mkf_ros.core.state import (
     YAW_VAR_UNKNOWN,
     Fusion,
     classify_reading,
+    count_reading,
     inflate_world,
     iso33,
     mag_yaw_var,
@@ -181,25 +184,6 @@ def calibrate_mag(c: np.record, mag: tuple) -> tuple:
 
 
 @hot
-def _count_reading(k: np.record, cls: int, sensor: int) -> None:
-    """Count a missing or invalid reading of ``sensor`` (0 gyro, 1 accelerometer, 2 field)."""
-    if cls == MISSING:
-        if sensor == 0:
-            k.gyr_missing += 1
-        elif sensor == 1:
-            k.acc_missing += 1
-        else:
-            k.mag_missing += 1
-    elif cls == INVALID:
-        if sensor == 0:
-            k.gyr_invalid += 1
-        elif sensor == 1:
-            k.acc_invalid += 1
-        else:
-            k.mag_invalid += 1
-
-
-@hot
 def _read(c: np.record, k: np.record, gyr: tuple, acc: tuple, mag: tuple) -> tuple:
     """Classify the sample's three readings (:func:`~mkf_ros.core.state.classify_reading`,
     counted) and calibrate the field. Returns ``(gs, as_, ms, m_body, m_norm)``: the classes,
@@ -208,10 +192,10 @@ def _read(c: np.record, k: np.record, gyr: tuple, acc: tuple, mag: tuple) -> tup
     as_ = classify_reading(acc, True, MAX_ACC_G * c.gravity)
     m_cal = calibrate_mag(c, mag) if c.use_mag else mag
     ms = classify_reading(m_cal, True, MAX_MAG) if c.use_mag else MISSING
-    _count_reading(k, gs, 0)
-    _count_reading(k, as_, 1)
+    count_reading(k, gs, GYR)
+    count_reading(k, as_, ACC)
     if c.use_mag:
-        _count_reading(k, ms, 2)
+        count_reading(k, ms, MAG)
     if ms != VALID:
         return gs, as_, ms, ZERO3, 0.0
     m_norm = np.sqrt(m_cal[0] ** 2 + m_cal[1] ** 2 + m_cal[2] ** 2)

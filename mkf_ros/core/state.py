@@ -242,6 +242,31 @@ def classify_reading(v: tuple, is_vector: bool, limit: float) -> int:
     return VALID
 
 
+#: Sensors, for :func:`count_reading`.
+GYR, ACC, MAG = 0, 1, 2
+
+
+@jit
+def count_reading(k: np.record, cls: int, sensor: int) -> None:
+    """Count a :data:`MISSING` or :data:`INVALID` reading of ``sensor`` (:data:`GYR`,
+    :data:`ACC`, :data:`MAG`) in ``k``: the filter's counters or the stream adapter's (both
+    name them ``gyr_missing`` … ``mag_invalid``)."""
+    if cls == MISSING:
+        if sensor == GYR:
+            k.gyr_missing += 1
+        elif sensor == ACC:
+            k.acc_missing += 1
+        else:
+            k.mag_missing += 1
+    elif cls == INVALID:
+        if sensor == GYR:
+            k.gyr_invalid += 1
+        elif sensor == ACC:
+            k.acc_invalid += 1
+        else:
+            k.mag_invalid += 1
+
+
 @jit
 def iso33(v: float) -> tuple:
     """The isotropic noise matrix ``v I`` as a tuple of rows."""

@@ -29,6 +29,9 @@ import numpy as np
 
 from mkf_ros.core._jit import jit, jit_inline
 from mkf_ros.core.filter import (
+    ACC,
+    GYR,
+    MAG,
     MAX_ACC_G,
     MAX_GYRO_RATE,
     MAX_MAG,
@@ -36,6 +39,7 @@ from mkf_ros.core.filter import (
     bias,
     bias_variance,
     classify_reading,
+    count_reading,
     gap_count,
     gravity,
     heading_fixed,
@@ -162,8 +166,6 @@ StreamRecords = namedtuple("StreamRecords", ("p", "t", "a"))
 # returns R_DONE or the reset request with the index of the event it stopped at
 _NONE, _OUT, R_TIME_JUMP, R_NONFINITE = 0, 1, 2, 3
 R_DONE = 0
-# sensors, for the input counters
-_GYR, _ACC, _MAG = 0, 1, 2
 
 
 @jit
@@ -177,25 +179,6 @@ def norm3(v: np.ndarray) -> float:
 
 
 @jit
-def _count_input(a: np.record, cls: int, sensor: int) -> None:
-    """Count a missing (1) or invalid (2) reading of ``sensor``."""
-    if cls == 1:
-        if sensor == _GYR:
-            a.gyr_missing += 1
-        elif sensor == _ACC:
-            a.acc_missing += 1
-        else:
-            a.mag_missing += 1
-    elif cls == 2:
-        if sensor == _GYR:
-            a.gyr_invalid += 1
-        elif sensor == _ACC:
-            a.acc_invalid += 1
-        else:
-            a.mag_invalid += 1
-
-
-@jit
 def input_class(a: np.record, v: np.ndarray, sensor: int, is_vector: bool,
                 limit: float) -> int:
     """0 if ``v`` is a usable reading, 1 missing (no reading), 2 invalid; counted. The
@@ -203,7 +186,7 @@ def input_class(a: np.record, v: np.ndarray, sensor: int, is_vector: bool,
     limits (``limit``: a gyro faster than :data:`~mkf_ros.core.filter.MAX_GYRO_RATE` is
     invalid, etc.)."""
     cls = classify_reading((v[0], v[1], v[2]), is_vector, limit)
-    _count_input(a, cls, sensor)
+    count_reading(a, cls, sensor)
     return cls
 
 
@@ -457,7 +440,7 @@ def mag_event(f: FilterRecords, r: StreamRecords, stamp: float, mag: np.ndarray)
     if not uses_mag(f.c):
         a.mag_unused += 1
         return
-    if input_class(a, mag, _MAG, True, MAX_MAG) != 0:
+    if input_class(a, mag, MAG, True, MAX_MAG) != 0:
         return
     m = mag.copy()
     # hard/soft-iron calibration (mag_bias_*, mag_soft_iron) is applied by the core filter
@@ -488,7 +471,7 @@ def acc_event(f: FilterRecords, r: StreamRecords, stamp: float, acc: np.ndarray)
     a combined message: a missing, invalid or implausible sample is counted and not fused."""
     a, t = r.a, r.t
     a.acc_received += 1
-    if input_class(a, acc, _ACC, True, MAX_ACC_G * gravity(f.c)) != 0:
+    if input_class(a, acc, ACC, True, MAX_ACC_G * gravity(f.c)) != 0:
         return
     norm = norm3(acc)
     t.acc_norm = norm
@@ -544,10 +527,10 @@ def _imu_inputs(f: FilterRecords, r: StreamRecords, gyr: np.ndarray,
     accelerometer reading, and one that passed the plausibility of its magnitude
     (``acc_magnitude_tolerance``); counted."""
     a, t = r.a, r.t
-    has_g = input_class(a, gyr, _GYR, False, MAX_GYRO_RATE) == 0
+    has_g = input_class(a, gyr, GYR, False, MAX_GYRO_RATE) == 0
     if has_g and (gyr[0] != 0.0 or gyr[1] != 0.0 or gyr[2] != 0.0):
         t.gyr_seen = True
-    a_cls = 1 if r.p.split else input_class(a, acc, _ACC, True, MAX_ACC_G * gravity(f.c))
+    a_cls = 1 if r.p.split else input_class(a, acc, ACC, True, MAX_ACC_G * gravity(f.c))
     has_a_in = a_cls == 0
     has_a = has_a_in
     if has_a:
