@@ -27,7 +27,7 @@ from mkf_ros.core.baseline_glue import (
     to_canonical,
 )
 from mkf_ros.core.charts import from_chart_t, t_matrix_t
-from mkf_ros.core.linalg import congruence33_t
+from mkf_ros.core.linalg import cap_eigenvalues33_t, congruence33_t
 from mkf_ros.core.params import FilterParams
 from mkf_ros.core.quaternion import (
     qmul_t,
@@ -148,7 +148,13 @@ def output(c: np.record, s: np.record) -> tuple[tuple, tuple]:
     # mean of the two triangles, which the congruence's rounding makes differ by ~1e-16 of
     # the largest element (bit-identical where they agree)
     c01, c02, c12 = 0.5 * (C[0][1] + C[1][0]), 0.5 * (C[0][2] + C[2][0]), 0.5 * (C[1][2] + C[2][1])
-    return q, ((C[0][0] + f2, c01, c02), (c01, C[1][1] + f2, c12), (c02, c12, C[2][2]))
+    C = ((C[0][0] + f2, c01, c02), (c01, C[1][1] + f2, c12), (c02, c12, C[2][2]))
+    # no variance beyond an angle's uniform one about any axis (the MKFs' state is capped
+    # alike, sensor._cap_attitude_variance; a baseline's Euler covariance is not): the upper
+    # triangle mirrored
+    C = cap_eigenvalues33_t(C, YAW_VAR_UNKNOWN)
+    return q, ((C[0][0], C[0][1], C[0][2]), (C[0][1], C[1][1], C[1][2]),
+               (C[0][2], C[1][2], C[2][2]))
 
 
 #: The compiled kernels a front end hands to the compiled loops: :func:`step` and its

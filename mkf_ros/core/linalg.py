@@ -209,3 +209,90 @@ def transpose33_t(A: tuple) -> tuple:
 def congruence33_t(A: tuple, B: tuple) -> tuple:
     """``A B Aᵀ`` for 3×3 tuples of rows."""
     return mul33_t(A, mul33_t(B, transpose33_t(A)))
+
+
+@jit
+def largest_eigh33_t(A: tuple) -> tuple[float, tuple]:
+    """The largest eigenvalue of a symmetric 3×3 ``A`` (tuple of rows) and a unit eigenvector
+    of it: the eigenvalue in closed form (the trigonometric solution of the characteristic
+    cubic), the vector as the longest cross product of two rows of ``A − λ I`` (for a
+    repeated largest eigenvalue, a unit vector orthogonal to the one non-zero row; for
+    ``A = λ I``, the x axis)."""
+    a00, a11, a22 = A[0][0], A[1][1], A[2][2]
+    a01, a02, a12 = 0.5 * (A[0][1] + A[1][0]), 0.5 * (A[0][2] + A[2][0]), 0.5 * (A[1][2] + A[2][1])
+    p1 = a01 * a01 + a02 * a02 + a12 * a12
+    q = (a00 + a11 + a22) / 3.0
+    p2 = (a00 - q) ** 2 + (a11 - q) ** 2 + (a22 - q) ** 2 + 2.0 * p1
+    lam = q
+    if p2 > 0.0:
+        p = np.sqrt(p2 / 6.0)
+        b00, b11, b22 = (a00 - q) / p, (a11 - q) / p, (a22 - q) / p
+        b01, b02, b12 = a01 / p, a02 / p, a12 / p
+        r = 0.5 * (b00 * (b11 * b22 - b12 * b12) - b01 * (b01 * b22 - b12 * b02)
+                   + b02 * (b01 * b12 - b11 * b02))
+        lam = q + 2.0 * p * np.cos(np.arccos(max(-1.0, min(1.0, r))) / 3.0)
+    r0 = (a00 - lam, a01, a02)
+    r1 = (a01, a11 - lam, a12)
+    r2 = (a02, a12, a22 - lam)
+    best = (1.0, 0.0, 0.0)
+    n_best = 0.0
+    for u, v in ((r0, r1), (r0, r2), (r1, r2)):
+        c = (u[1] * v[2] - u[2] * v[1], u[2] * v[0] - u[0] * v[2], u[0] * v[1] - u[1] * v[0])
+        n = c[0] * c[0] + c[1] * c[1] + c[2] * c[2]
+        if n > n_best:
+            best, n_best = c, n
+    scale = max(abs(a00), abs(a11), abs(a22), abs(a01), abs(a02), abs(a12), 1e-300)
+    if n_best <= (1e-12 * scale * scale) ** 2:  # rank ≤ 1: the largest eigenvalue repeats
+        row = r0
+        for rr in (r1, r2):
+            if rr[0] ** 2 + rr[1] ** 2 + rr[2] ** 2 > row[0] ** 2 + row[1] ** 2 + row[2] ** 2:
+                row = rr
+        nr = row[0] ** 2 + row[1] ** 2 + row[2] ** 2
+        if nr <= (1e-12 * scale) ** 2:
+            return lam, (1.0, 0.0, 0.0)
+        # a unit vector orthogonal to row: row × the axis least aligned with it
+        k = 0
+        if abs(row[1]) < abs(row[k]):
+            k = 1
+        if abs(row[2]) < abs(row[k]):
+            k = 2
+        e = (1.0 if k == 0 else 0.0, 1.0 if k == 1 else 0.0, 1.0 if k == 2 else 0.0)
+        best = (row[1] * e[2] - row[2] * e[1], row[2] * e[0] - row[0] * e[2],
+                row[0] * e[1] - row[1] * e[0])
+        n_best = best[0] ** 2 + best[1] ** 2 + best[2] ** 2
+    n = np.sqrt(n_best)
+    return lam, (best[0] / n, best[1] / n, best[2] / n)
+
+
+@jit_inline
+def scale_direction(P: np.ndarray, n: int, u: tuple, s: float) -> None:
+    """``P ← D P Dᵀ`` with ``D = I + (s − 1) u uᵀ`` on rows and columns 0–2 of the leading
+    ``n × n`` block (``u`` unit): the variance along ``u`` times ``s²``, every correlation
+    with it scaled alike (a congruence: ``P`` stays symmetric PSD)."""
+    f = s - 1.0
+    for j in range(n):  # rows: P[0:3, j] += f u (uᵀ P[0:3, j])
+        t = f * (u[0] * P[0, j] + u[1] * P[1, j] + u[2] * P[2, j])
+        for i in range(3):
+            P[i, j] += u[i] * t
+    for i in range(n):  # columns
+        t = f * (u[0] * P[i, 0] + u[1] * P[i, 1] + u[2] * P[i, 2])
+        for j in range(3):
+            P[i, j] += t * u[j]
+
+
+@jit
+def cap_eigenvalues33_t(C: tuple, cap: float) -> tuple:
+    """The symmetric 3×3 ``C`` with every eigenvalue above ``cap`` lowered to ``cap``
+    (``C − Σ (λ − cap) v vᵀ``; its other eigenpairs unchanged). ``C`` itself when none is.
+    ``C`` positive semidefinite: its trace then bounds its eigenvalues (the quick case)."""
+    if C[0][0] + C[1][1] + C[2][2] <= cap:
+        return C
+    for _ in range(3):
+        lam, v = largest_eigh33_t(C)
+        if not lam > cap:
+            break
+        d = lam - cap
+        C = ((C[0][0] - d * v[0] * v[0], C[0][1] - d * v[0] * v[1], C[0][2] - d * v[0] * v[2]),
+             (C[1][0] - d * v[1] * v[0], C[1][1] - d * v[1] * v[1], C[1][2] - d * v[1] * v[2]),
+             (C[2][0] - d * v[2] * v[0], C[2][1] - d * v[2] * v[1], C[2][2] - d * v[2] * v[2]))
+    return C

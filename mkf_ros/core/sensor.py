@@ -37,7 +37,14 @@ from mkf_ros.core.baseline_glue import (
     baseline_update,
 )
 from mkf_ros.core.frames import align_tilt, heading_correction, keep_yaw
-from mkf_ros.core.linalg import copy_block, copy_into, eye, symmetrize_leading
+from mkf_ros.core.linalg import (
+    copy_block,
+    copy_into,
+    eye,
+    largest_eigh33_t,
+    scale_direction,
+    symmetrize_leading,
+)
 from mkf_ros.core.mekf import (
     heading_residual_t,
     inv3_spd_t,
@@ -81,6 +88,8 @@ from mkf_ros.core.state import (
     MISSING,
     P0_PAPER,
     REST_CHI2,
+    ACC_CLIP_MIN_G,
+    ACC_CLIP_SIGMAS,
     REST_LP_TAU,
     STATE_T,
     UP,
@@ -268,6 +277,7 @@ def _restart_memory(s: np.record, gyr: np.ndarray, has_g: bool, acc: np.ndarray)
     s.t_acc_lp = 0.0
     s.dt_acc = 0.0
     s.acc_excess = 0.0
+    s.acc_dev = 0.0
 
 
 @jit
@@ -459,6 +469,31 @@ def _acc_blend(c: np.record, s: np.record, kq: float, u_raw: tuple, q_raw: float
 
 
 @hot
+def _acc_robust(c: np.record, s: np.record, a: tuple, al: float, ex2: float) -> tuple:
+    """The sample as the low-passes take it: its deviation ``d = a − acc_lp`` from the
+    first stage clipped to the radius ``r = max(ACC_CLIP_MIN_G · g, ACC_CLIP_SIGMAS · σ)``,
+    σ the RMS deviation of the recent samples (``acc_dev``, low-passed with the same gain
+    ``al``, from the clipped deviations). Body acceleration stays inside that radius, however
+    hard the shaking or the running (σ grows with it) and passes unchanged; one absurd
+    sample that is still below the plausibility limit (a 500 g spike, a corrupted message)
+    moves the low-pass by at most ``α r`` instead of ``α |d|`` and leaves no memory that
+    points gravity elsewhere for seconds. Returns the sample to low-pass and its magnitude
+    excess ``ex2`` (as :func:`_acc_measurement`'s, of the clipped sample)."""
+    lp = s.acc_lp
+    d = (a[0] - lp[0], a[1] - lp[1], a[2] - lp[2])
+    d2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2]
+    r = max(ACC_CLIP_MIN_G * c.gravity, ACC_CLIP_SIGMAS * np.sqrt(s.acc_dev))
+    if d2 > r * r:
+        f = r / np.sqrt(d2)
+        a = (lp[0] + f * d[0], lp[1] + f * d[1], lp[2] + f * d[2])
+        d2 = r * r
+        ex = np.sqrt(a[0] * a[0] + a[1] * a[1] + a[2] * a[2]) / c.gravity - 1.0
+        ex2 = max(0.0, ex * ex - c.acc_var)
+    s.acc_dev += al * (d2 - s.acc_dev)
+    return a, ex2
+
+
+@hot
 def _acc_measurement(c: np.record, s: np.record, dt: float, wl: tuple, Rw: tuple, a: tuple,
                      has_a: bool) -> tuple:
     """The accelerometer as the filters fuse it (extension): the unit direction and the
@@ -508,9 +543,10 @@ def _acc_measurement(c: np.record, s: np.record, dt: float, wl: tuple, Rw: tuple
     t = s.t_acc_lp
     s.t_acc_lp = t + dta
     al, start = _lowpass_gain(s, LP_ACC, t, dta, tau)  # start: still the first average
-    _lowpass(s.acc_lp, a, al)
+    a_lp, ex2_lp = _acc_robust(c, s, a, al, ex2)
+    _lowpass(s.acc_lp, a_lp, al)
     _lowpass(s.acc_lp2, (s.acc_lp[0], s.acc_lp[1], s.acc_lp[2]), 1.0 if start else al)
-    s.acc_excess += al * (ex2 - s.acc_excess)
+    s.acc_excess += al * (ex2_lp - s.acc_excess)
     s.acc_rate_lp += al * (np.sqrt(wl[0] ** 2 + wl[1] ** 2 + wl[2] ** 2) - s.acc_rate_lp)
     if start:  # the low-pass is still forming its first average: the raw sample alone
         return u_raw, kq * q_raw, u_raw, q_raw, raw_status
@@ -889,29 +925,32 @@ def mukf_update(c: np.record, s: np.record, w: np.record, dt: float,
 
 
 @hot
-def _cap_yaw_variance(s: np.record, nx: int) -> None:
-    """An angle uniform over ±180° has variance π²/3 (YAW_VAR_UNKNOWN); a Gaussian heading
-    variance beyond that (6D: the unobservable vertical bias integrated for long) means
-    nothing and spreads the MUKF's sigma points past the charts' domains. Scale the attitude
-    error along the world vertical ``u`` so that its variance is the cap: ``P ← D P Dᵀ`` with
-    ``D = I + (s − 1) u uᵀ`` on the attitude rows (a congruence: P stays PSD)."""
+def _cap_attitude_variance(s: np.record, nx: int) -> None:
+    """An angle uniform over ±180° has variance π²/3 (YAW_VAR_UNKNOWN); a Gaussian attitude
+    variance beyond that about any axis means nothing ("unknown" is all it can say) and
+    spreads the MUKF's sigma points past the charts' domains. First the heading (6D: the
+    unobservable vertical bias integrated for long; an extreme ``rate_process_noise``): the
+    attitude error along the world vertical ``u`` is scaled so that its variance is the cap;
+    then any other direction still above it (an extreme ``rate_process_noise`` leaves the
+    tilt unknown between two accelerometer samples), along the largest eigenvector. Each a
+    congruence ``P ← D P Dᵀ`` with ``D = I + (s − 1) v vᵀ`` on the attitude rows
+    (:func:`~mkf_ros.core.linalg.scale_direction`): P stays symmetric PSD."""
     P = s.P
     u = rotmat_t(t4(s.q_c))[2]
     v = 0.0
     for i in range(3):
         for j in range(3):
             v += u[i] * P[i, j] * u[j]
-    if not v > YAW_VAR_UNKNOWN:
-        return
-    f = np.sqrt(YAW_VAR_UNKNOWN / v) - 1.0
-    for j in range(nx):  # rows: P[0:3, j] += f u (uᵀ P[0:3, j])
-        t = f * (u[0] * P[0, j] + u[1] * P[1, j] + u[2] * P[2, j])
-        for i in range(3):
-            P[i, j] += u[i] * t
-    for i in range(nx):  # columns
-        t = f * (u[0] * P[i, 0] + u[1] * P[i, 1] + u[2] * P[i, 2])
-        for j in range(3):
-            P[i, j] += t * u[j]
+    if v > YAW_VAR_UNKNOWN:
+        scale_direction(P, nx, u, np.sqrt(YAW_VAR_UNKNOWN / v))
+    if P[0, 0] + P[1, 1] + P[2, 2] <= YAW_VAR_UNKNOWN:
+        return  # (no eigenvalue exceeds the trace)
+    for _ in range(3):
+        lam, e = largest_eigh33_t(((P[0, 0], P[0, 1], P[0, 2]), (P[1, 0], P[1, 1], P[1, 2]),
+                                   (P[2, 0], P[2, 1], P[2, 2])))
+        if not lam > YAW_VAR_UNKNOWN * (1.0 + 1e-9):
+            return
+        scale_direction(P, nx, e, np.sqrt(YAW_VAR_UNKNOWN / lam))
 
 
 @hot
@@ -928,7 +967,7 @@ def _update(c: np.record, s: np.record, k: np.record, w: np.record, u: Units, dt
     else:
         ok_u, acc_nis, mag_nis = u.mukf_update(c, s, w, dt, z)
         ok &= ok_u
-    _cap_yaw_variance(s, c.nx)
+    _cap_attitude_variance(s, c.nx)
     return ok, acc_nis, mag_nis
 
 

@@ -110,6 +110,7 @@ STATE = np.dtype(
         ("acc_lp2", np.float64, 3),  # second stage (what is fused)
         ("t_acc_lp", np.float64),  # s since the low-pass started
         ("acc_excess", np.float64),  # low-passed (|a| − g)² (normalised), over its τ
+        ("acc_dev", np.float64),  # low-passed |a − acc_lp|² (m²/s⁴): the samples' spread
         ("acc_rate_lp", np.float64),  # low-passed |ω|, over acc_time_constant
         # --- the field over its learned magnitude, low-passed likewise (body axes)
         ("mag_lp", np.float64, 3),
@@ -193,6 +194,11 @@ YAW0_STDDEV = 1e-3  # rad: heading is defined by the start-up heading when no ma
 YAW_VAR_UNKNOWN = np.pi ** 2 / 3.0  # rad²: variance of an angle uniform over ±180°
 #: rad² about each axis: the published attitude covariance before the filter has an estimate
 ATTITUDE_VAR_UNKNOWN = np.pi ** 2
+#: The accelerometer low-pass's robust input (:func:`~mkf_ros.core.sensor._acc_robust`): a
+#: sample's deviation from the low-pass counts in full up to this many g ...
+ACC_CLIP_MIN_G = 2.0
+#: ... or this many RMS deviations of the recent samples (``acc_dev``), whichever is larger
+ACC_CLIP_SIGMAS = 4.0
 REST_LP_TAU = 0.5  # s: rest detection compares the gyro and accelerometer with their low-pass
 REST_CHI2 = 16.27  # 3 degrees of freedom, 0.1 %: the low-passed rate agrees with the bias
 # Euler baselines' tilt re-alignment (:func:`baseline_realign`): the accelerometer "looks like

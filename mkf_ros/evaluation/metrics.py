@@ -47,10 +47,28 @@ def step_angles(q: np.ndarray) -> np.ndarray:
 
 
 def unexplained_steps(q: np.ndarray, t: np.ndarray, gyr: np.ndarray) -> np.ndarray:
-    """The part of each step between consecutive orientations that the gyro does not explain:
-    ``angle(q[k−1], q[k]) − |gyr[k]| · (t[k] − t[k−1])`` (rad), (N−1,), for ``q`` (N, 4), stamps
-    ``t`` (N,) in s and body rates ``gyr`` (N, 3) in rad/s, the reading of the later sample
-    (a constant rate ω turns by exactly |ω|·Δt). Negative: the gyro explains the whole step. A
-    gyro row with NaN explains nothing (rate 0)."""
-    rate = np.linalg.norm(np.nan_to_num(np.asarray(gyr, dtype=float)[1:]), axis=-1)
-    return step_angles(q) - rate * np.diff(np.asarray(t, dtype=float))
+    """The part of each step between consecutive orientations that the gyro does not explain
+    (rad), (N−1,), for ``q`` (N, 4), stamps ``t`` (N,) in s and body rates ``gyr`` (N, 3) in
+    rad/s:
+
+    ``angle(q[k−1], q[k]) − |ω_k| Δt_k − ½ |ω_k − ω_{k−1}| Δt_{k−1}``.
+
+    A gyro reading is the rate over the interval that ends at its stamp (docs/math.md): the
+    interval ``k`` turns by ``|ω_k| Δt_k``. The rate is continuous (the filters model it as a
+    Wiener process), so a reading that differs from the previous one says the rate was
+    already changing over the previous interval: by the trapezoid, that interval turned by
+    ``½ |ω_k − ω_{k−1}| Δt_{k−1}`` more (or less) than its own reading said, and a filter
+    that learns of it at reading ``k`` moves it into step ``k`` (through the correlation of
+    the attitude with the rate). Measured on the ROS bags: readings 20.9 → 39.8 rad/s 15 ms
+    apart, a 41.5° step = 33.2° of the interval's own reading + 7.9° of the previous
+    interval's ramp. Negative: the gyro explains the whole step. A gyro row with NaN
+    explains nothing (rate 0; no ramp into or out of it)."""
+    g = np.asarray(gyr, dtype=float)
+    valid = ~np.isnan(g).any(axis=-1)
+    rate = np.where(valid, np.linalg.norm(np.nan_to_num(g), axis=-1), 0.0)
+    dt = np.diff(np.asarray(t, dtype=float))
+    ramp = np.zeros_like(dt)
+    both = valid[1:] & valid[:-1]
+    ramp[1:] = 0.5 * np.linalg.norm(g[2:] - g[1:-1], axis=-1) * dt[:-1]
+    ramp[~both] = 0.0
+    return step_angles(q) - rate[1:] * dt - ramp

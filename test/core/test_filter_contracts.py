@@ -10,7 +10,7 @@ import pytest
 
 import mkf_ros
 from mkf_ros.core.filter import AttitudeFilter, record
-from mkf_ros.core.params import ALGORITHMS
+from mkf_ros.core.params import ALGORITHMS, BY_NAME
 from mkf_ros.core.quaternion import angle_between, rotmat
 from mkf_ros.sim import simulate
 
@@ -242,3 +242,23 @@ def test_covariance_stays_psd_at_the_range_ends(algorithm: str, case: str) -> No
         assert np.all(np.isfinite(f.quaternion)) and np.all(np.isfinite(f.bias)), k
         assert psd_violation(f.covariance) <= 1e-9, k
     assert worst <= 1e-9
+
+
+@pytest.mark.parametrize("algorithm", ALGORITHMS)
+@pytest.mark.parametrize("use_mag", [False, True])
+def test_no_attitude_variance_beyond_unknown_at_the_extreme_rate_noise(algorithm: str,
+                                                                      use_mag: bool) -> None:
+    """An angle uniform over ±180° has variance π²/3; a Gaussian beyond it about any axis means
+    nothing. At the largest accepted rate_process_noise the published covariance reached
+    5e15 rad² (MUKF) and 1e8 rad² (Euler UKF). Now every published eigenvalue is ≤ π²/3 at
+    every sample (and the MKFs' own attitude block too)."""
+    sim = simulate("slow_rotation", duration=3, rate=100, seed=3)
+    f = AttitudeFilter(algorithm=algorithm, use_mag=use_mag,
+                       rate_process_noise=BY_NAME["rate_process_noise"].range[1])
+    cap = np.pi ** 2 / 3 * (1 + 1e-9)
+    for k in range(sim.t.size):
+        f.step(0.01 if k else 0.0, sim.gyr[k], sim.acc[k], sim.mag[k] if use_mag else None)
+        assert np.linalg.eigvalsh(f.covariance).max() <= cap, k
+        assert psd_violation(f.covariance) <= 1e-9, k
+        if algorithm in ("mekf", "mukf"):
+            assert np.linalg.eigvalsh(f.state_covariance[:3, :3]).max() <= cap * (1 + 1e-9), k

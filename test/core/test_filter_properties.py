@@ -215,14 +215,60 @@ def test_every_accepted_parameter_set_keeps_the_contract(ps: dict, data: str,
     check_outputs(f, "end")
 
 
-@pytest.mark.xfail(strict=True, reason="a plausible-range but absurd accelerometer sample "
-                   "contaminates the accelerometer low-pass: gating/recovery logic, the "
-                   "real-world robustness issue (issue 14 defers it there)")
-def test_one_absurd_accelerometer_sample_is_recovered_within_seconds() -> None:
-    """Found by the property above with a 510 g sample (below the 10,000 g invalid limit):
-    the MEKF tilts by 74° and is still 6° off 28 s later."""
+def _tilt_from_clean(quat: np.ndarray, clean: np.ndarray) -> np.ndarray:
+    return np.degrees(orientation_errors(quat, clean)["inclination"])
+
+
+@pytest.mark.parametrize("algorithm", ["mekf", "mukf"])
+@pytest.mark.parametrize("spike", [(0.0, 0.0, 5000.0), (5000.0, 0.0, 0.0), (0.0, -3000.0, 0.0),
+                                   (-90000.0, 0.0, 0.0)])
+def test_one_absurd_accelerometer_sample_leaves_no_trace(algorithm: str, spike: tuple) -> None:
+    """Found by the property above with a 510 g sample (below the 10,000 g plausibility limit):
+    it entered the accelerometer low-pass at full weight, whose memory then pointed gravity
+    70° off while its magnitude passed the test; the MEKF tilted by 74° and was still 6° off
+    28 s later. Now the low-pass's input is clipped to a few RMS deviations
+    (sensor._acc_robust): the tilt stays within 2° of the run without the spike at every
+    sample."""
     acc = STATIC.acc.copy()
-    acc[100] = [0.0, 0.0, 5000.0]
-    r = mkf_ros.estimate(STATIC.gyr, acc, dt=0.01)
-    e = np.degrees(orientation_errors(r.quat[400:], STATIC.quat[400:])["inclination"])
-    assert e.max() < 2.0
+    acc[100] = spike
+    r = mkf_ros.estimate(STATIC.gyr, acc, dt=0.01, algorithm=algorithm)
+    clean = mkf_ros.estimate(STATIC.gyr, STATIC.acc, dt=0.01, algorithm=algorithm)
+    assert _tilt_from_clean(r.quat[100:], clean.quat[100:]).max() < 2.0
+
+
+#: the readings of a burst, each refused by the filter for every sensor (NaN, infinite, beyond
+#: any sensor, a zero or denormal vector); a gyro's zero or denormal reading is a valid zero
+#: rate, as a resting sensor reads anyway
+_REFUSED = [np.full(3, np.nan), np.array([np.nan, 0.0, 1.0]), np.array([np.inf, 0.0, 0.0]),
+            np.full(3, -np.inf), np.full(3, 1e30), np.zeros(3), np.full(3, 5e-324),
+            np.array([1e-310, 0.0, 0.0])]
+
+
+@examples(40)
+@given(cfg=configs, seed=st.integers(0, 2 ** 31), start=st.integers(150, 400),
+       length=st.integers(5, 100))
+def test_refused_readings_leave_no_trace(cfg: dict, seed: int, start: int, length: int) -> None:
+    """A resting sensor, :meth:`AttitudeFilter.step` fed a burst in which 70 % of the samples
+    carry refused readings in one or more sensors: at every sample after the burst the tilt
+    is within 2° of the run without it (reported: a delayed 32° jump 2.5 s after such a
+    burst)."""
+    rng = np.random.default_rng(seed)
+    bad = {}
+    for k in range(start, start + length):
+        if rng.random() < 0.7:
+            bad[k] = [(int(s), int(rng.integers(len(_REFUSED)))) for s in range(3)
+                      if rng.random() < 0.5] or [(int(rng.integers(3)), 0)]
+
+    def run(burst: dict) -> np.ndarray:
+        f = AttitudeFilter(**cfg)
+        out = np.empty((STATIC.t.size, 4))
+        for k in range(STATIC.t.size):
+            r = [STATIC.gyr[k], STATIC.acc[k], STATIC.mag[k]]
+            for s, j in burst.get(k, []):
+                r[s] = _REFUSED[j]
+            f.step(0.01 if k else 0.0, r[0], r[1], r[2] if cfg["use_mag"] else None)
+            out[k] = f.quaternion
+        return out
+
+    after = slice(start + length, None)
+    assert _tilt_from_clean(run(bad)[after], run({})[after]).max() < 2.0

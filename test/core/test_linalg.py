@@ -50,3 +50,63 @@ def test_cho_solve_into_leading_rows() -> None:
     cho_solve_into(L, 4, X, X.shape[1])
     np.testing.assert_allclose(X[:4], want, rtol=1e-10)
     np.testing.assert_array_equal(X[4:], rest)
+
+
+def _t33(A: np.ndarray) -> tuple:
+    return tuple(tuple(float(x) for x in row) for row in A)
+
+
+def _symmetric_cases() -> list[np.ndarray]:
+    rng = np.random.default_rng(7)
+    cases = [_spd(rng, 3) * s for s in (1e-6, 1.0, 1e8)]
+    Q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    for lams in ((5.0, 5.0, 1.0), (5.0, 1.0, 1.0), (2.0, 2.0, 2.0), (3.0, 0.0, -1.0),
+                 (1e9, 1e-3, 1e-9)):
+        cases.append(Q @ np.diag(lams) @ Q.T)
+    cases += [np.diag([1.0, 7.0, 3.0]), np.zeros((3, 3))]
+    return cases
+
+
+def test_largest_eigenpair_of_a_symmetric_3x3() -> None:
+    """Against numpy.linalg.eigh, repeated and zero eigenvalues included."""
+    from mkf_ros.core.linalg import largest_eigh33_t
+
+    for A in _symmetric_cases():
+        A = 0.5 * (A + A.T)
+        lam, v = largest_eigh33_t(_t33(A))
+        w = np.linalg.eigvalsh(A)
+        scale = max(np.abs(w).max(), 1e-300)
+        assert abs(lam - w[-1]) <= 1e-9 * scale
+        v = np.array(v)
+        assert abs(np.linalg.norm(v) - 1.0) < 1e-12
+        np.testing.assert_allclose(A @ v, lam * v, atol=1e-7 * scale)
+
+
+def test_eigenvalues_capped_and_the_rest_kept() -> None:
+    from mkf_ros.core.linalg import cap_eigenvalues33_t
+
+    for A in _symmetric_cases():
+        A = 0.5 * (A + A.T)
+        if np.linalg.eigvalsh(A).min() < 0:
+            continue  # its contract: a covariance (positive semidefinite)
+        cap = 2.5
+        C = np.array(cap_eigenvalues33_t(_t33(A), cap))
+        w, V = np.linalg.eigh(A)
+        expected = V @ np.diag(np.minimum(w, cap)) @ V.T
+        scale = max(np.abs(w).max(), 1.0)
+        np.testing.assert_allclose(C, expected, atol=1e-8 * scale)
+
+
+def test_scaling_a_direction_is_a_congruence() -> None:
+    """P ← D P Dᵀ, D = I + (s − 1) u uᵀ on the first three rows and columns."""
+    from mkf_ros.core.linalg import scale_direction
+
+    rng = np.random.default_rng(3)
+    P = _spd(rng, 9)
+    u = rng.normal(size=3)
+    u /= np.linalg.norm(u)
+    D = np.eye(9)
+    D[:3, :3] += (0.3 - 1.0) * np.outer(u, u)
+    expected = D @ P @ D.T
+    scale_direction(P, 9, tuple(u), 0.3)
+    np.testing.assert_allclose(P, expected, rtol=1e-12, atol=1e-12)

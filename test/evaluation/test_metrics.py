@@ -32,6 +32,19 @@ def test_a_turn_the_gyro_reports_is_explained_and_a_jump_is_not():
     assert math.degrees(u[59]) == pytest.approx(10.0, abs=1e-9)
 
 
+def test_a_rate_change_explains_half_of_it_over_the_previous_interval():
+    """The rate ramps from 20 to 40 rad/s between two readings 10 ms apart: the previous
+    interval turned by the trapezoid, 0.30 rad, not the 0.20 of its reading; a filter that
+    learns of it at the later reading moves the 0.10 into that step, whose own interval
+    turns 0.40: a 0.50 rad step is explained, 0.51 leaves 0.01 unexplained."""
+    t = np.array([0.0, 0.01, 0.02])
+    gyr = np.array([[0.0, 0.0, 20.0], [0.0, 0.0, 20.0], [0.0, 0.0, 40.0]])
+    u = unexplained_steps(_about_z([0.0, 0.2, 0.7]), t, gyr)
+    np.testing.assert_allclose(u, [0.0, 0.0], atol=1e-12)
+    u = unexplained_steps(_about_z([0.0, 0.2, 0.71]), t, gyr)
+    np.testing.assert_allclose(u, [0.0, 0.01], atol=1e-12)
+
+
 def test_missing_gyro_explains_nothing():
     t = np.array([0.0, 0.1])
     gyr = np.array([[0.0, 0.0, 1.0], [math.nan, math.nan, math.nan]])
