@@ -67,6 +67,8 @@ from mkf_ros.core.quaternion import (
 )
 from mkf_ros.core.state import (
     ACC,
+    ACC_CLIP_MIN_G,
+    ACC_CLIP_SIGMAS,
     ALGO_EULER_KF,
     ALGO_MEKF,
     ALGO_MUKF,
@@ -88,8 +90,6 @@ from mkf_ros.core.state import (
     MISSING,
     P0_PAPER,
     REST_CHI2,
-    ACC_CLIP_MIN_G,
-    ACC_CLIP_SIGMAS,
     REST_LP_TAU,
     STATE_T,
     UP,
