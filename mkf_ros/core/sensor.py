@@ -621,6 +621,10 @@ def _rest_test(c: np.record, s: np.record, dt: float, g: tuple, has_g: bool, a: 
     own correction). A steady slow turn within that cannot be told from a bias by an IMU
     alone; the zero-rate update therefore never moves the attitude (:func:`_rate_updates`).
 
+    A sample with neither a gyro nor an accelerometer reading given (a magnetometer message of
+    its own, as a node receives it) leaves the test as it was; a refused reading (invalid, or
+    the gyro's gate) breaks it.
+
     Split input (``split_input``: gyro and accelerometer in separate samples): a step without
     a reading of one sensor (``g_none`` / ``a_none``: not given, as opposed to rejected) keeps
     that sensor's part of the test as its last sample left it, each low-pass steps over the
@@ -634,6 +638,8 @@ def _rest_test(c: np.record, s: np.record, dt: float, g: tuple, has_g: bool, a: 
     if split:
         s.rest_dt_gyr += dt
         s.rest_dt_acc += dt
+    elif g_none and a_none and c.rest_detection:
+        return False  # a magnetometer-only sample says nothing of rest: the test goes on
     if not c.rest_detection or not ((has_g or (split and g_none))
                                     and (has_a or (split and a_none))):
         s.t_rest = 0.0
@@ -1058,7 +1064,7 @@ def step(c: np.record, s: np.record, k: np.record, w: np.record, u: Units, dt: f
     Rw = rotmat_t(q_omega_t(wl, dt))  # R(Δq): body axes of the previous sample → this one
     a_body, var_a, a_raw, var_a_raw, a_ok, has_a = _accelerometer(c, s, k, u, dt, wl, Rw, acc,
                                                                    has_a)
-    rest = _rest_test(c, s, dt, g, has_g, acc, has_a, gs != VALID, as_ != VALID)
+    rest = _rest_test(c, s, dt, g, has_g, acc, has_a, gs == MISSING, as_ == MISSING)
     has_m, dtm = _magnetometer(c, s, k, u, dt, wl, Rw, m, m_norm, has_m)
     _gyro_scale_noise(c, s, dt, wl)
     m_ref, h_ref, var_h, acc_gate, mag_gate = _fusion(c, s, has_m, dtm)

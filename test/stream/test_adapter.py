@@ -696,3 +696,22 @@ def test_split_samples_ahead_held_or_untimed_follow_their_own_sensor() -> None:
     assert (a.counters["acc_ahead"], a.counters["mag_ahead"]) == (1, 0)
     a.on_mag(far, field)
     assert (a.counters["acc_ahead"], a.counters["mag_ahead"]) == (1, 1)
+
+
+@pytest.mark.parametrize("algorithm", ["mekf", "mukf"])
+def test_a_magnetometer_message_of_its_own_keeps_rest(algorithm: str) -> None:
+    """A node receives the magnetometer as messages of their own, after the IMU message of the
+    same stamp: such a sample has neither gyro nor accelerometer and must leave the rest test
+    as it was. It reset it: 0 rest updates in 3 s at rest, where the merged recording
+    (StreamAdapter.process: the field fused with the IMU sample) made 200."""
+    sim = simulate("static", duration=3, rate=100, seed=1)
+    kw = dict(algorithm=algorithm, use_mag=True)
+    merged = StreamAdapter(**kw)
+    merged.process(100.0 + sim.t, sim.gyr, sim.acc, 100.0 + sim.t, sim.mag)
+    apart = StreamAdapter(**kw)
+    for k in range(sim.t.size):
+        apart.on_imu(100.0 + sim.t[k], sim.gyr[k], sim.acc[k])
+        apart.on_mag(100.0 + sim.t[k], sim.mag[k])
+    n = merged.counters["rest_updates"]
+    assert n >= 190
+    assert abs(apart.counters["rest_updates"] - n) <= 1
