@@ -147,17 +147,13 @@ class BagSummary:
 def plot_result(r: Any, bag: str | Path, path: str | Path) -> Path:
     """The accuracy plot of a scored :class:`~mkf_ros.bags.process.ProcessResult` (errors over
     time, intervals of a synthetic bag shaded), written atomically to ``path``."""
-    from mkf_ros.bags.synth import read_description
     from mkf_ros.evaluation.plots import accuracy_figure
 
     s, p = r.scores, r.params
-    desc = read_description(bag) or {}
-    first = s.t[0] - (r.log_s[0] if len(r.log_s) else 0.0)
-    ivs = {k: [(a + first, b + first) for a, b in v]
-           for k, v in (desc.get("intervals") or {}).items()}
     title = (f"{Path(bag).name}: {p['algorithm'].upper()}-{p['chart'].upper()}, "
              f"use_mag {str(p['use_mag']).lower()}")
-    return accuracy_figure(path, s.t, s.q_est, s.q_true, s.errors, title=title, intervals=ivs)
+    return accuracy_figure(path, s.t, s.q_est, s.q_true, s.errors, title=title,
+                           intervals=s.intervals, rmse=s.rmse, envelope=s.envelope)
 
 
 def process_job(job: BagJob) -> BagSummary:
