@@ -17,6 +17,8 @@ from typing import Any
 import numpy as np
 
 STORAGE_SUFFIXES = {".mcap": "mcap", ".db3": "sqlite3", ".bag": "ros1"}
+#: rows fetched from sqlite3 at a time (the storage's unit of a window)
+SQLITE_FETCH = 50_000
 
 
 class BagError(Exception):
@@ -352,7 +354,6 @@ class BagReader:
                        ) -> Iterator[tuple[int | None, dict[str, tuple[np.ndarray, Any]]]]:
         """(bound, messages per topic) in batches of rows, file by file, in (timestamp, id)
         order: the rows of a topic as rosbag2 inserted them, sorted stably by log time."""
-        fetch = 50_000
         for f in self._files:
             db = sqlite3.connect(f"file:{f}?mode=ro&immutable=1", uri=True)
             try:
@@ -364,7 +365,7 @@ class BagReader:
                 cur = db.execute("SELECT topic_id, timestamp, data FROM messages WHERE "
                                  f"topic_id IN ({marks}) ORDER BY timestamp, id",
                                  list(names))
-                while rows := cur.fetchmany(fetch):
+                while rows := cur.fetchmany(SQLITE_FETCH):
                     tid = np.fromiter((r[0] for r in rows), np.int64, len(rows))
                     t = np.fromiter((r[1] for r in rows), np.int64, len(rows))
                     piece: dict[str, tuple[np.ndarray, Any]] = {}
