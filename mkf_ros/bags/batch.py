@@ -194,10 +194,13 @@ def run_batch(jobs: Sequence[BagJob], executor: cf.Executor, in_flight: int,
             on_done(s)
 
     def failed(item: tuple[int, BagJob], e: BaseException) -> bool:
-        why = "its worker died" if parallel.is_worker_loss(e) else "failed"
         msg = str(e).splitlines()[0] if str(e) else ""
-        done(item, BagSummary(bag=item[1].bag, out=item[1].out,
-                              error=f"{why} ({type(e).__name__}{': ' + msg if msg else ''})"))
+        if isinstance(e, parallel.WorkerDied):  # this bag's own process crashed
+            error = msg
+        else:
+            why = "its worker died" if parallel.is_worker_loss(e) else "failed"
+            error = f"{why} ({type(e).__name__}{': ' + msg if msg else ''})"
+        done(item, BagSummary(bag=item[1].bag, out=item[1].out, error=error))
         return True
 
     parallel.run_in_order(executor, _process_item, [(i, jobs[i]) for i in order], in_flight,
