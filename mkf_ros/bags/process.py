@@ -484,7 +484,7 @@ def process_bag(bag: str | Path, out: str | Path, params: Mapping[str, Any] | No
                 tm["write"] += t3 - t2
                 out_stamp = imu.stamp_ns[outs.index]
                 log_s = (out_log - bag_start) * 1e-9
-                if scorer is not None and truth is not None:
+                if scorer is not None and truth is not None and truth_name:
                     if len(imu_b):
                         scorer.shift((int(imu_b.log_ns[0]) - bag_start) * 1e-9)
                     scorer.add(truth, win[truth_name].log_ns, outs.quat, out_stamp, out_log,
