@@ -235,13 +235,15 @@ def run_case(bd: BagData, algorithm: str, use_mag: bool, overrides: dict[str, An
 
     params = {**overrides, "algorithm": algorithm, "use_mag": use_mag}
     r = process_bag(bd.path, tmp / "out.mcap", params, imu_topic=bd.imu_topic,
-                    mag_topic=bd.mag_topic or "imu/mag", truth_topic=None, overwrite=True)
+                    mag_topic=bd.mag_topic or "imu/mag", truth_topic=None, overwrite=True,
+                    keep_outputs=True)
     rec = RecordingAdapter(params)
     mag = bd.mag if use_mag else None
     outs = run_stream(rec, bd.imu, bd.imu_log_ns, mag, bd.mag_log_ns if use_mag else None,
                       rec.params)
     so = rec.result
     o = r.outputs
+    assert o is not None and r.stamps is not None and r.log_s is not None
     same = (np.array_equal(o.index, outs.index) and np.array_equal(o.quat, outs.quat)
             and np.array_equal(o.cov, outs.cov))
     rest_count = rec.rest_count

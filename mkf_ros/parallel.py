@@ -113,10 +113,118 @@ def local_pool(workers: int) -> cf.ProcessPoolExecutor:
                                   initializer=_ignore_sigint)
 
 
+class WorkerDied(Exception):
+    """A unit's process ended without a result (a crash: a signal such as SIGSEGV or SIGKILL
+    from the out-of-memory killer, or ``os._exit``)."""
+
+
+class ForkPerUnit(cf.Executor):
+    """Each call in a forked process of its own, at most ``workers`` at a time.
+
+    A call that kills its process (a segfault in native code, ``os._exit``, the OOM killer)
+    fails only its own future, with :class:`WorkerDied` naming the signal or exit code; the
+    other calls go on (a :class:`~concurrent.futures.ProcessPoolExecutor` is broken by one dead
+    worker and fails every call in it). The children inherit the parent's memory (kernels
+    compiled there) and ignore Ctrl-C; results and exceptions come back pickled. One waiting
+    thread per call in flight.
+    """
+
+    def __init__(self, workers: int) -> None:
+        import threading
+
+        self._slots = threading.BoundedSemaphore(max(1, workers))
+        self._lock = threading.Lock()
+        self._procs: set[Any] = set()
+        self._threads: list[Any] = []
+        self._stopped = False
+
+    def submit(self, fn: Callable[..., R], /, *args: Any, **kwargs: Any) -> cf.Future[R]:
+        import threading
+
+        if self._stopped:
+            raise RuntimeError("cannot submit after shutdown")
+        f: cf.Future[R] = cf.Future()
+        t = threading.Thread(target=self._run, args=(f, fn, args, kwargs), daemon=True)
+        self._threads.append(t)
+        t.start()
+        return f
+
+    def _run(self, f: cf.Future, fn: Callable[..., Any], args: tuple, kwargs: dict) -> None:
+        with self._slots:
+            if self._stopped or not f.set_running_or_notify_cancel():
+                return
+            ctx = mp.get_context("fork")
+            recv, send = ctx.Pipe(duplex=False)
+            p = ctx.Process(target=_unit_child, args=(send, fn, args, kwargs), daemon=True)
+            with self._lock:
+                p.start()
+                self._procs.add(p)
+            send.close()
+            try:
+                kind, value = recv.recv()
+            except (EOFError, OSError):
+                kind, value = "died", None
+            finally:
+                recv.close()
+            p.join()
+            with self._lock:
+                self._procs.discard(p)
+            if kind == "ok":
+                f.set_result(value)
+            elif kind == "err":
+                f.set_exception(value)
+            else:
+                f.set_exception(WorkerDied(_death(p.exitcode)))
+
+    def terminate(self) -> None:
+        """Kill the running units' processes (their futures fail with WorkerDied)."""
+        self._stopped = True
+        with self._lock:
+            for p in list(self._procs):
+                with contextlib.suppress(Exception):
+                    p.terminate()
+
+    def shutdown(self, wait: bool = True, *, cancel_futures: bool = False) -> None:
+        self._stopped = self._stopped or cancel_futures
+        if wait:
+            for t in self._threads:
+                t.join()
+
+
+def _unit_child(send: Any, fn: Callable[..., Any], args: tuple, kwargs: dict) -> None:
+    """In the forked process: run the unit, send ("ok", result) or ("err", exception)."""
+    _ignore_sigint()
+    try:
+        msg: tuple[str, Any] = ("ok", fn(*args, **kwargs))
+    except BaseException as e:  # sent to the parent, which raises it there
+        msg = ("err", e)
+    try:
+        send.send(msg)
+    except Exception as e:  # an unpicklable result or exception: its text
+        send.send(("err", RuntimeError(f"{type(msg[1]).__name__}: {msg[1]} (cannot be sent "
+                                       f"back: {e})")))
+    send.close()
+
+
+def _death(code: int | None) -> str:
+    """One line for how a unit's process ended without a result."""
+    if code is not None and code < 0:
+        try:
+            name = signal.Signals(-code).name
+        except ValueError:
+            name = f"signal {-code}"
+        hint = " (out of memory?)" if -code == signal.SIGKILL else ""
+        return f"its worker process was killed by {name}{hint}"
+    return f"its worker process exited with code {code} without a result"
+
+
 def stop_now(executor: cf.Executor) -> None:
     """Stop ``executor`` without waiting for running calls (after Ctrl-C or an error): local
     worker processes are terminated; on a cluster the queued and running tasks are cancelled."""
-    if isinstance(executor, cf.ProcessPoolExecutor):
+    if isinstance(executor, ForkPerUnit):
+        executor.terminate()
+        executor.shutdown(wait=True, cancel_futures=True)
+    elif isinstance(executor, cf.ProcessPoolExecutor):
         terminate = getattr(executor, "terminate_workers", None)  # Python >= 3.14
         if terminate is not None:
             terminate()
@@ -131,7 +239,7 @@ def stop_now(executor: cf.Executor) -> None:
 
 def is_worker_loss(e: BaseException) -> bool:
     """True for the errors of a worker that died or vanished (not of the task's own code)."""
-    if isinstance(e, cf.BrokenExecutor):
+    if isinstance(e, (cf.BrokenExecutor, WorkerDied)):
         return True
     return type(e).__name__ in ("KilledWorker", "CommClosedError", "FutureCancelledError")
 

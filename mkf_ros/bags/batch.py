@@ -147,17 +147,13 @@ class BagSummary:
 def plot_result(r: Any, bag: str | Path, path: str | Path) -> Path:
     """The accuracy plot of a scored :class:`~mkf_ros.bags.process.ProcessResult` (errors over
     time, intervals of a synthetic bag shaded), written atomically to ``path``."""
-    from mkf_ros.bags.synth import read_description
     from mkf_ros.evaluation.plots import accuracy_figure
 
     s, p = r.scores, r.params
-    desc = read_description(bag) or {}
-    first = s.t[0] - (r.log_s[0] if len(r.log_s) else 0.0)
-    ivs = {k: [(a + first, b + first) for a, b in v]
-           for k, v in (desc.get("intervals") or {}).items()}
     title = (f"{Path(bag).name}: {p['algorithm'].upper()}-{p['chart'].upper()}, "
              f"use_mag {str(p['use_mag']).lower()}")
-    return accuracy_figure(path, s.t, s.q_est, s.q_true, s.errors, title=title, intervals=ivs)
+    return accuracy_figure(path, s.t, s.q_est, s.q_true, s.errors, title=title,
+                           intervals=s.intervals, rmse=s.rmse, envelope=s.envelope)
 
 
 def process_job(job: BagJob) -> BagSummary:
@@ -198,10 +194,13 @@ def run_batch(jobs: Sequence[BagJob], executor: cf.Executor, in_flight: int,
             on_done(s)
 
     def failed(item: tuple[int, BagJob], e: BaseException) -> bool:
-        why = "its worker died" if parallel.is_worker_loss(e) else "failed"
         msg = str(e).splitlines()[0] if str(e) else ""
-        done(item, BagSummary(bag=item[1].bag, out=item[1].out,
-                              error=f"{why} ({type(e).__name__}{': ' + msg if msg else ''})"))
+        if isinstance(e, parallel.WorkerDied):  # this bag's own process crashed
+            error = msg
+        else:
+            why = "its worker died" if parallel.is_worker_loss(e) else "failed"
+            error = f"{why} ({type(e).__name__}{': ' + msg if msg else ''})"
+        done(item, BagSummary(bag=item[1].bag, out=item[1].out, error=error))
         return True
 
     parallel.run_in_order(executor, _process_item, [(i, jobs[i]) for i in order], in_flight,

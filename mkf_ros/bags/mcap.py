@@ -224,52 +224,61 @@ class McapFile:
         s = np.asarray(pos, np.int64)
         return s[np.frombuffer(data, np.uint8)[s] == OP_MESSAGE]
 
+    def read_chunk(self, f: BinaryIO, c: ChunkRef, channel_ids: set[int]
+                   ) -> dict[int, tuple[np.ndarray, np.ndarray | list[bytes]]]:
+        """The messages of ``channel_ids`` in chunk ``c`` (``f``: this file, open): per channel
+        (log times in ns, messages) in record order. Messages are an (N, L) uint8 array (views
+        of the chunk) when they all have one length L, else a list of bytes."""
+        from numpy.lib.stride_tricks import sliding_window_view
+
+        got: dict[int, tuple[np.ndarray, np.ndarray | list[bytes]]] = {}
+        want = channel_ids & c.channels if c.channels else channel_ids
+        if not want:
+            return got
+        data = self._chunk_records(f, c)
+        arr = np.frombuffer(data, np.uint8)
+        walked = None
+        for ch in sorted(want):
+            offs = self._indexed_offsets(f, c, ch)
+            if offs is None:
+                if walked is None:
+                    walked = self._walk(data)
+                offs = walked
+            if offs.size == 0:
+                continue
+            if offs.min() < 0 or offs.max() + MSG_HEAD > len(data):
+                raise McapError(f"chunk at offset {c.offset}: index points outside it")
+            head = arr[offs[:, None] + np.arange(MSG_HEAD)].copy()
+            ln = head[:, 1:9].view("<u8")[:, 0].astype(np.int64)
+            cid = head[:, 9:11].view("<u2")[:, 0]
+            if walked is not None and offs is walked:
+                keep = cid == ch
+                offs, head, ln, cid = offs[keep], head[keep], ln[keep], cid[keep]
+            if ((head[:, 0] != OP_MESSAGE).any() or (cid != ch).any() or (ln < 22).any()
+                    or (offs + 9 + ln > len(data)).any()):
+                raise McapError(f"chunk at offset {c.offset}: corrupt message records")
+            if offs.size == 0:
+                continue
+            logt = head[:, 15:23].view("<u8")[:, 0].astype(np.int64)
+            size = ln - 22
+            if (size == size[0]).all() and size[0] > 0:
+                got[ch] = (logt, sliding_window_view(arr, int(size[0]))[offs + MSG_HEAD])
+            else:
+                got[ch] = (logt, [data[a:a + n] for a, n in zip(
+                    (offs + MSG_HEAD).tolist(), size.tolist(), strict=True)])
+        return got
+
     def read(self, channel_ids: set[int], progress: Any = None
              ) -> dict[int, tuple[np.ndarray, np.ndarray | list[bytes]]]:
         """All messages of ``channel_ids``: per channel (log times in ns, messages), in
-        log-time order. Messages are an (N, L) uint8 array when they all have one length L,
-        else a list of bytes. ``progress`` (optional) is called with bytes done."""
-        from numpy.lib.stride_tricks import sliding_window_view
-
+        log-time order (see :meth:`read_chunk`). ``progress`` (optional) is called with bytes
+        done."""
         parts: dict[int, list[tuple[np.ndarray, np.ndarray | list[bytes]]]] = {
             c: [] for c in channel_ids}
         with self.path.open("rb") as f:
             for c in self.chunks:
-                want = channel_ids & c.channels if c.channels else channel_ids
-                if not want:
-                    if progress:
-                        progress(c.length)
-                    continue
-                data = self._chunk_records(f, c)
-                arr = np.frombuffer(data, np.uint8)
-                walked = None
-                for ch in want:
-                    offs = self._indexed_offsets(f, c, ch)
-                    if offs is None:
-                        if walked is None:
-                            walked = self._walk(data)
-                        offs = walked
-                    if offs.size == 0:
-                        continue
-                    if offs.min() < 0 or offs.max() + MSG_HEAD > len(data):
-                        raise McapError(f"chunk at offset {c.offset}: index points outside it")
-                    head = arr[offs[:, None] + np.arange(MSG_HEAD)].copy()
-                    ln = head[:, 1:9].view("<u8")[:, 0].astype(np.int64)
-                    cid = head[:, 9:11].view("<u2")[:, 0]
-                    if walked is not None and offs is walked:
-                        keep = cid == ch
-                        offs, head, ln, cid = offs[keep], head[keep], ln[keep], cid[keep]
-                    if ((head[:, 0] != OP_MESSAGE).any() or (cid != ch).any() or (ln < 22).any()
-                            or (offs + 9 + ln > len(data)).any()):
-                        raise McapError(f"chunk at offset {c.offset}: corrupt message records")
-                    logt = head[:, 15:23].view("<u8")[:, 0].astype(np.int64)
-                    size = ln - 22
-                    if offs.size and (size == size[0]).all() and size[0] > 0:
-                        rows = sliding_window_view(arr, int(size[0]))[offs + MSG_HEAD]
-                        parts[ch].append((logt, rows))
-                    else:
-                        parts[ch].append((logt, [data[a:a + n] for a, n in zip(
-                            (offs + MSG_HEAD).tolist(), size.tolist(), strict=True)]))
+                for ch, piece in self.read_chunk(f, c, channel_ids).items():
+                    parts[ch].append(piece)
                 if progress:
                     progress(c.length)
         return {ch: _concat(p) for ch, p in parts.items()}

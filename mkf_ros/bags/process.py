@@ -54,6 +54,10 @@ class Scores:
     heading_aligned: bool  #: True: no magnetometer, heading aligned once at the start
     skipped: int  #: outputs without a matching ground-truth message
     windows: dict[str, dict[str, float]] = field(default_factory=dict)  #: RMSE per interval kind
+    n: int = 0  #: samples scored (``t`` etc. hold every k-th of them on long recordings)
+    #: per error: (bucket start times, min, max) over buckets of k samples, when decimated
+    envelope: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]] | None = None
+    intervals: dict[str, list] = field(default_factory=dict)  #: shaded, in ``t``'s time
 
 
 @dataclass
@@ -67,9 +71,9 @@ class ProcessResult:
     params: dict[str, Any]
     counters: dict[str, int]
     timings: dict[str, float]
-    outputs: Outputs
-    stamps: np.ndarray  #: (M,) s, output stamps
-    log_s: np.ndarray  #: (M,) s since the bag start, output log times
+    outputs: Outputs | None  #: every estimate (``keep_outputs``), else None
+    stamps: np.ndarray | None  #: (M,) s, output stamps (``keep_outputs``)
+    log_s: np.ndarray | None  #: (M,) s since the bag start, output log times (``keep_outputs``)
     scores: Scores | None
     notes: list[str]
     accel_topic: str | None = None  #: split input: the accelerometer topic (imu_topic: gyro)
@@ -131,6 +135,8 @@ def run_stream(adapter: Any, imu: cdr.Decoded, imu_log: np.ndarray, mag: cdr.Dec
 
 def encode_outputs(imu: cdr.Decoded, batch: Any, out: Outputs) -> np.ndarray | list[bytes]:
     """``imu/data`` messages: the input messages with the estimate written in (header kept)."""
+    if len(out.index) == 0:
+        return []
     q = out.quat
     values = dict(orientation=np.column_stack([q[:, 1], q[:, 2], q[:, 3], q[:, 0]]),
                   orientation_covariance=out.cov, angular_velocity=out.angvel,
@@ -149,15 +155,15 @@ def encode_outputs(imu: cdr.Decoded, batch: Any, out: Outputs) -> np.ndarray | l
     return res
 
 
-def _match_truth(stamps_ns: np.ndarray, log_ns: np.ndarray, truth: cdr.Decoded,
+def _match_truth(stamps_ns: np.ndarray, log_ns: np.ndarray, truth_stamp: np.ndarray,
                  truth_log: np.ndarray) -> np.ndarray:
     """Index of the ground-truth message for each output (-1: none): equal stamp, and among
     equal stamps (stamps that jump back repeat) the closest log time."""
     res = np.full(len(stamps_ns), -1, dtype=np.int64)
     if len(truth_log) == 0:
         return res
-    order = np.lexsort((truth_log, truth.stamp_ns))
-    ts = truth.stamp_ns[order]
+    order = np.lexsort((truth_log, truth_stamp))
+    ts = truth_stamp[order]
     lo = np.searchsorted(ts, stamps_ns, "left")
     hi = np.searchsorted(ts, stamps_ns, "right")
     one = hi - lo == 1
@@ -168,40 +174,166 @@ def _match_truth(stamps_ns: np.ndarray, log_ns: np.ndarray, truth: cdr.Decoded,
     return res
 
 
-def score(q_est: np.ndarray, q_true_enu: np.ndarray, t: np.ndarray, world_frame: str,
-          use_mag: bool, intervals: Mapping[str, list] | None = None,
-          skip: float = 0.0) -> Scores:
-    """BROAD errors of ``q_est`` (world_frame) against ENU truth. Without a magnetometer the
-    heading is unobservable: the estimate is then rotated about the world up axis once, so that
-    its heading matches the truth at the first sample (a constant alignment)."""
-    from mkf_ros.core.frames import FROM_ENU
-    from mkf_ros.core.quaternion import qconj_np, qmul_np
-    from mkf_ros.evaluation.metrics import orientation_errors, rmse_deg
+#: IMU messages per window of the streaming pass (about 35 MB of messages in flight)
+WINDOW_MESSAGES = 50_000
+#: at most this many scored samples are kept for the plot (every k-th beyond), plus
+#: per-bucket minimum/maximum envelopes of the errors
+SERIES_MAX = 100_000
 
-    q_true = qmul_np(FROM_ENU[world_frame], q_true_enu)
-    q_est = np.asarray(q_est, float)
-    aligned = False
-    if not use_mag and len(q_est):
-        e = qmul_np(q_true[0], qconj_np(q_est[0]))  # world-frame error at the start
-        up = {"enu": 3, "nwu": 3, "ned": 3}[world_frame]
-        ang = 2.0 * math.atan2(e[up], e[0])  # its twist about the world z axis
-        qz = np.zeros(4)
-        qz[0], qz[up] = math.cos(ang / 2), math.sin(ang / 2)
-        q_est = qmul_np(qz, q_est)
-        aligned = True
-    err = orientation_errors(q_est, q_true)
-    keep = t >= (t[0] + skip if len(t) else 0.0)
-    rmse = {k: rmse_deg(v[keep]) if keep.any() else math.nan for k, v in err.items()}
-    windows: dict[str, dict[str, float]] = {}
-    for kind, ivs in (intervals or {}).items():
-        inside = np.zeros(len(t), dtype=bool)
-        for a, b in ivs:
-            inside |= (t >= a) & (t <= b)
-        inside &= keep
-        if inside.any():
-            windows[kind] = {k: rmse_deg(v[inside]) for k, v in err.items()}
-    return Scores(t=t, q_est=q_est, q_true=q_true, errors=err, rmse=rmse,
-                  heading_aligned=aligned, skipped=0, windows=windows)
+
+class _Series:
+    """Decimated series of the scored samples (every ``step``-th) and the min/max of each
+    error over each bucket of ``step`` samples: what the plot shows, in bounded memory."""
+
+    def __init__(self, step: int) -> None:
+        self.step = step
+        self.n = 0
+        self.parts: list[tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, np.ndarray]]] = []
+        self.env: list[tuple[np.ndarray, dict[str, np.ndarray], dict[str, np.ndarray]]] = []
+
+    def add(self, t: np.ndarray, q_est: np.ndarray, q_true: np.ndarray,
+            err: Mapping[str, np.ndarray]) -> None:
+        g = self.n + np.arange(len(t))
+        self.n += len(t)
+        sel = g % self.step == 0
+        self.parts.append((t[sel], q_est[sel], q_true[sel], {k: v[sel] for k, v in err.items()}))
+        if self.step > 1 and len(t):
+            b = g // self.step
+            starts = np.flatnonzero(np.r_[True, b[1:] != b[:-1]])
+            self.env.append((t[starts], {k: np.minimum.reduceat(v, starts)
+                                         for k, v in err.items()},
+                             {k: np.maximum.reduceat(v, starts) for k, v in err.items()}))
+
+    def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, np.ndarray]]:
+        keys = ("total", "heading", "inclination")
+        if not self.parts:
+            return np.zeros(0), np.zeros((0, 4)), np.zeros((0, 4)), {k: np.zeros(0)
+                                                                      for k in keys}
+        return (np.concatenate([p[0] for p in self.parts]),
+                np.concatenate([p[1] for p in self.parts]),
+                np.concatenate([p[2] for p in self.parts]),
+                {k: np.concatenate([p[3][k] for p in self.parts]) for k in keys})
+
+    def envelope(self) -> dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]] | None:
+        """Per error: (bucket start times, minimum, maximum); a bucket cut by a window
+        boundary appears twice (harmless for a plot). None when nothing was decimated."""
+        if not self.env:
+            return None
+        t = np.concatenate([e[0] for e in self.env])
+        return {k: (t, np.concatenate([e[1][k] for e in self.env]),
+                    np.concatenate([e[2][k] for e in self.env])) for k in self.env[0][1]}
+
+
+class _Scorer:
+    """BROAD errors against the ground truth, one window at a time (see :func:`score`): each
+    window's outputs are matched to the truth of the previous, the same and the next window
+    (by stamp; among equal stamps the nearest log time), sums of squares accumulate, and the
+    plot series are decimated (:class:`_Series`)."""
+
+    def __init__(self, world_frame: str, use_mag: bool, skip: float, intervals: Any,
+                 expected: int) -> None:
+        self.world_frame, self.use_mag, self.skip = world_frame, use_mag, skip
+        self.raw_intervals = intervals  #: simulation time; shifted at the first IMU message
+        self.intervals: dict[str, list] | None = None
+        self.truth: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []  # stamp, log, wxyz
+        self.pending: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
+        self.align: np.ndarray | None = None
+        self.t_first: float | None = None
+        self.sums: dict[str, float] = {}
+        self.count = 0
+        self.win_sums: dict[str, dict[str, float]] = {}
+        self.win_count: dict[str, int] = {}
+        self.skipped = 0
+        self.series = _Series(max(1, -(-expected // SERIES_MAX)))
+
+    def shift(self, first_log_s: float) -> None:
+        if self.intervals is None:
+            self.intervals = {k: [(a + first_log_s, b + first_log_s) for a, b in v]
+                              for k, v in (self.raw_intervals or {}).items()}
+
+    def add(self, truth: cdr.Decoded | None, truth_log: np.ndarray, q_est: np.ndarray,
+            stamp_ns: np.ndarray, log_ns: np.ndarray, log_s: np.ndarray) -> None:
+        """One window: its truth messages and its outputs (scored once the next window's
+        truth is in)."""
+        if truth is not None and len(truth_log):
+            qt = truth.fields["quaternion"]
+            self.truth.append((truth.stamp_ns, truth_log,
+                               np.column_stack([qt[:, 3], qt[:, 0], qt[:, 1], qt[:, 2]])))
+        if self.pending is not None:
+            self._score(*self.pending)
+        self.truth = self.truth[-3:]
+        self.pending = (q_est, stamp_ns, log_ns, log_s)
+
+    def finish(self) -> None:
+        if self.pending is not None:
+            self._score(*self.pending)
+            self.pending = None
+
+    def _score(self, q_est: np.ndarray, stamp_ns: np.ndarray, log_ns: np.ndarray,
+               log_s: np.ndarray) -> None:
+        from mkf_ros.core.frames import FROM_ENU
+        from mkf_ros.core.quaternion import qconj_np, qmul_np
+        from mkf_ros.evaluation.metrics import orientation_errors
+
+        if not len(q_est):
+            return
+        if self.truth:
+            ts = np.concatenate([x[0] for x in self.truth])
+            tl = np.concatenate([x[1] for x in self.truth])
+            m = _match_truth(stamp_ns, log_ns, ts, tl)
+        else:
+            m = np.full(len(q_est), -1)
+        ok = m >= 0
+        self.skipped += int((~ok).sum())
+        if not ok.any():
+            return
+        q_true = np.concatenate([x[2] for x in self.truth])[m[ok]]
+        q_true /= np.linalg.norm(q_true, axis=1, keepdims=True)
+        q_true = qmul_np(FROM_ENU[self.world_frame], q_true)
+        q = np.asarray(q_est[ok], float)
+        t = log_s[ok]
+        if not self.use_mag:
+            if self.align is None:
+                e = qmul_np(q_true[0], qconj_np(q[0]))  # world-frame error at the start
+                ang = 2.0 * math.atan2(e[3], e[0])  # its twist about the world z axis
+                self.align = np.array([math.cos(ang / 2), 0.0, 0.0, math.sin(ang / 2)])
+            q = qmul_np(self.align, q)
+        if self.t_first is None:
+            self.t_first = float(t[0])
+        err = orientation_errors(q, q_true)
+        keep = t >= self.t_first + self.skip
+        n = int(keep.sum())
+        self.count += n
+        for k, v in err.items():
+            self.sums[k] = self.sums.get(k, 0.0) + float(np.sum(np.square(v[keep])))
+        for kind, ivs in (self.intervals or {}).items():
+            inside = np.zeros(len(t), dtype=bool)
+            for a, b in ivs:
+                inside |= (t >= a) & (t <= b)
+            inside &= keep
+            if inside.any():
+                self.win_count[kind] = self.win_count.get(kind, 0) + int(inside.sum())
+                d = self.win_sums.setdefault(kind, {})
+                for k, v in err.items():
+                    d[k] = d.get(k, 0.0) + float(np.sum(np.square(v[inside])))
+        self.series.add(t, q, q_true, err)
+
+    def result(self) -> Scores | None:
+        if self.series.n == 0:
+            return None
+
+        def rmse(s: float, n: int) -> float:
+            return float(np.degrees(math.sqrt(s / n))) if n else math.nan
+
+        keys = ("total", "heading", "inclination")
+        t, qe, qt, err = self.series.arrays()
+        return Scores(t=t, q_est=qe, q_true=qt, errors=err,
+                      rmse={k: rmse(self.sums.get(k, 0.0), self.count) for k in keys},
+                      heading_aligned=not self.use_mag, skipped=self.skipped,
+                      windows={kind: {k: rmse(d[k], self.win_count[kind]) for k in keys}
+                               for kind, d in self.win_sums.items()},
+                      n=self.series.n, envelope=self.series.envelope(),
+                      intervals=self.intervals or {})
 
 
 def stream_param_names() -> list[str]:
@@ -218,7 +350,9 @@ def process_bag(bag: str | Path, out: str | Path, params: Mapping[str, Any] | No
                 accel_topic: str | None = None, gyro_topic: str | None = None,
                 truth_topic: str | None = "imu/ground_truth", output_topic: str = "imu/data",
                 storage: str = "mcap", overwrite: bool = False, copy_input: bool = False,
-                skip: float = 0.0, progress: Any = None) -> ProcessResult:
+                skip: float = 0.0, progress: Any = None,
+                window: int | None = WINDOW_MESSAGES, keep_outputs: bool = False
+                ) -> ProcessResult:
     """Run the estimator over ``bag`` and write ``out`` (see the module docstring).
 
     ``params``: filter and node parameters by name (ValueError if invalid). ``progress``: a
@@ -231,6 +365,12 @@ def process_bag(bag: str | Path, out: str | Path, params: Mapping[str, Any] | No
     ``imu/mag``). ``accel_topic`` and ``gyro_topic`` (both, and no ``imu_topic``) select split
     input (``input_mode`` split): separate accelerometer and gyro ``Imu`` streams, the output
     one message per gyro message.
+
+    Streaming: the bag is read, filtered, written and scored in windows of log time of about
+    ``window`` messages (:meth:`BagReader.read_windows`; None: the whole bag as one window),
+    the adapter's state carried from one to the next, so memory does not grow with the
+    recording and the output does not depend on ``window``. ``keep_outputs``: also return
+    every estimate (:class:`Outputs`, ``stamps``, ``log_s``; memory grows with the bag).
     """
     from mkf_ros.bags.synth import read_description
     from mkf_ros.stream.adapter import (
@@ -242,7 +382,7 @@ def process_bag(bag: str | Path, out: str | Path, params: Mapping[str, Any] | No
 
     bag, out = Path(bag), Path(out)
     notes: list[str] = []
-    tm: dict[str, float] = {}
+    tm = {"read": 0.0, "filter": 0.0, "write": 0.0}
     params = dict(params or {})
     if (accel_topic is None) != (gyro_topic is None):
         raise BagError("split input needs both --accel-topic and --gyro-topic (separate "
@@ -291,84 +431,105 @@ def process_bag(bag: str | Path, out: str | Path, params: Mapping[str, Any] | No
         want = [t for t in (imu_name, acc_name, mag_name, truth_name) if t]
         extra = list(br.topics) if copy_input else []
         read = list(dict.fromkeys(want + extra))
-        tick = progress("read", br.work_total(read)) if progress else None
-        batches = br.read(read, tick)
-        bag_start = br.start_ns
         in_types = {t: br.topics[t].msgtype for t in extra}
-    out_name = normalize_topic(output_topic)
-    if copy_input and out_name in batches:
-        raise BagError(f"output topic {out_name} is also in the input bag; choose another "
-                       "--output-topic or drop --copy-input")
-    imu_b = batches[imu_name]
-    if len(imu_b) == 0:
-        raise BagError(f"IMU topic {imu_name} in {bag} has no messages")
-    imu = _decode(imu_b.data, cdr.IMU, imu_name, bag)
-    acc = acc_b = None
-    if acc_name:
-        acc_b = batches[acc_name]
-        acc = _decode(acc_b.data, cdr.IMU, acc_name, bag)
-    mag = mag_b = None
-    if mag_name:
-        mag_b = batches[mag_name]
-        mag = _decode(mag_b.data, cdr.MAGNETIC_FIELD, mag_name, bag)
-    truth = _decode(batches[truth_name].data, cdr.QUATERNION_STAMPED, truth_name, bag) \
-        if truth_name else None
-    tm["read"] = time.perf_counter() - t0
-
-    t0 = time.perf_counter()
-    n_events = len(imu_b) + (len(mag_b) if mag_b else 0) + (len(acc_b) if acc_b else 0)
-    tick = progress("filter", n_events) if progress else None
-    outs = run_stream(adapter, imu, imu_b.log_ns, mag, mag_b.log_ns if mag_b else None, p, tick,
-                      acc, acc_b.log_ns if acc_b else None)
-    tm["filter"] = time.perf_counter() - t0
-    found = adapter.input_problems(imu_name, acc_name or "")
-    if "gyro" in found:  # an estimate of the tilt alone; said, not refused
-        notes.append(found.pop("gyro"))
-    problems = list(found.values())
-    if not problems and len(outs.index) == 0:
-        why = ", ".join(f"{v} {k}" for k, v in adapter.counters.items()
-                        if v and k in (*REJECTIONS, "acc_missing", "acc_implausible"))
-        problems = [f"no estimate from the {len(imu_b)} messages of {imu_name}"
-                    + (f" ({why})" if why else "")]
-    if problems:  # nothing to write: stop before the output bag exists
-        raise BagError("; ".join(problems) + "; no output written")
-    if carries_orientation(imu.fields["orientation"], imu.fields["orientation_covariance"][:, 0]):
+        out_name = normalize_topic(output_topic)
+        if copy_input and out_name in br.topics:
+            raise BagError(f"output topic {out_name} is also in the input bag; choose another "
+                           "--output-topic or drop --copy-input")
+        bag_start = br.start_ns
+        desc = (read_description(bag) or {}) if truth_name else {}
+        scorer = (_Scorer(p["world_frame"], use_mag, skip, desc.get("intervals"),
+                          br.topics[imu_name].count) if truth_name else None)
+        tick = progress("process", br.work_total(read)) if progress else None
+        n_imu = n_acc = n_mag = n_out = 0
+        orientation = False
+        kept: list[tuple[Outputs, np.ndarray, np.ndarray]] = []
+        tm["read"] += time.perf_counter() - t0
+        with BagWriter(out, storage, overwrite=overwrite) as w:
+            conn = w.add_topic(out_name, cdr.IMU.msgtype)
+            copies = {t: w.add_topic(t, in_types[t]) for t in extra}
+            windows = br.read_windows(read, window, tick)
+            while True:
+                t0 = time.perf_counter()
+                win = next(windows, None)
+                if win is None:
+                    break
+                imu_b = win[imu_name]
+                imu = _decode(imu_b.data, cdr.IMU, imu_name, bag)
+                acc = acc_b = None
+                if acc_name:
+                    acc_b = win[acc_name]
+                    acc = _decode(acc_b.data, cdr.IMU, acc_name, bag)
+                mag = mag_b = None
+                if mag_name:
+                    mag_b = win[mag_name]
+                    mag = _decode(mag_b.data, cdr.MAGNETIC_FIELD, mag_name, bag)
+                truth = (_decode(win[truth_name].data, cdr.QUATERNION_STAMPED, truth_name, bag)
+                         if truth_name else None)
+                t1 = time.perf_counter()
+                tm["read"] += t1 - t0
+                outs = run_stream(adapter, imu, imu_b.log_ns, mag,
+                                  mag_b.log_ns if mag_b else None, p, None, acc,
+                                  acc_b.log_ns if acc_b else None)
+                if len(imu_b):
+                    orientation = orientation or carries_orientation(
+                        imu.fields["orientation"], imu.fields["orientation_covariance"][:, 0])
+                t2 = time.perf_counter()
+                tm["filter"] += t2 - t1
+                out_log = imu_b.log_ns[outs.index]
+                w.write_batch(conn, out_log, encode_outputs(imu, imu_b, outs))
+                for t, c in copies.items():
+                    w.write_batch(c, win[t].log_ns, win[t].data)
+                t3 = time.perf_counter()
+                tm["write"] += t3 - t2
+                out_stamp = imu.stamp_ns[outs.index]
+                log_s = (out_log - bag_start) * 1e-9
+                if scorer is not None and truth is not None and truth_name:
+                    if len(imu_b):
+                        scorer.shift((int(imu_b.log_ns[0]) - bag_start) * 1e-9)
+                    scorer.add(truth, win[truth_name].log_ns, outs.quat, out_stamp, out_log,
+                               log_s)
+                if keep_outputs:
+                    outs.index = outs.index + n_imu
+                    kept.append((outs, out_stamp * 1e-9, log_s))
+                n_imu += len(imu_b)
+                n_acc += len(acc_b) if acc_b else 0
+                n_mag += len(mag_b) if mag_b else 0
+                n_out += len(outs.index)
+            if n_imu == 0:
+                raise BagError(f"IMU topic {imu_name} in {bag} has no messages")
+            found = adapter.input_problems(imu_name, acc_name or "")
+            if "gyro" in found:  # an estimate of the tilt alone; said, not refused
+                notes.append(found.pop("gyro"))
+            problems = list(found.values())
+            if not problems and n_out == 0:
+                why = ", ".join(f"{v} {k}" for k, v in adapter.counters.items()
+                                if v and k in (*REJECTIONS, "acc_missing", "acc_implausible"))
+                problems = [f"no estimate from the {n_imu} messages of {imu_name}"
+                            + (f" ({why})" if why else "")]
+            if problems:  # the output bag is dropped (BagWriter: never half-written)
+                raise BagError("; ".join(problems) + "; no output written")
+            t0 = time.perf_counter()
+        tm["write"] += time.perf_counter() - t0
+    if orientation:
         notes.append(orientation_note(imu_name))
-
-    t0 = time.perf_counter()
-    data = encode_outputs(imu, imu_b, outs)
-    out_log = imu_b.log_ns[outs.index]
-    with BagWriter(out, storage, overwrite=overwrite) as w:
-        conn = w.add_topic(out_name, cdr.IMU.msgtype)
-        w.write_batch(conn, out_log, data)
-        for t in extra:
-            c = w.add_topic(t, in_types[t])
-            w.write_batch(c, batches[t].log_ns, batches[t].data)
-    tm["write"] = time.perf_counter() - t0
-
-    out_stamp = imu.stamp_ns[outs.index]
-    log_s = (out_log - bag_start) * 1e-9
     scores = None
-    if truth is not None and truth_name:
-        m = _match_truth(out_stamp, out_log, truth, batches[truth_name].log_ns)
-        ok = m >= 0
-        if ok.any():
-            qt = truth.fields["quaternion"][m[ok]]
-            q_true = np.column_stack([qt[:, 3], qt[:, 0], qt[:, 1], qt[:, 2]])
-            q_true /= np.linalg.norm(q_true, axis=1, keepdims=True)
-            desc = read_description(bag) or {}
-            ivs = desc.get("intervals")
-            if ivs:  # synthetic intervals are in simulation time: shift to bag time
-                first = (int(imu_b.log_ns[0]) - bag_start) * 1e-9
-                ivs = {k: [(a + first, b + first) for a, b in v] for k, v in ivs.items()}
-            scores = score(outs.quat[ok], q_true, log_s[ok], p["world_frame"], use_mag, ivs,
-                           skip)
-            scores.skipped = int((~ok).sum())
-        else:
+    if scorer is not None:
+        scorer.finish()
+        scores = scorer.result()
+        if scores is None:
             notes.append(f"no {truth_name} message has the stamp of an output; not scored")
+    outputs, stamps, log_s_all = _join(kept) if keep_outputs else (None, None, None)
     counters = adapter.all_counters()
-    return ProcessResult(out=out, imu_topic=imu_name, mag_topic=mag_name, n_imu=len(imu_b),
-                         accel_topic=acc_name, n_accel=len(acc_b) if acc_b else 0,
-                         n_mag=len(mag_b) if mag_b else 0, n_out=len(outs.index), params=p,
-                         counters=counters, timings=tm, outputs=outs,
-                         stamps=out_stamp * 1e-9, log_s=log_s, scores=scores, notes=notes)
+    return ProcessResult(out=out, imu_topic=imu_name, mag_topic=mag_name, n_imu=n_imu,
+                         accel_topic=acc_name, n_accel=n_acc, n_mag=n_mag, n_out=n_out,
+                         params=p, counters=counters, timings=tm, outputs=outputs,
+                         stamps=stamps, log_s=log_s_all, scores=scores, notes=notes)
+
+
+def _join(kept: list[tuple[Outputs, np.ndarray, np.ndarray]]
+          ) -> tuple[Outputs, np.ndarray, np.ndarray]:
+    """The estimates of every window as one :class:`Outputs` (``keep_outputs``)."""
+    fields = [f for f in Outputs.__dataclass_fields__]
+    outs = Outputs(**{f: np.concatenate([getattr(k[0], f) for k in kept]) for f in fields})
+    return outs, np.concatenate([k[1] for k in kept]), np.concatenate([k[2] for k in kept])

@@ -17,6 +17,8 @@ from typing import Any
 import numpy as np
 
 STORAGE_SUFFIXES = {".mcap": "mcap", ".db3": "sqlite3", ".bag": "ros1"}
+#: rows fetched from sqlite3 at a time (the storage's unit of a window)
+SQLITE_FETCH = 50_000
 
 
 class BagError(Exception):
@@ -259,22 +261,51 @@ class BagReader:
 
     def read(self, topics: Iterable[str], progress: Callable[[int], object] | None = None
              ) -> dict[str, Batch]:
-        """Every message of ``topics`` at once (fast bulk path for MCAP and sqlite3 files).
+        """Every message of ``topics`` at once: :meth:`read_windows` as one window.
 
         ``progress``, if given, is called with increments of work done; the total is
         :meth:`work_total`.
         """
+        return next(iter(self.read_windows(topics, None, progress)))
+
+    def read_windows(self, topics: Iterable[str], size: int | None,
+                     progress: Callable[[int], object] | None = None
+                     ) -> Iterator[dict[str, Batch]]:
+        """The messages of ``topics`` in consecutive windows of log time: each window holds,
+        per topic, every message whose log time lies in it, in log-time order (equal times
+        in recording order), and the windows follow each other in time; messages of equal log
+        time are never split between windows. A window is closed once it has at least
+        ``size`` messages (over all topics) and the storage chunk that completes it is read
+        (``None``: one window, the whole bag). At least one window (perhaps empty) is
+        yielded. Memory: about one window and one storage chunk.
+
+        Fast bulk paths for MCAP (chunk by chunk, in the order of the chunk index) and sqlite3
+        files (through the timestamp index); other storages go through rosbags' iterator.
+        ``progress`` as in :meth:`read`.
+        """
         topics = list(topics)
+        if self.storage == "mcap" and not self._compressed:
+            pieces = self._pieces_mcap(topics, progress)
+        elif self.storage == "sqlite3" and not self._compressed:
+            pieces = self._pieces_sqlite(topics, progress)
+        else:
+            pieces = self._pieces_generic(topics, progress)
+        win = _Windows(topics, size)
         try:
-            if self.storage == "mcap" and not self._compressed:
-                return self._read_mcap(topics, progress)
-            if self.storage == "sqlite3" and not self._compressed:
-                return self._read_sqlite(topics, progress)
+            for bound, piece in pieces:
+                for topic, (t, d) in piece.items():
+                    win.add(topic, t, d)
+                if win.full() and bound is not None:
+                    got = win.take(bound)
+                    if got is not None:
+                        yield got
         except BagError:
             raise
-        except Exception as e:
+        except Exception as e:  # the storage backends' errors on a broken bag
             raise BagError(f"cannot read bag {self.path}: {_reason(e)}") from None
-        return self._read_generic(topics, progress)
+        last = win.take(None)
+        if last is not None or not win.yielded:
+            yield last if last is not None else win.empty()
 
     def work_total(self, topics: Iterable[str]) -> int:
         """Units :meth:`read` reports to ``progress`` (bytes for MCAP, messages otherwise)."""
@@ -282,48 +313,75 @@ class BagReader:
             return sum(f.stat().st_size for f in self._files)
         return sum(self.topics[t].count for t in topics if t in self.topics)
 
-    def _read_mcap(self, topics: list[str], progress: Callable[[int], object] | None
-                   ) -> dict[str, Batch]:
+    def _pieces_mcap(self, topics: list[str], progress: Callable[[int], object] | None
+                     ) -> Iterator[tuple[int | None, dict[str, tuple[np.ndarray, Any]]]]:
+        """(bound, messages per topic) chunk by chunk, over every file in the order of the
+        chunks' first log times; every later chunk has log times >= bound (None: last)."""
         from mkf_ros.bags.mcap import McapError, McapFile, _concat
 
-        parts: dict[str, list[tuple[np.ndarray, np.ndarray | list[bytes]]]] = {
-            t: [] for t in topics}
+        files = []
         for f in self._files:
             try:
-                mf = McapFile(f)
-                ids = {cid for cid, ch in mf.channels.items() if ch.topic in parts}
-                got = mf.read(ids, progress)
+                files.append(McapFile(f))
             except McapError as e:
                 raise BagError(f"cannot read bag {self.path}: {f.name}: {e}") from None
-            for cid, (t, d) in got.items():
-                parts[mf.channels[cid].topic].append((t, d))
-        return {t: Batch(*_concat(p)) for t, p in parts.items()}
+        refs = sorted(((c.start_time, i, c.offset), i, c)
+                      for i, mf in enumerate(files) for c in mf.chunks)
+        handles: dict[int, Any] = {}
+        try:
+            for k, (_, i, c) in enumerate(refs):
+                mf = files[i]
+                ids = {cid for cid, ch in mf.channels.items() if ch.topic in topics}
+                if i not in handles:
+                    handles[i] = mf.path.open("rb")
+                try:
+                    got = mf.read_chunk(handles[i], c, ids)
+                except McapError as e:
+                    raise BagError(f"cannot read bag {self.path}: {mf.path.name}: {e}") \
+                        from None
+                piece: dict[str, tuple[np.ndarray, Any]] = {}
+                for cid, (t, d) in got.items():
+                    topic = mf.channels[cid].topic
+                    piece[topic] = _concat([piece[topic], (t, d)]) if topic in piece else (t, d)
+                if progress:
+                    progress(c.length)
+                yield (refs[k + 1][2].start_time if k + 1 < len(refs) else None), piece
+        finally:
+            for h in handles.values():
+                h.close()
 
-    def _read_sqlite(self, topics: list[str], progress: Callable[[int], object] | None
-                     ) -> dict[str, Batch]:
-        parts: dict[str, list[tuple[np.ndarray, list[bytes]]]] = {t: [] for t in topics}
+    def _pieces_sqlite(self, topics: list[str], progress: Callable[[int], object] | None
+                       ) -> Iterator[tuple[int | None, dict[str, tuple[np.ndarray, Any]]]]:
+        """(bound, messages per topic) in batches of rows, file by file, in (timestamp, id)
+        order: the rows of a topic as rosbag2 inserted them, sorted stably by log time."""
         for f in self._files:
             db = sqlite3.connect(f"file:{f}?mode=ro&immutable=1", uri=True)
             try:
-                ids = {row[0]: row[1] for row in db.execute("SELECT id, name FROM topics")
-                       if row[1] in parts}
-                for tid, name in ids.items():
-                    rows = db.execute("SELECT timestamp, data FROM messages WHERE topic_id = ?",
-                                      (tid,)).fetchall()  # rowid order; sorted stably below
-                    t = np.fromiter((r[0] for r in rows), dtype=np.int64, count=len(rows))
-                    d = [r[1] for r in rows]
-                    if t.size > 1 and (np.diff(t) < 0).any():
-                        order = np.argsort(t, kind="stable")
-                        t, d = t[order], [d[i] for i in order.tolist()]
-                    parts[name].append((t, d))
+                names = {row[0]: row[1] for row in db.execute("SELECT id, name FROM topics")
+                         if row[1] in topics}
+                if not names:
+                    continue
+                marks = ",".join("?" * len(names))
+                cur = db.execute("SELECT topic_id, timestamp, data FROM messages WHERE "
+                                 f"topic_id IN ({marks}) ORDER BY timestamp, id",
+                                 list(names))
+                while rows := cur.fetchmany(SQLITE_FETCH):
+                    tid = np.fromiter((r[0] for r in rows), np.int64, len(rows))
+                    t = np.fromiter((r[1] for r in rows), np.int64, len(rows))
+                    piece: dict[str, tuple[np.ndarray, Any]] = {}
+                    for i, name in names.items():
+                        sel = np.flatnonzero(tid == i)
+                        if sel.size:
+                            piece[name] = (t[sel], [rows[j][2] for j in sel.tolist()])
                     if progress:
                         progress(len(rows))
+                    yield int(t[-1]), piece
             finally:
                 db.close()
-        return {t: _merge(p) for t, p in parts.items()}
 
-    def _read_generic(self, topics: list[str], progress: Callable[[int], object] | None
-                      ) -> dict[str, Batch]:
+    def _pieces_generic(self, topics: list[str], progress: Callable[[int], object] | None
+                        ) -> Iterator[tuple[int | None, dict[str, tuple[np.ndarray, Any]]]]:
+        """(bound, messages per topic) in batches of 10 000 from rosbags' iterator."""
         ts: dict[str, list[int]] = {t: [] for t in topics}
         ds: dict[str, list[bytes]] = {t: [] for t in topics}
         n = 0
@@ -331,22 +389,61 @@ class BagReader:
             ts[topic].append(t)
             ds[topic].append(raw)
             n += 1
-            if progress and n % 10000 == 0:
-                progress(10000)
+            if n % 10000 == 0:
+                if progress:
+                    progress(10000)
+                yield t, {k: (np.asarray(ts[k], np.int64), ds[k]) for k in topics if ts[k]}
+                ts = {k: [] for k in topics}
+                ds = {k: [] for k in topics}
         if progress:
             progress(n % 10000)
-        return {t: Batch(np.asarray(ts[t], np.int64), ds[t]) for t in topics}
+        yield None, {k: (np.asarray(ts[k], np.int64), ds[k]) for k in topics if ts[k]}
 
 
-def _merge(parts: list[tuple[np.ndarray, list[bytes]]]) -> Batch:
-    if not parts:
-        return Batch(np.zeros(0, np.int64), [])
-    if len(parts) == 1:
-        return Batch(*parts[0])
-    t = np.concatenate([p[0] for p in parts])
-    d = [x for p in parts for x in p[1]]
-    order = np.argsort(t, kind="stable")
-    return Batch(t[order], [d[i] for i in order.tolist()])
+class _Windows:
+    """Messages collected per topic (in arrival order) and handed out by log time."""
+
+    def __init__(self, topics: list[str], size: int | None) -> None:
+        self.parts: dict[str, list[tuple[np.ndarray, Any]]] = {t: [] for t in topics}
+        self.size = size
+        self.count = 0
+        self.yielded = False
+        self.emitted: int | None = None  #: every later message must have log time >= this
+
+    def add(self, topic: str, t: np.ndarray, data: Any) -> None:
+        if len(t) == 0:
+            return
+        if self.emitted is not None and int(t.min()) < self.emitted:
+            raise BagError("messages out of the order the storage's index promises "
+                           "(corrupt chunk index)")
+        self.parts[topic].append((t, data))
+        self.count += len(t)
+
+    def full(self) -> bool:
+        return self.size is not None and self.count >= self.size
+
+    def empty(self) -> dict[str, Batch]:
+        return {t: Batch(np.zeros(0, np.int64), []) for t in self.parts}
+
+    def take(self, bound: int | None) -> dict[str, Batch] | None:
+        """Every message with log time < ``bound`` (None: all), or None if there is none."""
+        from mkf_ros.bags.mcap import _concat
+
+        out: dict[str, Batch] = {}
+        n = 0
+        for topic, parts in self.parts.items():
+            t, d = _concat(parts) if parts else (np.zeros(0, np.int64), [])
+            cut = len(t) if bound is None else int(np.searchsorted(t, bound, "left"))
+            out[topic] = Batch(t[:cut], d[:cut])
+            self.parts[topic] = [(t[cut:], d[cut:])] if cut < len(t) else []
+            n += cut
+        self.count -= n
+        if bound is not None:
+            self.emitted = bound
+        if n == 0:
+            return None
+        self.yielded = True
+        return out
 
 
 #: the first bytes of each storage format → (its suffix, what it is)

@@ -199,7 +199,7 @@ def report(r: Any, args: argparse.Namespace) -> None:
         print(f"  note    {note}")
     s = r.scores
     if s is not None:
-        n = len(s.t)
+        n = s.n
         extra = f", first {args.skip:g} s left out" if args.skip else ""
         print(f"  accuracy against {args.truth_topic} ({n:,} samples{extra}), RMSE in degrees:")
         print(f"          total {s.rmse['total']:7.3f}   heading {s.rmse['heading']:7.3f}   "

@@ -98,8 +98,8 @@ def run(args: argparse.Namespace) -> int:
             import mkf_ros
 
             mkf_ros.warmup()  # before forking: the workers inherit the kernels
-            executor = (parallel.InlineExecutor() if slots <= 1
-                        else stack.enter_context(parallel.local_pool(slots)))
+            # one forked process per bag: a bag that crashes its process fails alone
+            executor = parallel.ForkPerUnit(slots)
             where = f"{slots} process(es)"
         print(f"mkf process: {len(jobs)} bags, {where} -> {out}/", file=sys.stderr)
         bar = stack.enter_context(tqdm(total=len(jobs), unit="bag", desc="mkf process",

@@ -40,8 +40,15 @@ def _breaks(a: np.ndarray) -> np.ndarray:
 
 def accuracy_figure(path: str | Path, t: np.ndarray, q_est: np.ndarray, q_true: np.ndarray,
                     errors: Mapping[str, np.ndarray], *, title: str = "",
-                    intervals: Mapping[str, list] | None = None) -> Path:
-    """Errors vs time and roll/pitch/yaw estimated vs true; returns the written file."""
+                    intervals: Mapping[str, list] | None = None,
+                    rmse: Mapping[str, float] | None = None,
+                    envelope: Mapping[str, tuple[np.ndarray, np.ndarray, np.ndarray]] | None
+                    = None) -> Path:
+    """Errors vs time and roll/pitch/yaw estimated vs true; returns the written file.
+
+    A long recording comes decimated: ``t`` etc. every k-th sample, ``rmse`` (degrees) over
+    all of them, and ``envelope`` per error the (bucket times, minimum, maximum) over buckets
+    of k samples (rad), drawn as a band behind the line."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
@@ -57,10 +64,16 @@ def accuracy_figure(path: str | Path, t: np.ndarray, q_est: np.ndarray, q_true: 
     ax = axes[0]
     for key, color in (("total", "k"), ("heading", "tab:blue"), ("inclination", "tab:green")):
         e = np.degrees(np.asarray(errors[key])[s])
-        rms = float(np.sqrt(np.mean(np.degrees(np.asarray(errors[key])) ** 2)))
+        rms = (float(rmse[key]) if rmse is not None else
+               float(np.sqrt(np.mean(np.degrees(np.asarray(errors[key])) ** 2))))
+        if envelope is not None and key in envelope:
+            te, lo, hi = envelope[key]
+            ax.fill_between(te, np.degrees(lo), np.degrees(hi), color=color, alpha=0.2, lw=0,
+                            step="post")
         ax.plot(ts, e, color=color, lw=0.8, label=f"{key} (RMSE {rms:.2f}°)")
     ax.set_ylabel("error [°]")
-    tot = np.degrees(np.asarray(errors["total"]))
+    tot = np.degrees(np.asarray(errors["total"] if envelope is None or "total" not in envelope
+                                else envelope["total"][2]))
     top = max(float(np.percentile(tot, 99.0)) * 1.6, 0.5) if tot.size else 1.0
     ax.set_ylim(0, min(top, float(tot.max()) * 1.05) if tot.size else 1.0)
     ax.grid(alpha=0.3)

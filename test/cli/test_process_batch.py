@@ -123,6 +123,44 @@ def test_a_bag_failing_while_written_leaves_no_output(
     assert messages(out / "b0") == messages(tmp_path / "ref")
 
 
+@pytest.mark.parametrize("crash", ["segfault", "exit"])
+def test_a_bag_that_crashes_its_worker_fails_alone(
+        bags: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+        capsys: pytest.CaptureFixture[str], crash: str) -> None:
+    """b1's worker process dies (SIGSEGV, as a crash in native code, or os._exit) while the
+    other bags are running and queued (the forked workers inherit the patch): b1 is one
+    FAILED line with the reason, b0 and b2 are the one-bag command's outputs, exit code 1."""
+    import os
+    import signal
+
+    import mkf_ros.bags.process as proc
+
+    real = proc.process_bag
+
+    def crashing(bag: str, out: str, *a: object, **kw: object) -> object:
+        if Path(bag).name == "b1":
+            if crash == "segfault":
+                os.kill(os.getpid(), signal.SIGSEGV)
+            os._exit(3)
+        return real(bag, out, *a, **kw)  # type: ignore[arg-type]
+
+    ref = tmp_path / "ref"
+    one_by_one(bags, ref, capsys)
+    monkeypatch.setattr(proc, "process_bag", crashing)
+    out = tmp_path / "out"
+    rc = main(["process", *(str(bags / n) for n, _, _ in BAGS), "--out", str(out),
+               "--jobs", "2", "--no-plot", *OPTS])
+    text = capsys.readouterr().out
+    assert rc == 1, text
+    why = ("killed by SIGSEGV" if crash == "segfault" else "exited with code 3 without a result")
+    assert re.search(rf"^b1\s+FAILED .*its worker process (was )?{why}$", text, re.M), text
+    assert "3 bags: 2 processed, 1 failed" in text
+    for name in ("b0", "b2"):
+        assert messages(out / name) == messages(ref / f"sub0/{name}"), name
+    assert not (out / "b1").exists()
+    no_partial(out)
+
+
 def test_help_names_the_batch_options(capsys: pytest.CaptureFixture[str]) -> None:
     with pytest.raises(SystemExit) as e:
         main(["process", "--help"])
