@@ -51,8 +51,7 @@ def read_mag(bag: str, topic: str | None) -> tuple[str, np.ndarray, np.ndarray]:
     """``(topic, stamps_s, fields)`` of the bag's magnetometer topic (BagError if none)."""
     import numpy as np
 
-    from mkf_ros.bags import BagError, BagReader
-    from mkf_ros.bags import cdr
+    from mkf_ros.bags import BagError, BagReader, cdr
 
     with BagReader(bag) as br:
         name = (br.resolve(topic, cdr.MAGNETIC_FIELD.msgtype, role="magnetometer")
