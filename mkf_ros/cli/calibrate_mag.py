@@ -41,6 +41,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--field-magnitude", type=float, default=None, metavar="B",
                         help="scale the calibrated field to this magnitude, in the topic's "
                         "unit (T for ROS); default: keep the sensor's scale (det S = 1)")
+    parser.add_argument("--hard-iron-only", action="store_true",
+                        help="fit the offset only (soft iron = identity): for a magnet on the "
+                        "body, or when the recording covers only part of the sphere")
     parser.add_argument("--no-refine", action="store_true",
                         help="algebraic fit only (no geometric refinement)")
     parser.add_argument("--node-name", default="/**",
@@ -122,7 +125,8 @@ def run(args: argparse.Namespace) -> int:
     raw = m[keep]
     try:
         cal = fit_ellipsoid(raw, refine=not args.no_refine, min_coverage=args.min_coverage,
-                            field_magnitude=args.field_magnitude)
+                            field_magnitude=args.field_magnitude,
+                            soft_iron=not args.hard_iron_only)
     except ValueError as e:
         raise CliError(f"{topic}: {e}") from None
     print(f"{args.bag}: {topic}, {int(keep.sum())} of {len(m)} messages")

@@ -48,6 +48,7 @@ class MagCalibration:
     axis_ratio: float  #: longest / shortest semi-axis of the raw ellipsoid (1 = no soft iron)
     n_samples: int  #: finite samples used
     refined: bool  #: the geometric refinement ran (SciPy available and asked for)
+    soft_iron_fitted: bool = True  #: False: hard iron only (S a multiple of I)
     notes: tuple[str, ...] = field(default=())
 
     @property
@@ -72,7 +73,8 @@ class MagCalibration:
         s = "; ".join(", ".join(f"{x:.5f}" for x in row) for row in self.soft_iron)
         return "\n".join([
             f"samples   {self.n_samples} "
-            f"({'geometric refinement' if self.refined else 'algebraic fit only'})",
+            f"({'ellipsoid' if self.soft_iron_fitted else 'sphere: hard iron only'}, "
+            f"{'geometric refinement' if self.refined else 'algebraic fit only'})",
             f"offset    [{h}]",
             f"soft iron [{s}]",
             f"field     {self.field_magnitude:.6g} (calibrated magnitude)",
@@ -142,15 +144,33 @@ def _algebraic(x: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
     return c, M, cond
 
 
+def _sphere(x: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+    """Least-squares sphere ``|x − c|² = ρ²`` (hard iron only; centred, scaled samples): the
+    centre, ``M = I/ρ²`` and the condition number of the design matrix."""
+    D = np.column_stack([2 * x, np.ones(len(x))])
+    sv = np.linalg.svd(D, compute_uv=False)
+    cond = float(sv[0] / sv[-1]) if sv[-1] > 0 else math.inf
+    if not cond < MAX_CONDITION:
+        raise ValueError(f"magnetometer calibration: the samples do not determine a sphere "
+                         f"(condition {cond:.3g}); turn the sensor in more directions")
+    s = np.linalg.lstsq(D, np.sum(x * x, axis=1), rcond=None)[0]
+    c = s[:3]
+    rho2 = float(s[3] + c @ c)
+    if not rho2 > 0:
+        raise ValueError("magnetometer calibration: the fitted sphere has no radius")
+    return c, np.eye(3) / rho2, cond
+
+
 def _sym_sqrt(M: np.ndarray) -> np.ndarray:
     w, V = np.linalg.eigh(M)
     return (V * np.sqrt(w)) @ V.T
 
 
-def _refine(m: np.ndarray, h: np.ndarray, S: np.ndarray, r: float
+def _refine(m: np.ndarray, h: np.ndarray, S: np.ndarray, r: float, soft_iron: bool
             ) -> tuple[np.ndarray, np.ndarray] | None:
     """Geometric refinement: minimise ``Σ (|S (m_i − h)| − r)²`` over ``h`` and symmetric ``S``
-    (r fixed: it sets the scale), from the algebraic solution. None without SciPy."""
+    (a multiple of I without ``soft_iron``; r fixed: it sets the scale), from the algebraic
+    solution. None without SciPy."""
     try:
         from scipy.optimize import least_squares
     except ImportError:
@@ -158,6 +178,8 @@ def _refine(m: np.ndarray, h: np.ndarray, S: np.ndarray, r: float
     iu = np.triu_indices(3)
 
     def unpack(theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        if not soft_iron:
+            return theta[:3], theta[3] * np.eye(3)
         Sm = np.zeros((3, 3))
         Sm[iu] = theta[3:]
         Sm = Sm + np.triu(Sm, 1).T
@@ -167,7 +189,8 @@ def _refine(m: np.ndarray, h: np.ndarray, S: np.ndarray, r: float
         hh, Sm = unpack(theta)
         return np.linalg.norm((m - hh) @ Sm.T, axis=1) - r
 
-    sol = least_squares(residual, np.concatenate([h, S[iu]]), method="lm", x_scale="jac")
+    start = np.concatenate([h, S[iu] if soft_iron else [S[0, 0]]])
+    sol = least_squares(residual, start, method="lm", x_scale="jac")
     hh, Sm = unpack(sol.x)
     if not (np.all(np.isfinite(sol.x)) and np.all(np.linalg.eigvalsh(Sm) > 0)):
         return None
@@ -181,7 +204,8 @@ def _refusal(cov: float, min_coverage: float) -> str:
 
 
 def fit_ellipsoid(m_raw: ArrayLike, *, refine: bool = True, min_coverage: float = MIN_COVERAGE,
-                  field_magnitude: float | None = None) -> MagCalibration:
+                  field_magnitude: float | None = None, soft_iron: bool = True
+                  ) -> MagCalibration:
     """Fit the hard-iron offset ``h`` and soft-iron matrix ``S`` to raw magnetometer samples
     (docs/math.md §10.1).
 
@@ -190,6 +214,10 @@ def fit_ellipsoid(m_raw: ArrayLike, *, refine: bool = True, min_coverage: float 
     maps the fitted ellipsoid onto a sphere of radius ``field_magnitude`` (default: the
     ellipsoid's geometric-mean radius, so ``det S = 1`` and the unit is unchanged).
     ``refine``: a geometric least-squares refinement after the algebraic fit (SciPy).
+    ``soft_iron=False`` fits the hard-iron offset only (a sphere, ``S`` a multiple of I): for a
+    magnet on the body, and whenever the coverage is partial — the soft-iron terms then trade
+    off against the offset with almost no change in the residual, and the directions (the
+    heading) suffer (docs/math.md §10.1).
 
     Raises ValueError (one line) for too few samples, samples that do not determine an
     ellipsoid, or a coverage of the sphere of calibrated directions below ``min_coverage``.
@@ -205,7 +233,7 @@ def fit_ellipsoid(m_raw: ArrayLike, *, refine: bool = True, min_coverage: float 
     raw_cov = coverage(m - centre0)
     if raw_cov < min_coverage:  # before the fit: a band of directions gives no ellipsoid
         raise ValueError(_refusal(raw_cov, min_coverage))
-    c, M, cond = _algebraic((m - centre0) / scale0)
+    c, M, cond = (_algebraic if soft_iron else _sphere)((m - centre0) / scale0)
     h = centre0 + scale0 * c
     M = M / scale0**2  # (m − h)ᵀ M (m − h) = 1 in the sensor's unit
     radii = 1.0 / np.sqrt(np.linalg.eigvalsh(M))
@@ -215,7 +243,7 @@ def fit_ellipsoid(m_raw: ArrayLike, *, refine: bool = True, min_coverage: float 
     notes: list[str] = []
     refined = False
     if refine:
-        out = _refine(m, h, S, r)
+        out = _refine(m, h, S, r, soft_iron)
         if out is None:
             notes.append("geometric refinement skipped (SciPy not installed or it diverged)")
         else:
@@ -229,7 +257,7 @@ def fit_ellipsoid(m_raw: ArrayLike, *, refine: bool = True, min_coverage: float 
         raise ValueError(_refusal(cov, min_coverage))
     return MagCalibration(offset=h, soft_iron=S, field_magnitude=r, rms=rms, coverage=cov,
                           condition=cond, axis_ratio=axis_ratio, n_samples=len(m),
-                          refined=refined, notes=tuple(notes))
+                          refined=refined, notes=tuple(notes), soft_iron_fitted=soft_iron)
 
 
 def params_yaml(cal: MagCalibration, node_name: str = "/**") -> str:

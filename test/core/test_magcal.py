@@ -46,6 +46,20 @@ def test_fit_recovers_offset_and_soft_iron_to_one_percent(refine: bool) -> None:
     assert cal.rms_relative < 0.02 and cal.coverage > 0.8 and cal.axis_ratio > 1.1
 
 
+def test_hard_iron_only_recovers_a_magnet_offset() -> None:
+    """A magnet on the body is a pure offset: the sphere fit recovers it, S is a multiple of I."""
+    sim = simulate("slow_rotation", duration=60, rate=50, seed=5)
+    m = sim.mag[sim.mag_valid]
+    field = float(np.median(np.linalg.norm(m, axis=1)))
+    cal = fit_ellipsoid(m + H_TRUE, soft_iron=False)
+    assert np.max(np.abs(cal.offset - H_TRUE)) < 0.01 * field
+    S = cal.soft_iron
+    np.testing.assert_allclose(S, S[0, 0] * np.eye(3), atol=1e-12)
+    assert not cal.soft_iron_fitted and "hard iron only" in cal.summary()
+    err = np.linalg.norm(cal.apply(m + H_TRUE) * (field / cal.field_magnitude) - m, axis=1)
+    assert np.sqrt(np.mean(err**2)) < 0.01 * field
+
+
 def test_given_field_magnitude_sets_the_scale() -> None:
     raw, true_body, field = _distorted()
     cal = fit_ellipsoid(raw, field_magnitude=field)
