@@ -13,8 +13,9 @@ field does not) and reports, per trial:
 
 * the fits (ellipsoid, and hard iron only) on the first ``--cal-seconds`` of the magnet phase
   (from the start of the motion, at least 2 s after the magnet appears): hard iron, soft iron,
-  RMS residual, coverage; and what ``fit_ellipsoid`` says about the trial's first minute of recording, as
-  the issue first proposed (rest without the magnet + the magnet's first seconds: refused);
+  RMS residual, coverage; and what ``fit_ellipsoid`` says about the trial's first minute of
+  recording, as the issue first proposed (rest without the magnet + the magnet's first seconds:
+  refused);
 * the 9D total RMSE (BROAD metric, degrees) over the rest of the magnet phase after the
   calibration window, and over the rest of the trial's motion after it, for the filter
   (i) without calibration (its consistency checks refuse the magnet's field: gyro-only heading),
