@@ -99,6 +99,7 @@ setup(
         "console_scripts": [
             "mkf = mkf_ros.cli.main:main",
             "estimator = mkf_ros.ros.estimator_node:main",
+            "estimator_lifecycle = mkf_ros.ros.lifecycle:lifecycle_main",
             "player = mkf_ros.ros.player_node:main",
         ],
     },

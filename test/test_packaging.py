@@ -42,7 +42,7 @@ OPTIONAL_ROS_PACKAGES = frozenset({"tf2_ros"})
 # Any other imported module named like a ROS interface package counts as well (nav_msgs, ...).
 ROS_INTERFACE_SUFFIXES = ("_msgs", "_srvs", "_interfaces")
 
-CONSOLE_SCRIPTS = ("mkf", "estimator", "player")
+CONSOLE_SCRIPTS = ("mkf", "estimator", "estimator_lifecycle", "player")
 
 
 # ---------------------------------------------------------------- helpers

@@ -105,12 +105,19 @@ class ParameterError(Exception):
 class EstimatorNode(Node):
     """The attitude estimator node (see the module docstring)."""
 
+    #: whether the node is managed (:class:`mkf_ros.ros.lifecycle.EstimatorLifecycleNode`)
+    MANAGED = False
+
     def __init__(self, node_name: str = "estimator", *, warm: bool = True,
                  **node_kwargs: Any) -> None:
         super().__init__(node_name, **node_kwargs)
         self._lock = threading.Lock()
         self._t_start = time.monotonic()
-        log = self.get_logger()
+        self._configured = False
+        self._active = not self.MANAGED  #: a managed node processes input only when active
+        self._cal_services: calibration.ServiceThread | None = None
+        self._timer: Timer | None = None
+        self._warm = warm
         try:
             values = declare_all(self)
             self.stream = StreamAdapter(values)
@@ -123,8 +130,23 @@ class EstimatorNode(Node):
         self.add_pre_set_parameters_callback(self._pre_set)
         self.add_on_set_parameters_callback(self._on_set)
         self.add_post_set_parameters_callback(self._post_set)
+        if not self.MANAGED:
+            self._configure()
 
-        if warm:
+    def _current_values(self) -> dict[str, Any]:
+        """The node's current parameter values (filter, node and calibration)."""
+        names = [p.name for p in PARAMS] + [p.name for p in calibration.CALIBRATION_PARAMS]
+        return {p.name: p.value for p in self.get_parameters(names)}
+
+    def _configure(self) -> None:
+        """Everything but the parameters: the filter from the current parameter values, the
+        publishers, subscriptions, services and timers (the lifecycle's configure)."""
+        log = self.get_logger()
+        values = self._current_values()
+        self._cal = {k: v for k, v in values.items() if k in calibration.BY_NAME}
+        with self._lock:
+            self.stream = StreamAdapter({k: v for k, v in values.items() if k in BY_NAME})
+        if self._warm:
             from mkf_ros.api import FIRST_COMPILE_TIME, warmup
 
             log.info("loading the filter kernels (compiled at install time; where that step "
@@ -149,8 +171,7 @@ class EstimatorNode(Node):
         self._encoder = rawmsg.ImuEncoder()
 
         qos_opts = QoSOverridingOptions.with_default_policies
-        self._pub = self.create_publisher(Imu, "imu/data", output_qos(),
-                                          qos_overriding_options=qos_opts())
+        self._pub = self._make_output_publisher()
         # input_mode split: the gyro drives the stream (and the output), the accelerometer is
         # fused at its own stamps (RealSense: -r imu/gyro:=camera/gyro/sample
         # -r imu/accel:=camera/accel/sample)
@@ -173,12 +194,12 @@ class EstimatorNode(Node):
         self._gyro_offset = np.array([self._cal[n] for n in calibration.GYRO_OFFSETS])
         self._gyro_window: calibration.GyroWindow | None = None
         self._mag_samples: list[np.ndarray] | None = None
-        self._cal_services = calibration.ServiceThread(self)
-        self._cal_services.service(Trigger, "calibrate_gyro", self._on_calibrate_gyro)
-        self._cal_services.service(Trigger, "calibrate_mag/start", self._on_calibrate_mag_start)
-        self._cal_services.service(Trigger, "calibrate_mag/finish", self._on_calibrate_mag_finish)
+        services = self._cal_services = calibration.ServiceThread(self)
+        services.service(Trigger, "calibrate_gyro", self._on_calibrate_gyro)
+        services.service(Trigger, "calibrate_mag/start", self._on_calibrate_mag_start)
+        services.service(Trigger, "calibrate_mag/finish", self._on_calibrate_mag_finish)
         self._steady = Clock(clock_type=ClockType.STEADY_TIME)
-        self._timer: Timer | None = None
+        self._timer = None
         # a ROS-time jump back (bag loop with /clock) or a switch to/from sim time resets
         self._jump_handle = self.get_clock().create_jump_callback(
             JumpThreshold(min_forward=None, min_backward=Duration(nanoseconds=-1),
@@ -187,6 +208,7 @@ class EstimatorNode(Node):
         self._tf: Any = None  # a tf2_ros.TransformBroadcaster once publish_tf is on
         self._rpy_pub: Publisher | None = None
         self._bias_pub: Publisher | None = None
+        self._configured = True
         self._apply_node_side_effects()
 
         for name, hint in unknown_overrides(self).items():
@@ -196,6 +218,39 @@ class EstimatorNode(Node):
             f"{p['algorithm']} on chart {p['chart']}, world frame {p['world_frame']}, "
             f"use_mag {str(p['use_mag']).lower()}; listening on {self._sub_imu.topic_name} and "
             f"{self._sub_mag.topic_name}, publishing {self._pub.topic_name}")
+
+    def _make_output_publisher(self) -> Publisher:
+        """``imu/data`` (a lifecycle publisher in the managed node)."""
+        return self.create_publisher(Imu, "imu/data", output_qos(),
+                                     qos_overriding_options=QoSOverridingOptions
+                                     .with_default_policies())
+
+    def _destroy_output_publisher(self, pub: Publisher) -> None:
+        self.destroy_publisher(pub)
+
+    def _teardown(self) -> None:
+        """Undo :meth:`_configure` (the lifecycle's cleanup and shutdown)."""
+        if not self._configured:
+            return
+        self._configured = False
+        if self._cal_services is not None:
+            self._cal_services.close()
+            self._cal_services = None
+        for t in (self._timer,):
+            if t is not None:
+                self.destroy_timer(t)
+        self._timer = None
+        self._jump_handle.unregister()
+        for sub in (self._sub_imu, self._sub_acc, self._sub_mag):
+            if sub is not None:
+                self.destroy_subscription(sub)
+        self._destroy_output_publisher(self._pub)
+        for pub in (self._diag_pub, self._rpy_pub, self._bias_pub):
+            if pub is not None:
+                self.destroy_publisher(pub)
+        self._rpy_pub = self._bias_pub = None
+        self.destroy_service(self._srv_reset)
+        self._tf = None
 
     # --- parameters ----------------------------------------------------------------------------
     def _pre_set(self, params: list[Parameter]) -> list[Parameter]:
@@ -245,6 +300,8 @@ class EstimatorNode(Node):
 
     def _apply_node_side_effects(self, changes: dict[str, Any] | None = None) -> None:
         self._p = p = self.stream.params
+        if not self._configured:
+            return  # applied by the lifecycle's configure
         if changes is None or "diagnostics_period" in changes:
             self._make_timer()
         if p["publish_tf"] and self._tf is None:
@@ -269,6 +326,8 @@ class EstimatorNode(Node):
     def _on_imu(self, data: bytes) -> None:
         """Serialized Imu in (``raw=True``), serialized Imu out: no message objects on the
         fast path (see :mod:`mkf_ros.ros.rawmsg`)."""
+        if not self._active:
+            return  # a managed node that is not active takes no input
         self.received_imu += 1
         try:
             self._last_imu_wall = time.monotonic()
@@ -335,6 +394,8 @@ class EstimatorNode(Node):
 
     def _on_accel(self, data: bytes) -> None:
         """Split input: one accelerometer message (its angular velocity ignored)."""
+        if not self._active:
+            return
         self.received_acc += 1
         try:
             h = rawmsg.parse(data, rawmsg.IMU_DOUBLES)
@@ -350,6 +411,8 @@ class EstimatorNode(Node):
             self._count_exception(e, "accelerometer callback")
 
     def _on_mag(self, data: bytes) -> None:
+        if not self._active:
+            return
         self.received_mag += 1
         try:
             self._last_mag_wall = time.monotonic()
@@ -412,6 +475,10 @@ class EstimatorNode(Node):
         from mkf_ros.core.gyrocal import rest_bias
 
         with self._lock:
+            if not self._active:
+                response.success = False
+                response.message = "the node is not active: no IMU input to calibrate from"
+                return response
             if self._gyro_window is not None:
                 response.success = False
                 response.message = "a gyro calibration is already running"
@@ -525,6 +592,8 @@ class EstimatorNode(Node):
             self._count_exception(e, "time jump callback")
 
     def _on_timer(self) -> None:
+        if not self._active:
+            return
         try:
             now = time.monotonic()
             self._check_silence(now)
@@ -643,12 +712,14 @@ def parameter_help() -> str:
     return "\n".join(lines)
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    """Console script ``estimator`` (``ros2 run mkf_ros estimator [--ros-args ...]``)."""
+def main(argv: Sequence[str] | None = None, *, node_class: type[EstimatorNode] | None = None,
+         prog: str = "estimator", usage: str = USAGE) -> int:
+    """Console script ``estimator`` (``ros2 run mkf_ros estimator [--ros-args ...]``); with
+    ``node_class`` another node (the managed ``estimator_lifecycle``)."""
     args = list(sys.argv if argv is None else argv)
     plain = remove_ros_args(args)[1:]
     if any(a in ("-h", "--help") for a in plain):
-        print(USAGE)
+        print(usage)
         print(parameter_help())
         return 0
     kind = os.environ.get("MKF_ROS_EXECUTOR", DEFAULT_EXECUTOR)
@@ -656,11 +727,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         if a.startswith("--executor="):
             kind = a.split("=", 1)[1]
         else:
-            print(f"estimator: error: unknown argument {a!r} (ROS arguments go after "
+            print(f"{prog}: error: unknown argument {a!r} (ROS arguments go after "
                   "--ros-args; see --help)", file=sys.stderr)
             return 2
     if kind not in EXECUTORS:
-        print(f"estimator: error: executor must be one of {', '.join(EXECUTORS)}, "
+        print(f"{prog}: error: executor must be one of {', '.join(EXECUTORS)}, "
               f"got {kind!r}", file=sys.stderr)
         return 2
     rclpy.init(args=args)
@@ -668,12 +739,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     code = 0
     try:
         executor = make_executor(kind)
-        node = EstimatorNode()
+        node = (node_class or EstimatorNode)()
         executor.add_node(node)
         node.get_logger().info(f"spinning with the {kind} executor")
         spin(executor)
     except ParameterError as e:
-        print(f"estimator: {e}", file=sys.stderr)
+        print(f"{prog}: {e}", file=sys.stderr)
         code = 2
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
