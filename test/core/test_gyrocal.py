@@ -37,11 +37,11 @@ def test_standard_error_is_honest_over_many_windows() -> None:
 def test_motion_is_refused() -> None:
     g, a = _still()
     g[:, 2] += 0.2 * np.sin(np.linspace(0, 6, len(g)))
-    with pytest.raises(ValueError, match="moved.*gyro z"):
+    with pytest.raises(ValueError, match=r"moved.*gyro z"):
         rest_bias(g, a, **LIMITS)
     g, a = _still()
     a[:, 0] += 1.0 * np.sin(np.linspace(0, 20, len(a)))
-    with pytest.raises(ValueError, match="moved.*accelerometer"):
+    with pytest.raises(ValueError, match=r"moved.*accelerometer"):
         rest_bias(g, a, **LIMITS)
 
 
