@@ -6,6 +6,7 @@ and must never appear in install_requires.
 """
 
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -15,6 +16,18 @@ from setuptools import find_packages, setup
 from setuptools.command.build_py import build_py
 
 package_name = "mkf_ros"
+
+
+def read_version() -> str:
+    """The one definition of the version, ``mkf_ros/_version.py`` (read, not imported: the
+    build may lack the runtime dependencies). package.xml repeats it as a literal for ROS;
+    test/test_packaging.py checks that they agree."""
+    here = os.path.dirname(os.path.abspath(__file__))
+    with open(os.path.join(here, package_name, "_version.py"), encoding="utf-8") as f:
+        found = re.search(r'^__version__ = "([^"]+)"$', f.read(), re.MULTILINE)
+    if found is None:
+        raise RuntimeError(f"no __version__ = \"...\" line in {package_name}/_version.py")
+    return found.group(1)
 
 
 class BuildPyWithKernels(build_py):
@@ -51,12 +64,14 @@ class BuildPyWithKernels(build_py):
 
 setup(
     name=package_name,
-    version="0.1.0",
+    version=read_version(),
     description="Manifold Kalman Filter (MEKF/MUKF) attitude estimation for ROS 2",
     license="Apache-2.0",
     maintainer="mkf_ros maintainers",
     maintainer_email="maintainers@users.noreply.h-seed-5101cbd9.example",
     packages=find_packages(exclude=["test*", "bench*"]),
+    # PEP 561: the package is typed (its annotations are checked by test/test_typecheck.py)
+    package_data={package_name: ["py.typed"]},
     data_files=[
         ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
         ("share/" + package_name, ["package.xml"]),
@@ -84,6 +99,7 @@ setup(
         "console_scripts": [
             "mkf = mkf_ros.cli.main:main",
             "estimator = mkf_ros.ros.estimator_node:main",
+            "estimator_lifecycle = mkf_ros.ros.lifecycle:lifecycle_main",
             "player = mkf_ros.ros.player_node:main",
         ],
     },

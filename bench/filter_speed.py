@@ -1,4 +1,4 @@
-"""Filter speed on this machine, the analogue of the paper's Fig. 4 (spec §7.4).
+"""Filter speed on this machine, the analogue of the paper's Fig. 4 (docs/math.md §7.4).
 
 Updates per second of every filter × chart × chart update (nx = 6, one vector sensor + gyro per
 update, through the core kernels) and the MEKF/MUKF ratio (the paper: about 3×).

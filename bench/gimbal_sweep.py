@@ -1,4 +1,4 @@
-"""Euler-angle filters at gimbal lock: a synthetic sweep through pitch ±90° (issue 7).
+"""Euler-angle filters at gimbal lock: a synthetic sweep through pitch ±90° (docs/baselines.md).
 
     ./run bench gimbal_sweep [--duration S] [--seed N] [--plot PATH] [--no-plot]
 

@@ -240,7 +240,8 @@ def _gyro_only(rec: Recording, _dim: str, _o: dict[str, Any]) -> np.ndarray:
 ALGOS: tuple[Algo, ...] = (
     Algo("mekf", ("6D", "9D"), _ours("mekf")),
     Algo("mukf", ("6D", "9D"), _ours("mukf")),
-    # the seed report's baselines (issue 7, mkf_ros.core.baselines), through the same sensor layer
+    # the seed report's baselines (docs/baselines.md, mkf_ros.core.baselines), through the same
+    # sensor layer
     Algo("euler_kf", ("6D", "9D"), _ours("euler_kf"), note="report §II, fixed", baseline=True),
     Algo("euler_ukf", ("6D", "9D"), _ours("euler_ukf"), note="report §III, fixed",
          baseline=True),

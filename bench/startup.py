@@ -1,5 +1,6 @@
-"""Start-up benchmark of the ``estimator`` node (issue 16): how long after ``estimator`` starts
-does the first ``imu/data`` message arrive, with a cold and with a warm kernel cache?
+"""Start-up benchmark of the ``estimator`` node (the first start must not wait for a compile): how
+long after ``estimator`` starts does the first ``imu/data`` message arrive, with a cold and with a
+warm kernel cache?
 
 For each run the estimator is started as its own process (the console script of the chosen
 Python environment) with ``MKF_ROS_CACHE_DIR`` pointing at an empty directory (cold) or at the

@@ -7,11 +7,11 @@ Offline use needs only NumPy and numba::
     res.quat  # (N, 4) [w, x, y, z], sensor → world (ENU by default)
 """
 
+from mkf_ros._version import __version__
 from mkf_ros.api import EstimateResult, estimate, warmup
 from mkf_ros.core.filter import AttitudeFilter
 from mkf_ros.core.params import PARAMS, FilterParams
 
-__version__ = "0.1.0"
 __all__ = [
     "PARAMS", "AttitudeFilter", "EstimateResult", "FilterParams", "__version__", "estimate",
     "warmup",

@@ -42,7 +42,7 @@ OPTIONAL_ROS_PACKAGES = frozenset({"tf2_ros"})
 # Any other imported module named like a ROS interface package counts as well (nav_msgs, ...).
 ROS_INTERFACE_SUFFIXES = ("_msgs", "_srvs", "_interfaces")
 
-CONSOLE_SCRIPTS = ("mkf", "estimator", "player")
+CONSOLE_SCRIPTS = ("mkf", "estimator", "estimator_lifecycle", "player")
 
 
 # ---------------------------------------------------------------- helpers
@@ -194,6 +194,7 @@ def test_colcon_build_produces_ros_layout(colcon_install: Path) -> None:
     site = _site_packages(prefix)
     if (REPO / PKG / "__init__.py").is_file():
         assert (site / PKG / "__init__.py").is_file()
+    assert (site / PKG / "py.typed").is_file(), "py.typed (PEP 561 marker) not installed"
     for excluded in ("test", "bench"):
         assert not (site / excluded).exists(), f"{excluded}/ must not be installed as a package"
 
@@ -272,8 +273,34 @@ def test_package_xml_metadata_matches_setup_py() -> None:
     assert root.findtext("export/build_type") == "ament_python"
     kwargs = _setup_kwargs()
     assert kwargs["name"] == PKG, "name differs: package.xml vs setup.py"
-    assert root.findtext("version") == kwargs["version"], "version differs: package.xml vs setup.py"
     assert root.findtext("license") == kwargs.get("license", "Apache-2.0") == "Apache-2.0"
+
+
+def _defined_version() -> str:
+    """``__version__`` of mkf_ros/_version.py, the one definition (read as source)."""
+    tree = ast.parse((REPO / PKG / "_version.py").read_text())
+    for node in tree.body:
+        if isinstance(node, ast.Assign) and getattr(node.targets[0], "id", "") == "__version__":
+            value = ast.literal_eval(node.value)
+            assert isinstance(value, str)
+            return value
+    raise AssertionError("mkf_ros/_version.py defines no __version__")
+
+
+def test_version_is_defined_once_and_package_xml_agrees() -> None:
+    """setup.py and ``mkf_ros.__version__`` read the version from mkf_ros/_version.py; no other
+    Python file spells it; package.xml (a literal, for ROS tools) carries the same number."""
+    import mkf_ros
+
+    version = _defined_version()
+    assert _package_xml().findtext("version") == version, (
+        f"package.xml <version> differs from mkf_ros/_version.py ({version})")
+    assert mkf_ros.__version__ == version
+    setup_py = (REPO / "setup.py").read_text()
+    assert "version=read_version()" in setup_py, "setup.py must read the version, not spell it"
+    spelled = [str(p.relative_to(REPO)) for p in [REPO / "setup.py", *(REPO / PKG).rglob("*.py")]
+               if p.name != "_version.py" and f'"{version}"' in p.read_text()]
+    assert not spelled, f"the version spelled outside mkf_ros/_version.py: {spelled}"
 
 
 def test_package_xml_is_valid_for_catkin_pkg() -> None:
@@ -427,4 +454,6 @@ def test_pip_install_with_build_isolation_ships_the_compiled_kernels(tmp_path: P
     got = json.loads(out.stdout.strip().splitlines()[-1])
     assert Path(got["file"]).is_relative_to(target), got
     assert got["packaged"], f"no compiled kernels in the installed package: {got}"
+    # PEP 561: the built wheel ships the typed-package marker
+    assert (target / PKG / "py.typed").is_file(), "py.typed missing from the installed wheel"
     assert got["passes"] == 0, f"the first start compiled ({got['passes']} compiler passes)"

@@ -500,9 +500,9 @@ def _reason(e: BaseException) -> str:
             return f"{hint} ({text})"
     if isinstance(e, EOFError) or "truncat" in low:
         return f"truncated ({text})"
-    # the backends' internals on a damaged file (issue 14: "'rss2msg'", "KeyError('version')",
-    # "ord() expected a character…", "'int' object is not subscriptable", a MemoryError):
-    # say what that means for the file, keep the internal text only as a detail
+    # the backends' internals on a damaged file (seen on truncated and corrupted bags: "'rss2msg'",
+    # "KeyError('version')", "ord() expected a character…", "'int' object is not subscriptable", a
+    # MemoryError): say what that means for the file, keep the internal text only as a detail
     if isinstance(e, MemoryError):
         return ("damaged: a length field asks for more memory than is available "
                 "(corrupt record header)")

@@ -15,6 +15,7 @@ from collections.abc import Sequence
 
 #: subcommand name → module (add new subcommands here)
 COMMANDS: dict[str, str] = {
+    "calibrate-mag": "mkf_ros.cli.calibrate_mag",
     "demo": "mkf_ros.cli.demo",
     "params": "mkf_ros.cli.params_cmd",
     "process": "mkf_ros.cli.process",
@@ -30,7 +31,7 @@ class CliError(Exception):
 def _overview() -> str:
     lines = ["usage: mkf COMMAND [options]   (mkf COMMAND --help for details)", "", "commands:"]
     for name, mod in COMMANDS.items():
-        lines.append(f"  {name:<10} {_help_of(mod)}")
+        lines.append(f"  {name:<14} {_help_of(mod)}")
     return "\n".join(lines)
 
 

@@ -87,14 +87,50 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                    help="process the bags on the Dask cluster of this scheduler "
                         "(tcp://HOST:8786; paths must be the same on every worker, "
                         "docs/bags.md)")
+    parser.add_argument("--params", metavar="PARAMS_YAML", default=None,
+                        help="a ROS parameters file (as for estimator --ros-args --params-file, "
+                        "e.g. from mkf calibrate-mag); flags given here take precedence")
     add_param_flags(parser, _stream_params(), "estimator parameters (as the node's)")
 
 
+def read_params_file(path: str) -> dict[str, Any]:
+    """The parameters of a ROS parameters file (``NODE: {ros__parameters: {...}}``, every
+    node's entry merged in file order) that ``mkf process`` applies; node-only parameters
+    without an offline meaning (TF, diagnostics) are skipped. CliError (one line) for a file
+    that cannot be read or parsed, or an unknown parameter name."""
+    import yaml
+
+    from mkf_ros.cli.main import CliError
+    from mkf_ros.core.params import BY_NAME, unknown_parameter
+
+    try:
+        doc = yaml.safe_load(Path(path).read_text())
+    except OSError as e:
+        raise CliError(f"--params {path}: {e.strerror or e}") from None
+    except yaml.YAMLError as e:
+        raise CliError(f"--params {path}: not valid YAML ({' '.join(str(e).split())})") from None
+    sections = [v["ros__parameters"] for v in (doc.values() if isinstance(doc, dict) else [])
+                if isinstance(v, dict) and isinstance(v.get("ros__parameters"), dict)]
+    if not sections:
+        raise CliError(f"--params {path}: no 'NODE: ros__parameters:' mapping (a ROS parameters "
+                       "file, as written by mkf calibrate-mag or mkf params)")
+    offline = {p.name for p in _stream_params()}
+    out: dict[str, Any] = {}
+    for sec in sections:
+        for name, value in sec.items():
+            if name not in BY_NAME:
+                raise CliError(f"--params {path}: {unknown_parameter(name, BY_NAME)}")
+            if name in offline:
+                out[name] = value
+    return out
+
+
 def _overrides(args: argparse.Namespace) -> dict[str, Any]:
-    """The estimator parameters set on the command line."""
+    """The estimator parameters of ``--params FILE``, then those set by flags."""
     from mkf_ros.cli.options import param_overrides
 
-    return param_overrides(args, _stream_params())
+    base = read_params_file(args.params) if getattr(args, "params", None) else {}
+    return {**base, **param_overrides(args, _stream_params())}
 
 
 class _Bars:

@@ -1,4 +1,4 @@
-"""``mkf study``: the paper's simulation study (spec ``mkf-math.md`` §7), with figures and summary.
+"""``mkf study``: the paper's simulation study (``docs/math.md`` §7), with figures and summary.
 
 Runs every selected cell (filter × chart × chart update/reset × R × rate) on N_s trajectories,
 resumably, on all cores (or on a Dask cluster with ``--scheduler``), then writes ``cells.csv``,

@@ -1,4 +1,4 @@
-"""The four charts of the unit-quaternion manifold (spec §2) and their transition maps and
+"""The four charts of the unit-quaternion manifold (docs/math.md §2) and their transition maps and
 T-matrices (§3).
 
 A chart maps a unit quaternion ``δ`` near the identity to ``e = φ(δ) ∈ R³`` and back. Every chart

@@ -1,8 +1,8 @@
 """World frames (REP-103 / REP-145) and closed-form alignment.
 
 The filters work internally in ENU (x east, y north, z up; an accelerometer at rest reads +g
-along the world's up axis, §8 item 15). The published orientation is ``q_W = q_{W←ENU} * q_ENU``,
-so ``R(q_W) = R_{W←ENU} R(q_ENU)``.
+along the world's up axis, docs/math.md §8 item 15). The published orientation is
+``q_W = q_{W←ENU} * q_ENU``, so ``R(q_W) = R_{W←ENU} R(q_ENU)`` (docs/math.md §1.2).
 """
 
 from __future__ import annotations

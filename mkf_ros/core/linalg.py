@@ -1,4 +1,4 @@
-"""Small dense linear algebra for the kernels: Cholesky factor and solve (§8 item 16).
+"""Small dense linear algebra for the kernels: Cholesky factor and solve (docs/math.md §8 item 16).
 
 Written out because numba's ``np.linalg`` needs SciPy's LAPACK and these matrices are ≤ 21×21.
 """

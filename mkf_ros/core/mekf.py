@@ -1,4 +1,4 @@
-"""MEKF — Manifold Extended Kalman Filter (spec §5; paper §3.1, App. B/C).
+"""MEKF — Manifold Extended Kalman Filter (docs/math.md §5; paper §3.1, App. B/C).
 
 State: the chart centre ``q̄`` (which is also the estimate), the body rate ``ω̄`` and, as an
 extension, the gyro bias ``b̄``; covariance ``P`` of the error state ``(e, ω[, b])`` in the chart
@@ -55,7 +55,7 @@ H_VECTOR, H_RATE, H_RATE_BIAS = 0, 1, 2
 #: accurate to ~1e-10 and the rounding of ``P`` is far below the posterior's own spread in the
 #: measured directions. Beyond it (a very precise sensor against a very wide prior: the ends of
 #: the noise parameters' ranges, the paper's ``P0 = 100 I``) the Joseph form, PSD for any gain
-#: (issue 14: the simple form made the bias variance negative, and the inverse of an
+#: (at the range ends of the noise parameters the simple form made the bias variance negative, and the inverse of an
 #: ill-conditioned ``S`` made ``P`` indefinite by up to 1 % of its size).
 JOSEPH_TAU = 1e-6
 

@@ -1,4 +1,4 @@
-"""MUKF — Manifold Unscented Kalman Filter (spec §6; paper §3.2).
+"""MUKF — Manifold Unscented Kalman Filter (docs/math.md §6; paper §3.2).
 
 Carried state: the chart centre ``q̄_c`` (the predicted mean of the previous step), the mean ``ē``
 of the distribution in that chart (not zero in general), ``ω̄``, the gyro bias ``b̄`` (extension)

@@ -1,4 +1,4 @@
-"""Quaternion algebra (spec `mkf-math.md` §1).
+"""Quaternion algebra (`docs/math.md` §1).
 
 Quaternions are NumPy arrays ``(q0, q1, q2, q3)``, **scalar first**, Hamilton product. A unit
 quaternion ``q`` maps body (sensor) coordinates to external (world) coordinates:

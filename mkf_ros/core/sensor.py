@@ -1,4 +1,4 @@
-"""The sensor layer: one sample of a real IMU through the paper's filters (spec §8 item 15).
+"""The sensor layer: one sample of a real IMU through the paper's filters (docs/math.md §8 item 15).
 
 The paper's filters (:mod:`~mkf_ros.core.mekf`, :mod:`~mkf_ros.core.mukf`) take abstract vector
 measurements. This layer adds what a real IMU needs:
@@ -789,7 +789,7 @@ def _gyro_scale_noise(c: np.record, s: np.record, dt: float, wl: tuple) -> None:
             s.P[i, i] += qs
 
 
-# the MEKF's blocks (spec §5) on the state's covariance and the scratch: compiled once each
+# the MEKF's blocks (docs/math.md §5) on the state's covariance and the scratch: compiled once each
 # (the blocks of mkf_ros.core.mekf inlined), called with the records (by pointer)
 @jit
 def _mekf_predict(s: np.record, nx: int, dt: float, q: tuple, wt: tuple, Qw: tuple,
@@ -863,7 +863,7 @@ def _rate_updates(c: np.record, s: np.record, w: np.record, z: Fusion) -> bool:
 @hot
 def _mekf_update(c: np.record, s: np.record, w: np.record, dt: float,
                  z: Fusion) -> tuple[float, float]:
-    """The MEKF (spec §5): prediction over the step, one block per sensor (gravity, the field as
+    """The MEKF (docs/math.md §5): prediction over the step, one block per sensor (gravity, the field as
     a vector or a heading), one move back to the manifold. Returns the NIS of the two."""
     nx = c.nx
     wt, b = t3(s.w), t3(s.b)
@@ -895,7 +895,7 @@ def _mekf_update(c: np.record, s: np.record, w: np.record, dt: float,
 @unit(_UPDATE_SIG(CONFIG_T, STATE_T, WORK_T, nt.float64, FUSION_T), cost=18)
 def mukf_update(c: np.record, s: np.record, w: np.record, dt: float,
                 z: Fusion) -> tuple[bool, float, float]:
-    """The MUKF (spec §6): the stacked measurement through the sigma points
+    """The MUKF (docs/math.md §6): the stacked measurement through the sigma points
     (:func:`~mkf_ros.core.mukf.mukf_step_t`). Returns ``(ok, acc NIS, mag NIS)``; on a failed
     factorisation the estimate is still carried over ``Δt`` (the MEKF's linear prediction
     from the re-centred mean), so that no time is lost."""

@@ -9,7 +9,7 @@ can be separate compiled functions):
 * :data:`CONFIG` — the parameters as the kernels use them (:func:`build_config`: units
   converted, choices as ids); a field named like a parameter holds that parameter as it is;
 * :data:`STATE` — the estimate (chart centre ``q_c``, chart point ``e``, rate ``w``, bias
-  ``b``), its covariance ``P`` of ``(e, ω[, b])`` (spec §5, §6), and the sensor
+  ``b``), its covariance ``P`` of ``(e, ω[, b])`` (docs/math.md §5, §6), and the sensor
   layer's memory (references, low-passes, timers, flags);
 * :data:`COUNTERS` — one count per :data:`COUNTER_NAMES` reason;
 * :data:`WORK` — scratch of the filters' updates (contents never carried between samples).
@@ -84,7 +84,7 @@ CONFIG = np.dtype(
 #: The state of one filter: the estimate, its covariance and the sensor layer's memory.
 STATE = np.dtype(
     [
-        # --- the estimate (spec §5, §6) and its covariance
+        # --- the estimate (docs/math.md §5, §6) and its covariance
         ("q_c", np.float64, 4),  # chart centre q̄_c (the estimate for the MEKF)
         ("e", np.float64, 3),  # MUKF: mean ē in the chart at q̄_c (estimate q̄_c * φ⁻¹(ē))
         ("w", np.float64, 3),  # rate ω̄ (body, rad/s)
@@ -189,7 +189,7 @@ ALGO_MADGWICK = ALGORITHMS.index("madgwick")
 
 UP = (0.0, 0.0, 1.0)  # world up in ENU: what a resting accelerometer measures
 MAG_REF_SAMPLES = 100  # magnetometer samples averaged into a learned reference
-P0_PAPER = 100.0  # spec §8 item 9 (the paper's initial covariance)
+P0_PAPER = 100.0  # docs/math.md §8 item 9 (the paper's initial covariance)
 YAW0_STDDEV = 1e-3  # rad: heading is defined by the start-up heading when no magnetometer
 YAW_VAR_UNKNOWN = np.pi ** 2 / 3.0  # rad²: variance of an angle uniform over ±180°
 #: rad² about each axis: the published attitude covariance before the filter has an estimate
@@ -313,7 +313,7 @@ def build_config(p: FilterParams, split_input: bool = False) -> np.ndarray:
     c.split_input = split_input
     g = p.gravity
     c.gyro_var = p.gyro_noise**2
-    c.acc_var = (p.acc_noise / g) ** 2  # normalised reading: unit "g" (spec §8 item 15)
+    c.acc_var = (p.acc_noise / g) ** 2  # normalised reading: unit "g" (docs/math.md §8 item 15)
     c.acc_disturbance_var = (p.acc_disturbance / g) ** 2
     c.mag_var = p.mag_noise**2
     c.mag_disturbance_var = p.mag_disturbance**2
@@ -339,7 +339,7 @@ def build_config(p: FilterParams, split_input: bool = False) -> np.ndarray:
 @jit
 def recentre(c: np.record, s: np.record) -> None:
     """Move the chart centre onto the estimate: ``q̄_c ← q̄_c * φ⁻¹(ē)``, ``ē ← 0``, and carry
-    ``P`` with the T-matrix (spec §3.2). A no-op for the MEKF, whose ``ē`` is always
+    ``P`` with the T-matrix (docs/math.md §3.2). A no-op for the MEKF, whose ``ē`` is always
     zero."""
     e = s.e
     if e[0] == 0.0 and e[1] == 0.0 and e[2] == 0.0:

@@ -14,7 +14,9 @@ Topics (relative names: remap ``imu:=...`` to move them together, REP-145):
   message per accepted IMU message, with its header; ``/diagnostics`` (DiagnosticArray);
   ``imu/rpy/filtered`` and ``imu/gyro_bias`` with ``publish_debug_topics``; TF with
   ``publish_tf`` when tf2_ros is importable;
-* service ``~/reset`` (std_srvs/Trigger).
+* services ``~/reset``, ``~/calibrate_gyro``, ``~/calibrate_mag/start`` and
+  ``~/calibrate_mag/finish`` (std_srvs/Trigger; the calibrations: :mod:`.calibration`,
+  docs/math.md §10).
 
 Every parameter of :data:`mkf_ros.core.params.PARAMS` is declared and can be changed at run
 time through SetParameters (``ros2 param set``): validated in the on-set callback (a rejected
@@ -35,6 +37,7 @@ import time
 from collections.abc import Sequence
 from typing import Any
 
+import numpy as np
 import rclpy
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray
@@ -62,9 +65,15 @@ from std_srvs.srv import Trigger
 
 from mkf_ros.core.params import BY_NAME, PARAMS
 from mkf_ros.core.quaternion import qconj_np
-from mkf_ros.ros import convert, rawmsg
+from mkf_ros.ros import calibration, convert, rawmsg
 from mkf_ros.ros.diagnostics import DiagnosticsTracker, Snapshot
-from mkf_ros.ros.parameters import UnknownParameter, declare_all, to_double, unknown_overrides
+from mkf_ros.ros.parameters import (
+    UnknownParameter,
+    declare_all,
+    declare_calibration,
+    to_double,
+    unknown_overrides,
+)
 from mkf_ros.stream.adapter import (
     INPUT_CHECK_MESSAGES,
     StreamAdapter,
@@ -96,15 +105,23 @@ class ParameterError(Exception):
 class EstimatorNode(Node):
     """The attitude estimator node (see the module docstring)."""
 
+    #: whether the node is managed (:class:`mkf_ros.ros.lifecycle.EstimatorLifecycleNode`)
+    MANAGED = False
+
     def __init__(self, node_name: str = "estimator", *, warm: bool = True,
                  **node_kwargs: Any) -> None:
         super().__init__(node_name, **node_kwargs)
         self._lock = threading.Lock()
         self._t_start = time.monotonic()
-        log = self.get_logger()
+        self._configured = False
+        self._active = not self.MANAGED  #: a managed node processes input only when active
+        self._cal_services: calibration.ServiceThread | None = None
+        self._timer: Timer | None = None
+        self._warm = warm
         try:
             values = declare_all(self)
             self.stream = StreamAdapter(values)
+            self._cal = declare_calibration(self)
         except (ValueError, InvalidParameterValueException, InvalidParameterTypeException,
                 ParameterException) as e:
             msg = " ".join(str(e).split())
@@ -113,8 +130,23 @@ class EstimatorNode(Node):
         self.add_pre_set_parameters_callback(self._pre_set)
         self.add_on_set_parameters_callback(self._on_set)
         self.add_post_set_parameters_callback(self._post_set)
+        if not self.MANAGED:
+            self._configure()
 
-        if warm:
+    def _current_values(self) -> dict[str, Any]:
+        """The node's current parameter values (filter, node and calibration)."""
+        names = [p.name for p in PARAMS] + [p.name for p in calibration.CALIBRATION_PARAMS]
+        return {p.name: p.value for p in self.get_parameters(names)}
+
+    def _configure(self) -> None:
+        """Everything but the parameters: the filter from the current parameter values, the
+        publishers, subscriptions, services and timers (the lifecycle's configure)."""
+        log = self.get_logger()
+        values = self._current_values()
+        self._cal = {k: v for k, v in values.items() if k in calibration.BY_NAME}
+        with self._lock:
+            self.stream = StreamAdapter({k: v for k, v in values.items() if k in BY_NAME})
+        if self._warm:
             from mkf_ros.api import FIRST_COMPILE_TIME, warmup
 
             log.info("loading the filter kernels (compiled at install time; where that step "
@@ -139,8 +171,7 @@ class EstimatorNode(Node):
         self._encoder = rawmsg.ImuEncoder()
 
         qos_opts = QoSOverridingOptions.with_default_policies
-        self._pub = self.create_publisher(Imu, "imu/data", output_qos(),
-                                          qos_overriding_options=qos_opts())
+        self._pub = self._make_output_publisher()
         # input_mode split: the gyro drives the stream (and the output), the accelerometer is
         # fused at its own stamps (RealSense: -r imu/gyro:=camera/gyro/sample
         # -r imu/accel:=camera/accel/sample)
@@ -159,8 +190,16 @@ class EstimatorNode(Node):
         self._diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self._diag = DiagnosticsTracker(f"{self.get_name()}: attitude estimator")
         self._srv_reset = self.create_service(Trigger, "~/reset", self._on_reset)
+        # calibrations (docs/math.md §10): served from their own thread (see .calibration)
+        self._gyro_offset = np.array([self._cal[n] for n in calibration.GYRO_OFFSETS])
+        self._gyro_window: calibration.GyroWindow | None = None
+        self._mag_samples: list[np.ndarray] | None = None
+        services = self._cal_services = calibration.ServiceThread(self)
+        services.service(Trigger, "calibrate_gyro", self._on_calibrate_gyro)
+        services.service(Trigger, "calibrate_mag/start", self._on_calibrate_mag_start)
+        services.service(Trigger, "calibrate_mag/finish", self._on_calibrate_mag_finish)
         self._steady = Clock(clock_type=ClockType.STEADY_TIME)
-        self._timer: Timer | None = None
+        self._timer = None
         # a ROS-time jump back (bag loop with /clock) or a switch to/from sim time resets
         self._jump_handle = self.get_clock().create_jump_callback(
             JumpThreshold(min_forward=None, min_backward=Duration(nanoseconds=-1),
@@ -169,6 +208,7 @@ class EstimatorNode(Node):
         self._tf: Any = None  # a tf2_ros.TransformBroadcaster once publish_tf is on
         self._rpy_pub: Publisher | None = None
         self._bias_pub: Publisher | None = None
+        self._configured = True
         self._apply_node_side_effects()
 
         for name, hint in unknown_overrides(self).items():
@@ -178,6 +218,39 @@ class EstimatorNode(Node):
             f"{p['algorithm']} on chart {p['chart']}, world frame {p['world_frame']}, "
             f"use_mag {str(p['use_mag']).lower()}; listening on {self._sub_imu.topic_name} and "
             f"{self._sub_mag.topic_name}, publishing {self._pub.topic_name}")
+
+    def _make_output_publisher(self) -> Publisher:
+        """``imu/data`` (a lifecycle publisher in the managed node)."""
+        return self.create_publisher(Imu, "imu/data", output_qos(),
+                                     qos_overriding_options=QoSOverridingOptions
+                                     .with_default_policies())
+
+    def _destroy_output_publisher(self, pub: Publisher) -> None:
+        self.destroy_publisher(pub)
+
+    def _teardown(self) -> None:
+        """Undo :meth:`_configure` (the lifecycle's cleanup and shutdown)."""
+        if not self._configured:
+            return
+        self._configured = False
+        if self._cal_services is not None:
+            self._cal_services.close()
+            self._cal_services = None
+        for t in (self._timer,):
+            if t is not None:
+                self.destroy_timer(t)
+        self._timer = None
+        self._jump_handle.unregister()
+        for sub in (self._sub_imu, self._sub_acc, self._sub_mag):
+            if sub is not None:
+                self.destroy_subscription(sub)
+        self._destroy_output_publisher(self._pub)
+        for pub in (self._diag_pub, self._rpy_pub, self._bias_pub):
+            if pub is not None:
+                self.destroy_publisher(pub)
+        self._rpy_pub = self._bias_pub = None
+        self.destroy_service(self._srv_reset)
+        self._tf = None
 
     # --- parameters ----------------------------------------------------------------------------
     def _pre_set(self, params: list[Parameter]) -> list[Parameter]:
@@ -191,16 +264,27 @@ class EstimatorNode(Node):
     def _on_set(self, params: list[Parameter]) -> SetParametersResult:
         """Validate only, no side effects: the reason reaches the SetParameters caller."""
         changes = {p.name: p.value for p in params if p.name in BY_NAME}
-        if changes:
-            try:
+        try:
+            for p in params:
+                if p.name in calibration.BY_NAME:
+                    calibration.BY_NAME[p.name].validate(p.value)
+            if changes:
                 with self._lock:
                     self.stream.validate(changes)
-            except ValueError as e:
-                return SetParametersResult(successful=False, reason=str(e))
+        except ValueError as e:
+            return SetParametersResult(successful=False, reason=str(e))
         return SetParametersResult(successful=True)
 
     def _post_set(self, params: list[Parameter]) -> None:
         """Apply accepted changes atomically (between two messages)."""
+        cal = {p.name: calibration.BY_NAME[p.name].validate(p.value) for p in params
+               if p.name in calibration.BY_NAME}
+        if cal:
+            with self._lock:
+                self._cal.update(cal)
+                self._gyro_offset = np.array([self._cal[n] for n in calibration.GYRO_OFFSETS])
+            self.get_logger().info("parameters changed: " + ", ".join(
+                f"{k}={v!r}" for k, v in cal.items()))
         changes = {p.name: p.value for p in params if p.name in BY_NAME}
         if not changes:
             return
@@ -216,6 +300,8 @@ class EstimatorNode(Node):
 
     def _apply_node_side_effects(self, changes: dict[str, Any] | None = None) -> None:
         self._p = p = self.stream.params
+        if not self._configured:
+            return  # applied by the lifecycle's configure
         if changes is None or "diagnostics_period" in changes:
             self._make_timer()
         if p["publish_tf"] and self._tf is None:
@@ -240,6 +326,8 @@ class EstimatorNode(Node):
     def _on_imu(self, data: bytes) -> None:
         """Serialized Imu in (``raw=True``), serialized Imu out: no message objects on the
         fast path (see :mod:`mkf_ros.ros.rawmsg`)."""
+        if not self._active:
+            return  # a managed node that is not active takes no input
         self.received_imu += 1
         try:
             self._last_imu_wall = time.monotonic()
@@ -252,6 +340,7 @@ class EstimatorNode(Node):
             gyr, acc = rawmsg.imu_arrays(h)
             p = self._p
             with self._lock:
+                gyr = self._gyro_input(h.stamp, gyr, acc)
                 out = self.stream.on_imu(h.stamp, gyr, acc)
                 if out is None:
                     return
@@ -275,6 +364,7 @@ class EstimatorNode(Node):
             self._check_orientation((o.x, o.y, o.z, o.w), msg.orientation_covariance[0])
         p = self._p
         with self._lock:
+            gyr = self._gyro_input(stamp, gyr, acc)
             out = self.stream.on_imu(stamp, gyr, acc)
             if out is None:
                 return
@@ -304,6 +394,8 @@ class EstimatorNode(Node):
 
     def _on_accel(self, data: bytes) -> None:
         """Split input: one accelerometer message (its angular velocity ignored)."""
+        if not self._active:
+            return
         self.received_acc += 1
         try:
             h = rawmsg.parse(data, rawmsg.IMU_DOUBLES)
@@ -312,11 +404,15 @@ class EstimatorNode(Node):
             else:
                 stamp, acc = h.stamp, rawmsg.imu_arrays(h)[1]
             with self._lock:
+                if self._gyro_window is not None:
+                    self._gyro_window.add_acc(acc)
                 self.stream.on_accel(stamp, acc)
         except Exception as e:
             self._count_exception(e, "accelerometer callback")
 
     def _on_mag(self, data: bytes) -> None:
+        if not self._active:
+            return
         self.received_mag += 1
         try:
             self._last_mag_wall = time.monotonic()
@@ -326,6 +422,9 @@ class EstimatorNode(Node):
             else:
                 stamp, m = h.stamp, h.d[0:3]
             with self._lock:
+                if self._mag_samples is not None and len(self._mag_samples) < \
+                        calibration.MAX_MAG_SAMPLES:
+                    self._mag_samples.append(np.array(m, dtype=float))
                 self.stream.on_mag(stamp, m)
         except Exception as e:
             self._count_exception(e, "magnetometer callback")
@@ -359,6 +458,115 @@ class EstimatorNode(Node):
         convert.set_vec(b.vector, out.bias)
         bias_pub.publish(b)
 
+    # --- calibrations (docs/math.md §10; served from the ServiceThread) ------------------------
+    def _gyro_input(self, stamp: float, gyr: Any, acc: Any) -> Any:
+        """The gyro sample for the filter: the raw one to a running ``~/calibrate_gyro``, minus
+        ``gyro_offset_*`` to the filter. Call with the lock held."""
+        if self._gyro_window is not None:
+            self._gyro_window.add(stamp, gyr, None if self.stream.split else acc)
+        if self._gyro_offset.any():
+            return np.asarray(gyr, dtype=float) - self._gyro_offset
+        return gyr
+
+    def _on_calibrate_gyro(self, request: Trigger.Request, response: Trigger.Response
+                           ) -> Trigger.Response:
+        """Collect ``gyro_calibration_duration`` s of IMU samples (stamps), return when done;
+        apply the mean gyro as ``gyro_offset_*`` unless the sensor moved (docs/math.md §10.2)."""
+        from mkf_ros.core.gyrocal import rest_bias
+
+        with self._lock:
+            if not self._active:
+                response.success = False
+                response.message = "the node is not active: no IMU input to calibrate from"
+                return response
+            if self._gyro_window is not None:
+                response.success = False
+                response.message = "a gyro calibration is already running"
+                return response
+            duration = float(self._cal["gyro_calibration_duration"])
+            window = self._gyro_window = calibration.GyroWindow(duration)
+            wait = duration + float(self.stream.params["input_timeout"])
+        self.get_logger().info(f"gyro calibration: collecting {duration:g} s at rest")
+        complete = window.done.wait(timeout=wait)
+        with self._lock:
+            self._gyro_window = None
+        try:
+            if not complete:
+                raise ValueError(f"gyro calibration: {duration:g} s of IMU data did not arrive on "
+                                 f"{self._sub_imu.topic_name} within {wait:g} s")
+            acc = np.array(window.acc) if window.acc else None
+            res = rest_bias(np.array(window.gyr), acc,
+                            max_gyro_stddev=self._cal["gyro_calibration_max_gyro_stddev"],
+                            max_acc_stddev=self._cal["gyro_calibration_max_acc_stddev"])
+            result = self.set_parameters([
+                Parameter(n, Parameter.Type.DOUBLE, float(v))
+                for n, v in zip(calibration.GYRO_OFFSETS, res.bias, strict=True)])
+            refused = [r.reason for r in result if not r.successful]
+            if refused:
+                raise ValueError("gyro calibration not applied: " + "; ".join(refused))
+        except ValueError as e:
+            response.success = False
+            response.message = str(e)
+            self.get_logger().warning(response.message)
+            return response
+        response.success = True
+        response.message = f"{res.summary()}; applied as gyro_offset_x/y/z"
+        self.get_logger().info(response.message)
+        return response
+
+    def _on_calibrate_mag_start(self, request: Trigger.Request, response: Trigger.Response
+                                ) -> Trigger.Response:
+        with self._lock:
+            restarted = self._mag_samples is not None
+            self._mag_samples = []
+        response.success = True
+        response.message = (f"{'restarted' if restarted else 'started'} collecting "
+                            f"{self._sub_mag.topic_name}: turn the sensor through every "
+                            "orientation, then call calibrate_mag/finish")
+        self.get_logger().info("magnetometer calibration: " + response.message)
+        return response
+
+    def _on_calibrate_mag_finish(self, request: Trigger.Request, response: Trigger.Response
+                                 ) -> Trigger.Response:
+        """Fit the collected samples (docs/math.md §10.1) and apply ``mag_bias_*`` and
+        ``mag_soft_iron``; the filter then re-initialises (its learned field was the old
+        calibration's)."""
+        from mkf_ros.core.magcal import fit_ellipsoid
+
+        with self._lock:
+            samples, self._mag_samples = self._mag_samples, None
+        try:
+            if samples is None:
+                raise ValueError("no magnetometer calibration running: call "
+                                 "calibrate_mag/start first")
+            cal = fit_ellipsoid(np.array(samples).reshape(-1, 3),
+                                soft_iron=self._cal["mag_calibration_soft_iron"],
+                                min_coverage=self._cal["mag_calibration_min_coverage"])
+            values = cal.params()
+            result = self.set_parameters_atomically([
+                Parameter(k, value=v) for k, v in values.items()])
+            if not result.successful:
+                raise ValueError(f"magnetometer calibration not applied: {result.reason}")
+        except ValueError as e:
+            response.success = False
+            response.message = str(e)
+            self.get_logger().warning(response.message)
+            return response
+        with self._lock:
+            self.stream.reset("magnetometer calibration applied")
+        response.success = True
+        response.message = ("; ".join(cal.summary().splitlines())
+                            + "; applied as mag_bias_x/y/z, mag_soft_iron (filter re-initialised)")
+        self.get_logger().info(response.message)
+        return response
+
+    def destroy_node(self) -> None:
+        services = getattr(self, "_cal_services", None)
+        if services is not None:
+            services.close()
+            self._cal_services = None
+        super().destroy_node()
+
     def _on_reset(self, request: Trigger.Request, response: Trigger.Response
                   ) -> Trigger.Response:
         with self._lock:
@@ -384,6 +592,8 @@ class EstimatorNode(Node):
             self._count_exception(e, "time jump callback")
 
     def _on_timer(self) -> None:
+        if not self._active:
+            return
         try:
             now = time.monotonic()
             self._check_silence(now)
@@ -478,7 +688,9 @@ MEKF/MUKF attitude estimator (mkf_ros), a drop-in replacement for imu_filter_mad
   subscribes  imu/data_raw (sensor_msgs/Imu), imu/mag (sensor_msgs/MagneticField, tesla)
   publishes   imu/data (sensor_msgs/Imu), /diagnostics; imu/rpy/filtered, imu/gyro_bias
               with publish_debug_topics; TF with publish_tf
-  service     ~/reset (std_srvs/Trigger)
+  services    ~/reset, ~/calibrate_gyro (collects gyro_calibration_duration s at rest, applies
+              gyro_offset_*), ~/calibrate_mag/start and ~/calibrate_mag/finish (fits and
+              applies mag_bias_*, mag_soft_iron), all std_srvs/Trigger
 examples:
   estimator --ros-args -p use_mag:=true -p world_frame:=ned
   estimator --ros-args -r __ns:=/imu_front -r imu/data_raw:=/camera/imu
@@ -492,20 +704,22 @@ def parameter_help() -> str:
     """The ROS parameters with their defaults and units, generated from PARAMS (descriptions,
     ranges and choices: ``mkf params``)."""
     lines = ["parameters (-p NAME:=VALUE; descriptions and ranges: mkf params):"]
-    for p in PARAMS:
+    for p in (*PARAMS, *calibration.CALIBRATION_PARAMS):
         unit = f" [{p.unit}]" if p.unit else ""
         choices = f" ({'|'.join(p.choices)})" if p.choices else ""
         ro = " (read-only: start-up only)" if p.read_only else ""
-        lines.append(f"  {p.name:<26} {p.default!r}{unit}{choices}{ro}")
+        lines.append(f"  {p.name:<32} {p.default!r}{unit}{choices}{ro}")
     return "\n".join(lines)
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    """Console script ``estimator`` (``ros2 run mkf_ros estimator [--ros-args ...]``)."""
+def main(argv: Sequence[str] | None = None, *, node_class: type[EstimatorNode] | None = None,
+         prog: str = "estimator", usage: str = USAGE) -> int:
+    """Console script ``estimator`` (``ros2 run mkf_ros estimator [--ros-args ...]``); with
+    ``node_class`` another node (the managed ``estimator_lifecycle``)."""
     args = list(sys.argv if argv is None else argv)
     plain = remove_ros_args(args)[1:]
     if any(a in ("-h", "--help") for a in plain):
-        print(USAGE)
+        print(usage)
         print(parameter_help())
         return 0
     kind = os.environ.get("MKF_ROS_EXECUTOR", DEFAULT_EXECUTOR)
@@ -513,11 +727,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         if a.startswith("--executor="):
             kind = a.split("=", 1)[1]
         else:
-            print(f"estimator: error: unknown argument {a!r} (ROS arguments go after "
+            print(f"{prog}: error: unknown argument {a!r} (ROS arguments go after "
                   "--ros-args; see --help)", file=sys.stderr)
             return 2
     if kind not in EXECUTORS:
-        print(f"estimator: error: executor must be one of {', '.join(EXECUTORS)}, "
+        print(f"{prog}: error: executor must be one of {', '.join(EXECUTORS)}, "
               f"got {kind!r}", file=sys.stderr)
         return 2
     rclpy.init(args=args)
@@ -525,12 +739,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     code = 0
     try:
         executor = make_executor(kind)
-        node = EstimatorNode()
+        node = (node_class or EstimatorNode)()
         executor.add_node(node)
         node.get_logger().info(f"spinning with the {kind} executor")
         spin(executor)
     except ParameterError as e:
-        print(f"estimator: {e}", file=sys.stderr)
+        print(f"{prog}: {e}", file=sys.stderr)
         code = 2
     except (KeyboardInterrupt, ExternalShutdownException):
         pass

@@ -18,6 +18,7 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 
 from mkf_ros.core.params import BY_NAME, PARAMS, Param
+from mkf_ros.ros import calibration
 
 #: imu_filter_madgwick / imu_complementary_filter parameters without a same-named equivalent.
 FOREIGN_HINTS: dict[str, str] = {
@@ -89,7 +90,7 @@ def default_value(p: Param) -> Any:
 
 def to_double(param: Parameter) -> Parameter:
     """An INTEGER(_ARRAY) value for a float (list) parameter converted to DOUBLE(_ARRAY)."""
-    p = BY_NAME.get(param.name)
+    p = BY_NAME.get(param.name) or calibration.BY_NAME.get(param.name)
     if p is None:
         return param
     if p.type is float and param.type_ == Parameter.Type.INTEGER:
@@ -114,6 +115,15 @@ def declare_all(node: Node) -> dict[str, Any]:
     declared = node.declare_parameters(
         "", [(p.name, default_value(p), descriptor(p)) for p in PARAMS])
     return {param.name: param.value for param in declared}
+
+
+def declare_calibration(node: Node) -> dict[str, Any]:
+    """Declare the calibration services' parameters (:data:`calibration.CALIBRATION_PARAMS`,
+    node only); return their validated values (ValueError, one line, if one is invalid)."""
+    declared = node.declare_parameters("", [(p.name, default_value(p), descriptor(p))
+                                            for p in calibration.CALIBRATION_PARAMS])
+    return {param.name: calibration.BY_NAME[param.name].validate(param.value)
+            for param in declared}
 
 
 def unknown_overrides(node: Node) -> dict[str, str]:

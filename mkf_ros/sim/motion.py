@@ -9,7 +9,7 @@ the requested rate and adds noise:
 * accelerometer ``a_m = R(q)ᵀ (g·up + a_lin) + n_a`` (specific force, +g up at rest, REP-145);
 * magnetometer ``m_m = R(q)ᵀ (m_E + d) + n_m`` in tesla (``d``: a local disturbance).
 
-The attitude is integrated exactly for a piecewise-constant rate (spec §1.3) on ``substeps``
+The attitude is integrated exactly for a piecewise-constant rate (docs/math.md §1.3) on ``substeps``
 sub-intervals per sample, as in the paper's study (§7.2: rate updated first, then used). The
 product of the ``substeps·N`` small rotations is a blocked prefix product in NumPy (no compiled
 kernel, so the simulator never touches the filters' kernel cache).
@@ -320,11 +320,11 @@ def _accel_bursts(c: Context) -> None:
 
 
 def _shaking(c: Context) -> None:
-    """Sustained shaking (issue 13, like BROAD's fast translation): two stretches of a quarter
-    of the recording each in which the body is shaken back and forth at ``shake_freq`` Hz with
-    peaks up to ``shake_acc`` g along a direction that changes every second (whole periods of a
-    velocity oscillating about zero), while it also rocks about all axes (up to ``shake_rate``
-    rad/s at the same frequency); slow motion in between."""
+    """Sustained shaking (the motion that drags a raw accelerometer off, like BROAD's fast
+    translation): two stretches of a quarter of the recording each in which the body is shaken back
+    and forth at ``shake_freq`` Hz with peaks up to ``shake_acc`` g along a direction that changes
+    every second (whole periods of a velocity oscillating about zero), while it also rocks about all
+    axes (up to ``shake_rate`` rad/s at the same frequency); slow motion in between."""
     w = _slow_rates(c.rng, c.t_fine, 0.5)
     acc = np.zeros((c.t.size, 3))
     f = c.args["shake_freq"]
@@ -350,8 +350,9 @@ def _shaking(c: Context) -> None:
 
 def _slow_turn(c: Context) -> None:
     """Level, at rest for ``rest`` s, then a steady turn about the vertical at ``turn_rate``
-    rad/s (a robot turning slowly, issue 13) with a linear vibration of ``vib_acc`` m/s² (a
-    rolling robot; 0 = a perfectly smooth turn, which no IMU can tell from a gyro bias)."""
+    rad/s (a robot turning slowly: a turn rest detection must not take for a bias) with a linear
+    vibration of ``vib_acc`` m/s² (a rolling robot; 0 = a perfectly smooth turn, which no IMU can
+    tell from a gyro bias)."""
     c.level_start = True
     w = np.zeros((c.t_fine.size, 3))
     w[c.t_fine >= c.args["rest"], 2] = c.args["turn_rate"]
@@ -363,9 +364,10 @@ def _slow_turn(c: Context) -> None:
 
 
 def _mag_attached(c: Context) -> None:
-    """A magnet attached to the body (issue 13, like BROAD's attached-magnet trials): a
-    constant field ``mag_offset`` (T, body axes; hundreds of µT at 1 cm) from 0.3 to 0.7 of
-    the recording, on slow motion: it turns with the body, so the measured north swings."""
+    """A magnet attached to the body (a disturbance the magnetometer checks must refuse, like
+    BROAD's attached-magnet trials): a constant field ``mag_offset`` (T, body axes; hundreds of µT
+    at 1 cm) from 0.3 to 0.7 of the recording, on slow motion: it turns with the body, so the
+    measured north swings."""
     c.omega_fine = _slow_rates(c.rng, c.t_fine)
     a, b = 0.3 * c.duration, 0.7 * c.duration
     on = ((c.t >= a) & (c.t < b))[:, None]

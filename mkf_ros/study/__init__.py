@@ -1,4 +1,4 @@
-"""The paper's simulation study (spec ``mkf-math.md`` §7) as a tool: ``mkf study``.
+"""The paper's simulation study (``docs/math.md`` §7) as a tool: ``mkf study``.
 
 * :mod:`~mkf_ros.study.sim` — the procedure of §7.2 (numba): truth, measurements, convergence
   and estimation phases, common random numbers;

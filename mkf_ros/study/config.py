@@ -1,4 +1,4 @@
-"""The cells of the study (spec ``mkf-math.md`` §7.1) and how a selection of them is named.
+"""The cells of the study (``docs/math.md`` §7.1) and how a selection of them is named.
 
 A *cell* is one (filter, chart, update, R, rate) configuration run on ``N_s`` trajectories; the
 paper has 2 × 4 × 2 × 3 × 7 = 336 of them. Two further keys select readings the paper leaves

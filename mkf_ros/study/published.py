@@ -1,4 +1,4 @@
-"""Published results of the paper's study, digitised from its Figs. 5–7 (spec ``mkf-math.md``
+"""Published results of the paper's study, digitised from its Figs. 5–7 (``docs/math.md``
 §7.5): mean orientation error in degrees per (filter, chart, R, update) at the rates
 :data:`RATES_HZ`. ``cu`` = chart update, ``reset`` = no chart update (NCU). The MUKF values are
 those of the authors' ``Q_ω·Δt²`` noise scaling (§8 item 3).

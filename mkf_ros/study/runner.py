@@ -242,7 +242,8 @@ def _fmt(x: float | int | bool | None) -> str:
 
 
 def cell_row(cell: Cell, arrays: dict[str, np.ndarray]) -> dict[str, str]:
-    """The CSV row of a cell: §7.3 statistics, counts, the published value and agreement."""
+    """The CSV row of a cell: statistics (docs/math.md §7.3), counts, the published value and
+    agreement."""
     s = cell_stats(arrays["err"], arrays["status"], arrays["conv"])
     pub, pci = cell.published_deg, cell.published_ci_deg
     rel, within, overlap = agreement(s, pub, pci)

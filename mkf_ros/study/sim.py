@@ -1,4 +1,4 @@
-"""The simulation procedure of the paper's study (spec ``mkf-math.md`` §7.2) as numba kernels.
+"""The simulation procedure of the paper's study (``docs/math.md`` §7.2) as numba kernels.
 
 One *trajectory* is identified by ``(seed, rate, trajectory index)``. Its random numbers come from
 three independent, deterministic streams (common random numbers, CRN):

@@ -1,4 +1,4 @@
-"""Filter speed on this machine: the analogue of the paper's Fig. 4 (spec §7.4, §8 item 14).
+"""Filter speed on this machine: the analogue of the paper's Fig. 4 (docs/math.md §7.4, §8 item 14).
 
 The paper timed C++ builds on an Arduino MEGA and a Raspberry Pi 3 and reports only that the
 MEKF runs about 3× faster than the MUKF. Here every filter × chart × chart update (the study's

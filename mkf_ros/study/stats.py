@@ -1,4 +1,4 @@
-"""The study's metric and its comparisons (spec ``mkf-math.md`` §7.3, §8 item 13).
+"""The study's metric and its comparisons (``docs/math.md`` §7.3, §8 item 13).
 
 Per trajectory the mean error ``ē_θ`` (degrees) comes from :mod:`mkf_ros.study.sim`. Over the
 trajectories of a cell: ``μ = mean(ē_θ)``, ``σ`` the sample standard deviation and the confidence

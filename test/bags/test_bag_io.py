@@ -284,8 +284,8 @@ def test_mcap_fast_path_variants(tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ])
 def test_corrupt_metadata_says_what_is_wrong_with_the_file(tmp_path: Path, edit: Any,
                                                            meaning: str) -> None:
-    """Issue 14 item 6: these answered with the backend's internals only
-    ("KeyError('version')", "'int' object is not subscriptable")."""
+    """A user must learn what is wrong with the file: these answered with the backend's internals
+    only ("KeyError('version')", "'int' object is not subscriptable")."""
     bag = _good_bag(tmp_path, "sqlite3")
     meta = bag / "metadata.yaml"
     meta.write_text(edit(meta.read_text()))

@@ -57,6 +57,13 @@ def test_estimator_help_names_every_parameter() -> None:
     assert not missing, f"estimator --help lacks {missing}"
 
 
+def test_estimator_lifecycle_help() -> None:
+    out = _help("estimator_lifecycle", "--help")
+    assert "usage: estimator_lifecycle" in out and "change_state" in out
+    missing = [p.name for p in PARAMS if p.name not in out]
+    assert not missing, f"estimator_lifecycle --help lacks {missing}"
+
+
 def test_player_help_names_every_parameter() -> None:
     from mkf_ros.ros.player_node import PARAMS as PLAYER_PARAMS
 

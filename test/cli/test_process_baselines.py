@@ -1,5 +1,5 @@
-"""``mkf process --algorithm`` runs the seed report's baselines (issue 7) like the MKFs, and a
-bad choice is one clear line."""
+"""``mkf process --algorithm`` runs the seed report's baselines (docs/baselines.md) like the MKFs,
+and a bad choice is one clear line."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Literal NumPy transcriptions of the spec's §5 (MEKF) and §6 (MUKF) update equations.
+"""Literal NumPy transcriptions of docs/math.md §5 (MEKF) and §6 (MUKF) update equations.
 
 Slow and independent of the kernels (no shared code except chart maps, which have their own
 known-answer tests): the kernels are checked against these on random inputs.

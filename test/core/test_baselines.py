@@ -1,5 +1,5 @@
-"""The seed report's baselines (mkf_ros.core.baselines, issue 7): Euler-angle KF, Euler-angle
-UKF and Madgwick behind the same interface as the MKFs.
+"""The seed report's baselines (mkf_ros.core.baselines, docs/baselines.md): Euler-angle KF,
+Euler-angle UKF and Madgwick behind the same interface as the MKFs.
 
 Sensor noise of the simulations (``simulate`` defaults): gyro 0.01 rad/s, accelerometer
 0.05 m/s² and magnetometer 0.5 µT per sample, Earth field 50 µT with a 60° dip (25 µT
@@ -223,7 +223,7 @@ SPIKES = [
     (4, (629.2, 731.6, 32.7)),  # stuck
     (5, (-216.6, -698.0, -256.7)),  # stuck
 ]
-#: s. Measured over such runs (30 s, spikes 1–1000 rad/s, 6D and 9D; issue 14): Euler UKF
+#: s. Measured over such runs (30 s, spikes 1–1000 rad/s, 6D and 9D): Euler UKF
 #: median 0.9 s, at most 4.1 s (480 runs); Euler KF (it accepts the accelerometer throughout,
 #: but its small process noise makes the correction slow) median 1.0 s, at most 8.6 s (120).
 SPIKE_RECOVERY = {"euler_kf": 10.0, "euler_ukf": 5.0}
@@ -233,9 +233,9 @@ SPIKE_RECOVERY = {"euler_kf": 10.0, "euler_ukf": 5.0}
 @pytest.mark.parametrize(("seed", "spike"), SPIKES)
 def test_recovers_from_one_gyro_spike(algorithm: str, seed: int,
                                       spike: tuple[float, float, float]) -> None:
-    """Issue 14 item 5: one corrupted gyro sample throws the Euler filters' tilt by up to
-    several turns (they have no gyro gate: the report's filters fuse every sample). The
-    baseline may recover more slowly than the MKFs, but it must not stay lost: at rest, within
+    """Every filter must recover from a glitch: one corrupted gyro sample throws the Euler filters'
+    tilt by up to several turns (they have no gyro gate: the report's filters fuse every sample).
+    The baseline may recover more slowly than the MKFs, but it must not stay lost: at rest, within
     :data:`SPIKE_RECOVERY` of the spike the inclination is within 2° of the truth and stays
     there (one accelerometer sample fixes the tilt to 0.3°, see the module docstring)."""
     sim = simulate("static", duration=15.0, rate=RATE, seed=seed)

@@ -1,4 +1,5 @@
-"""Charts, transition maps and T-matrices (spec §2, §3) with the known-answer values of §3.2."""
+"""Charts, transition maps and T-matrices (docs/math.md §2, §3) with the known-answer values
+of §3.2."""
 
 from __future__ import annotations
 

@@ -33,7 +33,7 @@ SIGMA = 0.01  # R = 1e-4
 PARAMS = dict(gyro_noise=SIGMA, acc_noise=SIGMA * 9.80665, mag_noise=SIGMA,
               acc_disturbance=0.0, mag_disturbance=0.0, rate_process_noise=1.0,
               acc_alignment_error=0.0, gyro_scale_error=0.003)  # the simulated sensors are
-# perfectly aligned and scaled: a small allowance (issue 13 defaults to 1 %, 1°) for them
+# perfectly aligned and scaled: a small allowance (the defaults assume 1 %, 1°) for them
 SKIP = 100  # the first second: convergence from the first-sample alignment
 
 

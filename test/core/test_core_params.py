@@ -89,7 +89,7 @@ def test_cli_flags_are_generated() -> None:
         parser.parse_args(["--chart", "euler"])
 
 
-# --- issue 14 item 6: coercion and the unknown-keyword message ---------------------------------
+# --- coercion and the unknown-keyword message ---------------------------------------------------
 
 def test_numpy_booleans_are_booleans() -> None:
     import numpy as np

@@ -1,4 +1,4 @@
-"""Issue 14: the library keeps the node's promises (mkf_ros.core.filter, its stateful and batch
+"""The library keeps the node's promises (mkf_ros.core.filter, its stateful and batch
 APIs): an invalid time step is refused without touching the state, ``Δt = 0`` is defined, an
 implausibly large reading is invalid (counted, like the node's 1000 rad/s limit), and the
 covariance stays symmetric PSD at the ends of the parameter ranges."""
@@ -200,8 +200,8 @@ def psd_violation(P: np.ndarray) -> float:
 
 @pytest.mark.parametrize("algorithm", ["mekf", "mukf"])
 def test_node_never_publishes_nan_with_a_very_precise_rest_detector(algorithm: str) -> None:
-    """Issue 14 item 3: these settings made the bias variance negative at the first rest
-    update, and its square root NaN in every angular_velocity_covariance."""
+    """Valid range ends must give valid output: these settings made the bias variance negative at
+    the first rest update, and its square root NaN in every angular_velocity_covariance."""
     from mkf_ros.stream.adapter import StreamAdapter
 
     sim = simulate("static", duration=5, rate=100, seed=1)
@@ -217,7 +217,7 @@ def test_node_never_publishes_nan_with_a_very_precise_rest_detector(algorithm: s
 
 
 RANGE_ENDS = {
-    # issue 14 items 3 and 4, each with the sensors and the data it failed on
+    # parameter range ends that once failed, each with the sensors and the data it failed on
     "precise_rest": (dict(gyro_noise=1e-6, rate_process_noise=1e9, rest_rate_stddev=1e-6),
                      "static", 0.01, False),
     "paper_mag": (dict(init_mode="paper", mag_reference=[1e6, -1e6, -1e6], mag_noise=1e-6,

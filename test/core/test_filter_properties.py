@@ -1,7 +1,8 @@
-"""Property-based contracts of mkf_ros.core.filter (issue 14), for every algorithm × chart ×
-chart update × sensor set × world frame: finite, unit-norm outputs; a symmetric PSD covariance;
-a refused call leaves the state bit-identical; recovery after a burst of garbage; every accepted
-parameter set, range ends included, runs without a non-finite or indefinite output.
+"""Property-based contracts of mkf_ros.core.filter (any input must give a finite estimate), for
+every algorithm × chart × chart update × sensor set × world frame: finite, unit-norm outputs; a
+symmetric PSD covariance; a refused call leaves the state bit-identical; recovery after a burst of
+garbage; every accepted parameter set, range ends included, runs without a non-finite or indefinite
+output.
 
 Deterministic (``derandomize``): CI cannot flake. Run time is bounded by the profile:
 ``MKF_PROPERTY_PROFILE=ci`` (default, a few examples per test) or ``long`` (×20, for a soak

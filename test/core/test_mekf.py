@@ -1,4 +1,4 @@
-"""MEKF (spec §5): known-answer test, and the kernels against a literal transcription."""
+"""MEKF (docs/math.md §5): known-answer test, and the kernels against a literal transcription."""
 
 from __future__ import annotations
 
@@ -200,7 +200,7 @@ def _heading_case(seed: int) -> tuple:
 
 @pytest.mark.parametrize("seed", range(5))
 def test_heading_jacobian_matches_finite_differences(seed: int) -> None:
-    """Issue 13: the MEKF's heading update linearises ψ(q̄ * δ(e)) with the full Jacobian,
+    """The MEKF's heading update (docs/math.md §9.2) linearises ψ(q̄ * δ(e)) with the full Jacobian,
     tilt coupling (≈ tan(dip)) included, so that ``S = H P Hᵀ + var`` counts the tilt
     uncertainty. Read ``S`` back from the returned NIS = r²/S for attitude covariances
     ``ε a aᵀ`` along several directions a and compare ``(S − var)/ε = (H·a)²`` with central
@@ -230,7 +230,7 @@ def test_heading_jacobian_matches_finite_differences(seed: int) -> None:
 def test_heading_update_agrees_with_the_mukf(seed: int) -> None:
     """For a small covariance the MEKF's linearised heading row and the MUKF's, which carries
     ψ through the sigma points, see the same innovation covariance and move the estimate
-    alike (the two filters disagreed on the tilt coupling before issue 13)."""
+    alike (the two filters disagreed while the MEKF's heading row had no tilt coupling)."""
     from mkf_ros.core.filter import AttitudeFilter
 
     rng = np.random.default_rng(seed)

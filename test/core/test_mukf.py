@@ -1,4 +1,4 @@
-"""MUKF (spec §6): the kernel against a literal transcription with the full augmentation."""
+"""MUKF (docs/math.md §6): the kernel against a literal transcription with the full augmentation."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Quaternion algebra (spec §1)."""
+"""Quaternion algebra (docs/math.md §1)."""
 
 from __future__ import annotations
 

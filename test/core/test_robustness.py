@@ -1,6 +1,7 @@
-"""Real-sensor extensions (issue 6) on synthetic data with known truth: gyro bias, accelerometer
-and magnetometer rejection, heading-only magnetometer, hard/soft-iron calibration, recovery.
-Each test also shows that the feature matters (the same data without it does clearly worse)."""
+"""Real-sensor extensions (docs/math.md §9) on synthetic data with known truth: gyro bias,
+accelerometer and magnetometer rejection, heading-only magnetometer, hard/soft-iron calibration,
+recovery. Each test also shows that the feature matters (the same data without it does clearly
+worse)."""
 
 from __future__ import annotations
 
@@ -22,7 +23,7 @@ NO_ROBUSTNESS = dict(acc_gate=0.0, acc_norm_tolerance=1000.0, mag_gate=0.0,
 @pytest.mark.parametrize("algorithm", ALGOS)
 @pytest.mark.parametrize("use_mag", [True, False])
 def test_bias_converges_at_rest(algorithm: str, use_mag: bool) -> None:
-    """Issue 6 target: a 0.02 rad/s constant bias, estimated within 0.002 rad/s after 30 s
+    """Target: a 0.02 rad/s constant bias, estimated within 0.002 rad/s after 30 s
     still (all axes: rest detection observes the rate directly; with it off, only the
     horizontal axes are observable without a magnetometer, and σ says so for the vertical)."""
     sim = simulate("static", duration=30, rate=100, seed=1, gyro_bias=(0.02, -0.02, 0.02),
@@ -55,7 +56,7 @@ def test_bias_tracks_while_moving(algorithm: str) -> None:
 def test_translational_acceleration_does_not_tilt(algorithm: str) -> None:
     """3 g pushes in random directions, 0.3–1 s each (one period of a sine: the body moves and
     stops): inclination RMSE ≤ 1.5°, never above 5°, the raw samples beyond the magnitude
-    test counted. (Issue 6 asked 0.5°; since issue 13 the accelerometer is low-passed in an
+    test counted. (0.5° was the first target; since the accelerometer is low-passed in an
     almost inertial frame, which averages out shaking but carries a push for its memory:
     measured 1.2° here, where the paper's raw accelerometer without any of the robustness
     gets 1.0°; on sustained shaking it is 0.6° against more than 4× that,
@@ -73,7 +74,7 @@ def test_translational_acceleration_does_not_tilt(algorithm: str) -> None:
 def test_magnetic_disturbance_is_rejected(algorithm: str, mag_mode: str, max_deg: float) -> None:
     """A 25 µT horizontal field change for 12 s (it turns the measured north by up to 45°, and
     its magnitude and dip stay near their limits): heading RMSE ≤ 3° and max ≤ 15° (the peak
-    comes at its falling edge) through it and 5 s after (issue 6 target); > 20°
+    comes at its falling edge) through it and 5 s after (the target for a magnet on the body); > 20°
     without the rejection; inclination untouched."""
     sim = simulate("mag_disturbance", duration=60, rate=100, seed=2)
     a, b = sim.meta["intervals"]["mag_disturbed"][0]
@@ -145,7 +146,7 @@ def test_rejections_are_counted_by_reason() -> None:
     assert r.counters["acc_rejected_norm"] > 0
 
 
-# ---------------------------------------------------------------- issue 13: real-world motion
+# ---------------------------------------------------------------- real-world motion
 
 
 @pytest.mark.parametrize("algorithm", ALGOS)
@@ -153,7 +154,7 @@ def test_sustained_shaking_does_not_tilt(algorithm: str) -> None:
     """Two 15 s stretches of shaking at up to 10 g with rocking up to 6 rad/s (BROAD's fast
     translation): without a magnetometer the inclination stays within 1.5° RMS and 5° at
     worst. The paper's raw accelerometer (acc_time_constant = 0) is dragged off by the shaking:
-    more than 4× worse, the failure of issue 13."""
+    more than 4× worse (what the low-pass of docs/math.md §9.3 fixes)."""
     sim = simulate("shaking", duration=60, rate=100, seed=3)
     r = mkf_ros.estimate(sim.gyr, sim.acc, timestamps=sim.t, algorithm=algorithm)
     incl = orientation_errors(r.quat, sim.quat)["inclination"][100:]
@@ -205,7 +206,7 @@ def test_slow_turn_never_jumps(algorithm: str, vib_acc: float) -> None:
 @pytest.mark.parametrize("algorithm", ALGOS)
 @pytest.mark.parametrize("use_mag", [True, False])
 def test_large_gyro_bias_is_learned_in_motion(algorithm: str, use_mag: bool) -> None:
-    """A 0.1 rad/s bias on every axis (issue 13: learned at rest and in motion, 6D and 9D), on
+    """A 0.1 rad/s bias on every axis (learned at rest and in motion, 6D and 9D), on
     slow motion with large tilts: within 0.01 rad/s after 60 s, and the attitude within 2°."""
     sim = simulate("gyro_bias", duration=60, rate=100, seed=4, bias=(0.1, -0.1, 0.1))
     mag = sim.mag if use_mag else None
@@ -279,7 +280,8 @@ def test_mukf_failed_step_still_predicts() -> None:
 def test_one_huge_gyro_sample_is_an_outlier(algorithm: str, rate: float, counter: str) -> None:
     """One corrupted gyro sample (1e6 rad/s used to leave the bias at 5.19 rad/s for good):
     within the plausibility limit (1000 rad/s) the gyro's innovation gate skips it, beyond it
-    the sample is invalid (issue 14); either way the bias and the attitude do not notice."""
+    the sample is invalid (plausibility limit); either way the bias and the attitude do not
+    notice."""
     sim = simulate("static", duration=10, rate=100, seed=1)
     gyr = sim.gyr.copy()
     gyr[500] = (rate, 0.0, 0.0)
@@ -293,8 +295,8 @@ def test_one_huge_gyro_sample_is_an_outlier(algorithm: str, rate: float, counter
 @pytest.mark.parametrize("algorithm", ALGOS)
 def test_an_upset_is_recovered(algorithm: str) -> None:
     """The estimate knocked 60° off (as by a gyro glitch the gate could not tell from motion):
-    the gates must not lock the truth out (issue 13: the MUKF stayed 63° off after 30 s at
-    rest). Within 10 s at rest the inclination is back within 2°."""
+    the gates must not lock the truth out (without the recovery of docs/math.md §9.3 the MUKF
+    stayed 63° off after 30 s at rest). Within 10 s at rest the inclination is back within 2°."""
     from mkf_ros.core.filter import AttitudeFilter, record
     from mkf_ros.core.quaternion import q_from_rotvec, qmul
 

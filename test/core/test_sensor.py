@@ -37,7 +37,7 @@ def test_bad_samples_are_skipped_and_counted(algorithm: str) -> None:
         f.step(0.01 if k else 0.0, **s)
         assert np.all(np.isfinite(f.quaternion)) and np.all(np.isfinite(f.covariance))
     c = f.counter_dict()
-    # 1e308 is beyond the plausibility limit (issue 14): invalid, like the NaN and zero rows
+    # 1e308 is beyond the plausibility limit: invalid, like the NaN and zero rows
     assert c["acc_invalid"] == 3 and c["gyr_invalid"] == 1
     assert c["mag_invalid"] == 1 and c["mag_missing"] == 1
     err = orientation_errors(f.quaternion[None], sim.quat[-1][None])

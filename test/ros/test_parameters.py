@@ -149,7 +149,8 @@ def test_invalid_values_rejected_with_reason(running) -> None:
 
 
 def test_unknown_name_rejected_naming_it(running) -> None:
-    """Issue 14 item 6: rclpy's own answer was "Invalid access to undeclared parameter(s): []"."""
+    """The refusal names the parameter: rclpy's own answer was "Invalid access to undeclared
+    parameter(s): []"."""
     h = running
     before = dict(h.est.stream.params)
     r = h.set(gain=0.1)[0]

@@ -1,5 +1,5 @@
-"""The estimator node runs the seed report's baselines (issue 7) and switches to and from them
-at runtime through SetParameters, like any other algorithm."""
+"""The estimator node runs the seed report's baselines (docs/baselines.md) and switches to and from
+them at runtime through SetParameters, like any other algorithm."""
 
 from __future__ import annotations
 

@@ -1,5 +1,6 @@
 """The estimator node starts and publishes when its kernel cache directory cannot be written
-(a read-only home in a container, another user's directory): one warning, no error (issue 16)."""
+(a read-only home in a container, another user's directory): one warning, no error (the node
+must start wherever it is installed)."""
 
 from __future__ import annotations
 

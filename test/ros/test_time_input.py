@@ -159,8 +159,8 @@ def test_never_dies_on_a_message(harness) -> None:
 
 
 def test_never_nan_at_valid_range_ends_or_with_huge_finite_readings(harness) -> None:
-    """Issue 14: at these valid settings the bias variance went negative at the first rest
-    update and every angular_velocity_covariance was NaN; a gyro of 1e150 or a field of 1e155
+    """Valid settings must give valid output: at these the bias variance went negative at the first
+    rest update and every angular_velocity_covariance was NaN; a gyro of 1e150 or a field of 1e155
     was a reading."""
     from mkf_ros.sim import simulate
 

@@ -631,8 +631,9 @@ def test_batch_equals_per_message(rec, params: dict) -> None:
     (8, dict(use_mag=True, algorithm="mukf", angular_velocity_source="estimate")),
 ])
 def test_batch_equals_per_message_on_garbage(seed: int, params: dict) -> None:
-    """The same on garbage. (Before issue 14 the garbage also made the estimate non-finite, a
-    reset inside a batch; huge finite readings are now invalid and counted, so it never does.)"""
+    """The same on garbage. (Before the plausibility limits on readings the garbage also made the
+    estimate non-finite, a reset inside a batch; huge finite readings are now invalid and counted,
+    so it never does.)"""
     r = garbage_recording(seed)
     one = StreamAdapter(params)
     outs = per_message(one, r)

@@ -92,8 +92,8 @@ def test_mekf_rp_100hz_lands_on_the_published_value(tmp_path: Path) -> None:
     Tolerance from N_s: our μ has standard error σ/√N_s (σ ≈ 0.55 μ here, measured in the
     sample itself); allow 4 standard errors (a correct implementation fails with p ≈ 6e-5)
     plus the half-width of the published bar (0.17°) for the paper's own uncertainty. With
-    N_s = 150 that is about ±0.7° (±25%); the literal variance-uniform reading (§8 item 11,
-    ≈ 3.5°) or a wrong filter fall outside it.
+    N_s = 150 that is about ±0.7° (±25%); the literal variance-uniform reading
+    (docs/math.md §8 item 11, ≈ 3.5°) or a wrong filter fall outside it.
     """
     n_s = 150
     cell = cfg.Cell("mekf", "rp", "cu", 1e-4, 100.0)

@@ -1,4 +1,4 @@
-"""Simulation procedure (§7.2) and common random numbers."""
+"""Simulation procedure (docs/math.md §7.2) and common random numbers."""
 
 from __future__ import annotations
 

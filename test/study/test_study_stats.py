@@ -1,4 +1,4 @@
-"""The study's metric and statistics (spec mkf-math.md §7.3, §8 items 12-13)."""
+"""The study's metric and statistics (spec docs/math.md §7.3, §8 items 12-13)."""
 
 from __future__ import annotations
 
