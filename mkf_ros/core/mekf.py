@@ -55,8 +55,9 @@ H_VECTOR, H_RATE, H_RATE_BIAS = 0, 1, 2
 #: accurate to ~1e-10 and the rounding of ``P`` is far below the posterior's own spread in the
 #: measured directions. Beyond it (a very precise sensor against a very wide prior: the ends of
 #: the noise parameters' ranges, the paper's ``P0 = 100 I``) the Joseph form, PSD for any gain
-#: (at the range ends of the noise parameters the simple form made the bias variance negative, and the inverse of an
-#: ill-conditioned ``S`` made ``P`` indefinite by up to 1 % of its size).
+#: (at the range ends of the noise parameters the simple form made the bias variance
+#: negative, and the inverse of an ill-conditioned ``S`` made ``P`` indefinite by up to 1 % of
+#: its size).
 JOSEPH_TAU = 1e-6
 
 

@@ -49,7 +49,8 @@ class Param:
         """Return ``value`` coerced to the parameter's type, or raise a one-line ValueError."""
         n = self.name
         if self.type is bool:
-            if isinstance(value, (bool, np.bool_)):  # numpy's booleans too (a numpy bool from an array is a bool)
+            # numpy's booleans too (a numpy bool from an array is a bool)
+            if isinstance(value, (bool, np.bool_)):
                 return bool(value)
             if isinstance(value, str) and value.lower() in ("true", "false"):
                 return value.lower() == "true"
@@ -112,13 +113,14 @@ def _fmt(x: float) -> str:
     return f"{x:g}"
 
 
-#: The paper's filters, then the seed report's baselines (mkf_ros.core.baselines, docs/baselines.md).
+#: The paper's filters, then the seed report's baselines (mkf_ros.core.baselines,
+#: docs/baselines.md).
 ALGORITHMS = ("mekf", "mukf", "euler_kf", "euler_ukf", "madgwick")
 WORLD_FRAMES = ("enu", "ned", "nwu")
 
 _P = Param
 PARAMS: tuple[Param, ...] = (
-    # --- filter and chart (docs/math.md §5, §6, §2) -------------------------------------------------
+    # --- filter and chart (docs/math.md §5, §6, §2) -----------------------------------------------
     _P("algorithm", str, "mekf", "Filter: Manifold EKF (§5) or Manifold UKF (§6); baselines "
        "(docs/baselines.md): Euler-angle KF, Euler-angle UKF, Madgwick", choices=ALGORITHMS),
     _P("chart", str, "rp", "Chart of the error state: orthographic, Rodrigues parameters, "
@@ -142,7 +144,7 @@ PARAMS: tuple[Param, ...] = (
        range=(-1e6, 1e6), group="frames"),
     _P("gravity", float, 9.80665, "Magnitude of gravity, to express accelerometer noise "
        "relative to it", unit="m/s^2", range=(1.0, 100.0), group="frames"),
-    # --- noise model (docs/math.md §4) --------------------------------------------------------------
+    # --- noise model (docs/math.md §4) ------------------------------------------------------------
     _P("gyro_noise", float, 0.01, "Gyroscope white noise per sample (sqrt of R_w)",
        unit="rad/s", range=(1e-6, 10.0), group="noise"),
     _P("acc_noise", float, 0.05, "Accelerometer white noise per sample (sqrt of R_v)",
@@ -256,7 +258,7 @@ PARAMS: tuple[Param, ...] = (
     _P("mag_soft_iron", list, [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0], "Soft-iron "
        "matrix S (row-major) applied after the hard-iron offset: m = S (m_raw - bias)",
        length=9, range=(-1e6, 1e6), group="calibration"),
-    # --- baselines (docs/baselines.md): used only by algorithm euler_kf, euler_ukf, madgwick ------------
+    # --- baselines (docs/baselines.md): used only by algorithm euler_kf, euler_ukf, madgwick ------
     _P("madgwick_beta", float, 0.041, "Madgwick gain beta: gyro error as the magnitude of a "
        "quaternion derivative (Madgwick 2010 recommends 0.041 for 9D, 0.033 for 6D; "
        "imu_filter_madgwick's 'gain' defaults to 0.1)", unit="rad/s", range=(0.0, 10.0),

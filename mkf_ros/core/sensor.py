@@ -863,8 +863,8 @@ def _rate_updates(c: np.record, s: np.record, w: np.record, z: Fusion) -> bool:
 @hot
 def _mekf_update(c: np.record, s: np.record, w: np.record, dt: float,
                  z: Fusion) -> tuple[float, float]:
-    """The MEKF (docs/math.md §5): prediction over the step, one block per sensor (gravity, the field as
-    a vector or a heading), one move back to the manifold. Returns the NIS of the two."""
+    """The MEKF (docs/math.md §5): prediction over the step, one block per sensor (gravity, the
+    field as a vector or a heading), one move back to the manifold. Returns the NIS of the two."""
     nx = c.nx
     wt, b = t3(s.w), t3(s.b)
     q = _mekf_predict(s, nx, dt, t4(s.q_c), wt, iso33(c.rate_process_noise),
