@@ -87,12 +87,18 @@ ESE650_INCL_MAX = 2.6
 #: MUKF within this relative distance of the MEKF on every RMSE target metric.
 MUKF_REL_TOL = 0.10
 
+#: tyrex: every motion class's mean within TYREX_FACTOR × VQF's + these offsets (degrees).
+TYREX_FACTOR, TYREX_OFFSET_9D, TYREX_OFFSET_6D = 1.5, 1.0, 0.3
+
 TARGETS_DOC = f"""\
 - BROAD 9D total mean ≤ VQF's (causal), measured in the same run; moonshot ≤ offline VQF's
 - BROAD 6D inclination mean ≤ VQF's; moonshot ≤ offline VQF's
 - BROAD every trial: ours ≤ {TRIAL_FACTOR:g} × VQF + {TRIAL_OFFSET:g}° (9D total, 6D inclination)
 - RepoIMU 9D total ≤ VQF 9D; RepoIMU 6D inclination ≤ VQF 6D inclination
 - ESE650 6D inclination ≤ {ESE650_INCL_MAX:g}°
+- tyrex 9D total mean ≤ VQF's, 6D inclination mean ≤ VQF's (moonshot ≤ offline VQF's); every
+  motion class within {TYREX_FACTOR:g} × VQF + {TYREX_OFFSET_9D:g}° (9D total) and
+  {TYREX_FACTOR:g} × VQF + {TYREX_OFFSET_6D:g}° (6D inclination)
 - MUKF within {MUKF_REL_TOL:.0%} of MEKF (|mukf − mekf| ≤ {MUKF_REL_TOL:g} · mekf) on each RMSE
   metric above (per trial for the per-trial one)
 - {COVERAGE_K:g}σ tilt coverage ≥ {COVERAGE_MIN:.0%} per dataset (pooled over its samples),
@@ -653,6 +659,23 @@ def target_checks(data: dict[str, DatasetResult]) -> list[Check]:
         pairs.append((what, vals))
         for o in OURS:
             out.append(_le_check(what, o, vals[o], "fixed bound", ESE650_INCL_MAX))
+    ty = data.get("tyrex")
+    if ty is not None:
+        for dim, kind in (("9D", "total"), ("6D", "inclination")):
+            out += _mean_checks(ty, "tyrex", dim, kind, pairs, offline=True)
+        motions = [(g, rs) for cat, groups in class_groups(ty.included) if cat == "motion"
+                   for g, rs in groups if rs]
+        for dim, kind, off in (("9D", "total", TYREX_OFFSET_9D),
+                               ("6D", "inclination", TYREX_OFFSET_6D)):
+            def mean(col: str, rs: list[Recording], dim: str = dim, kind: str = kind) -> float:
+                return float(np.mean([ty.results[r.name].get(f"{col} {dim}", {}).get(
+                    kind, float("nan")) for r in rs]))
+            for o in OURS:
+                out.append(_per_trial(
+                    f"tyrex every motion class {dim} {kind} ≤ {TYREX_FACTOR:g} × vqf + {off:g}: "
+                    f"{o}", ((g, mean(o, rs), mean("vqf", rs)) for g, rs in motions),
+                    lambda v, p, off=off: (v <= TYREX_FACTOR * p + off,
+                                           f"{v:.2f} > {TYREX_FACTOR * p + off:.2f}"), "over"))
     for what, vals in pairs:
         out.append(_within(f"mukf within {MUKF_REL_TOL:.0%} of mekf, {what}", vals["mekf"],
                            vals["mukf"]))

@@ -328,11 +328,74 @@ def read_broad(folder: str | Path) -> list[Recording]:
             for f in files]
 
 
+def read_tyrex_trial(path: str | Path, info: dict | None = None) -> Recording:
+    """One trial of the tyrex smartphone benchmark (Michel et al., Pervasive and Mobile
+    Computing 2018), as prepared for this project (``.npz``): everything on one grid at the
+    gyro's rate, gyro rad/s (the authors' static bias removed), acc m/s² (+g up), magnetometer
+    µT, reference quaternion [w x y z] phone → ENU (absolute heading: no alignment), ``valid``
+    where the reference is scored. ``meta["groups"]``: the motion (AR, Texting, …), the
+    disturbance (Dist, NoDist) and the device, from ``info`` (an entry of ``trials.json``) or
+    the file name ``User_Device_Dist_Motion``."""
+    path = Path(path)
+    with np.load(path) as z:
+        gyr = np.array(z["gyr"], dtype=float)
+        acc = np.array(z["acc"], dtype=float)
+        mag = np.array(z["mag"], dtype=float)
+        q = np.array(z["q"], dtype=float)
+        valid = np.asarray(z["valid"], dtype=bool)
+        rate = float(z["rate"])
+    n = gyr.shape[0]
+    if acc.shape != (n, 3) or mag.shape != (n, 3) or q.shape != (n, 4) or valid.shape != (n,):
+        raise ValueError(f"{path}: acc {acc.shape}, mag {mag.shape}, q {q.shape}, valid "
+                         f"{valid.shape} do not match gyr ({n}, 3)")
+    q[~valid] = np.nan
+    q[q[:, 0] < 0] *= -1.0
+    parts = path.stem.split("_")
+    info = dict(info or {})
+    device = str(info.get("device", parts[1] if len(parts) > 1 else ""))
+    dist = info.get("magnetic_disturbance", len(parts) > 2 and parts[2] == "Dist")
+    motion = str(info.get("motion", parts[-1]))
+    groups = ["all_trials", motion, "Dist" if dist else "NoDist", device]
+    cats = {"all_trials": "", "Dist": "disturbance", "NoDist": "disturbance"}
+    return Recording(
+        name=path.stem, dataset="tyrex", t=np.arange(n) / rate, gyr=gyr, acc=acc, mag=mag,
+        q_ref=q, alignment="none", errors=ALL_ERRORS, note="",
+        meta={"path": str(path), "rate": rate, "groups": groups,
+              "group_categories": {**cats, motion: "motion", device: "device"}},
+    )
+
+
+TYREX_GLOB = "*_*_*Dist_*.npz"
+
+
+def read_tyrex(folder: str | Path) -> list[Recording]:
+    """The tyrex smartphone trials in ``folder`` (``User_Device_[No]Dist_Motion.npz``, sorted by
+    name), with their device, disturbance and motion from ``trials.json`` when present. The
+    groups' categories are merged over the trials (every motion, disturbance and device)."""
+    import json
+
+    folder = Path(folder)
+    files = sorted(folder.glob(TYREX_GLOB))
+    if not files:
+        raise FileNotFoundError(f"no User_Device_[No]Dist_Motion.npz trials in {folder} "
+                                "(tyrex folder expected)")
+    meta_path = folder / "trials.json"
+    info = json.loads(meta_path.read_text()) if meta_path.is_file() else {}
+    recs = [read_tyrex_trial(f, info.get(f.stem)) for f in files]
+    cats: dict[str, str] = {}
+    for r in recs:
+        cats.update(r.meta["group_categories"])
+    for r in recs:
+        r.meta["group_categories"] = cats
+    return recs
+
+
 # ----------------------------------------------------------------------------------- registry
 READERS: dict[str, Callable[[Path], list[Recording]]] = {
     "repoimu": read_repoimu,
     "ese650": read_ese650,
     "broad": read_broad,
+    "tyrex": read_tyrex,
 }
 
 
@@ -347,8 +410,11 @@ def detect_format(folder: str | Path) -> str:
         return "repoimu"
     if any(folder.glob(BROAD_GLOB)):
         return "broad"
+    if any(folder.glob(TYREX_GLOB)):
+        return "tyrex"
     raise ValueError(f"cannot tell the format of {folder}: expected TStick_*.csv (RepoIMU), "
-                     "imu/imuRawK.mat + vicon/viconRotK.mat (ESE650) or NN_*.mat (BROAD); "
+                     "imu/imuRawK.mat + vicon/viconRotK.mat (ESE650), NN_*.mat (BROAD) or "
+                     "User_Device_[No]Dist_Motion.npz (tyrex); "
                      f"known: {', '.join(READERS)}")
 
 
