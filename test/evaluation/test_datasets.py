@@ -311,8 +311,42 @@ def test_quat_from_rotmat_every_branch() -> None:
     assert np.isnan(quat_from_rotmat(np.full((3, 3), np.nan))).all()
 
 
+def test_tyrex_roundtrip(tmp_path: Path) -> None:
+    """Two trials written in the prepared format (float32 arrays on the gyro's grid, a
+    ``valid`` mask, trials.json for one of them): read back as float64, the reference NaN where
+    not valid and w ≥ 0, groups motion / disturbance / device from trials.json or the name."""
+    import json
+
+    sim = simulate("slow_rotation", duration=3, rate=100, seed=5)
+    n = sim.t.size
+    valid = np.ones(n, dtype=bool)
+    valid[40:60] = False
+    q = sim.quat.astype(np.float32)
+    q[::2] *= -1.0  # either sign stored
+    for stem in ("Jakob_Nexus5_Dist_AR", "Ann_iPhone5_NoDist_RunningPocket"):
+        np.savez(tmp_path / f"{stem}.npz", gyr=sim.gyr.astype(np.float32),
+                 acc=sim.acc.astype(np.float32), mag=(sim.mag * 1e6).astype(np.float32), q=q,
+                 valid=valid, rate=np.float64(100.0))
+    (tmp_path / "trials.json").write_text(json.dumps({"Jakob_Nexus5_Dist_AR": {
+        "device": "Nexus5", "magnetic_disturbance": True, "motion": "AR"}}))
+    assert detect_format(tmp_path) == "tyrex"
+    fmt, recs = read_dataset(tmp_path)
+    assert fmt == "tyrex" and [r.name for r in recs] == ["Ann_iPhone5_NoDist_RunningPocket",
+                                                          "Jakob_Nexus5_Dist_AR"]
+    r = recs[1]
+    assert r.alignment == "none" and r.has_mag and len(r) == n and r.gyr.dtype == np.float64
+    np.testing.assert_allclose(r.t, np.arange(n) / 100.0)
+    np.testing.assert_allclose(r.gyr, sim.gyr.astype(np.float32))
+    assert (r.valid == valid).all()
+    np.testing.assert_allclose(r.q_ref[valid], canon(sim.quat[valid]), atol=1e-6)
+    assert r.meta["groups"] == ["all_trials", "AR", "Dist", "Nexus5"]
+    assert recs[0].meta["groups"] == ["all_trials", "RunningPocket", "NoDist", "iPhone5"]
+    cats = recs[0].meta["group_categories"]
+    assert cats["AR"] == cats["RunningPocket"] == "motion" and cats["iPhone5"] == "device"
+
+
 def test_detect_format_errors(tmp_path: Path) -> None:
-    assert set(READERS) == {"repoimu", "ese650", "broad"}
+    assert set(READERS) == {"repoimu", "ese650", "broad", "tyrex"}
     with pytest.raises(ValueError, match="cannot tell"):
         detect_format(tmp_path)
     with pytest.raises(FileNotFoundError):
