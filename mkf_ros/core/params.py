@@ -217,6 +217,10 @@ PARAMS: tuple[Param, ...] = (
        "low-passed field by more than this fraction of the field (plus the gyro scale error "
        "over the rotation in its memory) are not fused", unit="1", range=(0.0, 1000.0),
        group="robustness"),
+    _P("mag_timing_error", float, 0.01, "Timing error of the magnetometer against the gyro "
+       "(sampled separately on phones and many IMUs, resampled, delayed): at a rate w the "
+       "field turns by w times this between them, which the consistency test allows",
+       unit="s", range=(0.0, 1.0), group="robustness"),
     _P("mag_undisturbed_time", float, 0.5, "The field must have passed the magnitude, dip and "
        "consistency tests for this long without a break before it is fused again", unit="s",
        range=(0.0, 3600.0), group="robustness"),
@@ -230,6 +234,13 @@ PARAMS: tuple[Param, ...] = (
     _P("mag_dip_tolerance", float, 0.1745, "Magnetometer samples whose dip angle differs from "
        "the learned field's by more than this are not fused", unit="rad", range=(0.0, 3.1416),
        group="robustness"),
+    _P("mag_new_time", float, 10.0, "A field of another magnitude or dip than the learned "
+       "one (another room, a rebar floor, the start of a recording near metal) that stays "
+       "consistent with the gyro and with itself for this long while the body turns becomes "
+       "the new reference; 0 = never", unit="s", range=(0.0, 3600.0), group="robustness"),
+    _P("mag_new_first_time", float, 2.0, "As mag_new_time for the first new field since the "
+       "start: the reference learned from the first samples is the least trusted", unit="s",
+       range=(0.0, 3600.0), group="robustness"),
     _P("mag_gate", float, 10.8, "Chi-square gate on the magnetometer innovation (vector mode, "
        "3 degrees of freedom: 10.8 = 1.3% false rejection; heading mode, 1: 3.3 sigma); 0 = off",
        unit="1", range=(0.0, 1e6), group="robustness"),

@@ -83,6 +83,7 @@ from mkf_ros.core.state import (
     LP_RATE,
     LP_REST,
     MAG,
+    MAG_NEW_MIN_RATE,
     MAG_REF_SAMPLES,
     MAX_ACC_G,
     MAX_GYRO_RATE,
@@ -245,6 +246,7 @@ def _heading_init(c: np.record, s: np.record, m_body: np.ndarray, m_norm: float)
     s.mag_sum[:] = 0.0
     s.mag_norm = 0.0
     s.mag_count = 0
+    s.t_mag_cand = 0.0
     rot = heading_correction(s.q_c, m_body, ref)
     copy_into(s.q_c, qnormalize(qmul(rot, s.q_c)))
     copy_into(s.mag_ref, ref)
@@ -703,11 +705,12 @@ def _mag_plausible(c: np.record, s: np.record, k: np.record, R: tuple, m_body: t
 
 @hot
 def _mag_consistent(c: np.record, s: np.record, k: np.record, m_body: tuple, m_norm: float,
-                    alm: float) -> bool:
+                    alm: float, rate: float) -> bool:
     """The field over its learned magnitude against its own low-pass in the almost inertial
     frame (``mag_consistency_tolerance``, plus the gyro's scale error over the rotation in that
-    memory), the low-pass stepped by this sample; counted if not. True before a magnitude is
-    learned."""
+    memory and the turn at the current ``rate`` over the magnetometer's timing error against
+    the gyro, ``mag_timing_error``), the low-pass stepped by this sample; counted if not. True
+    before a magnitude is learned."""
     if s.mag_count <= 0:
         return True
     f = m_norm / s.mag_norm
@@ -716,10 +719,55 @@ def _mag_consistent(c: np.record, s: np.record, k: np.record, m_body: tuple, m_n
     dev2 = (mv[0] - lp[0]) ** 2 + (mv[1] - lp[1]) ** 2 + (mv[2] - lp[2]) ** 2
     _lowpass(lp, mv, alm)
     tol2 = (c.mag_consistency_tolerance ** 2
-            + (c.gyro_scale_error * c.mag_time_constant * s.mag_rate_lp) ** 2)
+            + (c.gyro_scale_error * c.mag_time_constant * s.mag_rate_lp) ** 2
+            + (c.mag_timing_error * rate) ** 2)
     if dev2 > tol2:
         k.mag_rejected_inconsistent += 1
         return False
+    return True
+
+
+@hot
+def _mag_candidate(c: np.record, s: np.record, dtm: float, R: tuple, m_body: tuple,
+                   m_norm: float, wl: tuple) -> bool:
+    """A consistent field that fails the magnitude or dip test (:func:`_mag_plausible`) is a
+    candidate new reference (extension, after VQF's magnetic disturbance rejection): its
+    magnitude and dip are low-passed (``mag_time_constant``) while each sample agrees with
+    them within ``mag_norm_tolerance`` / ``mag_dip_tolerance`` (else the candidate starts
+    again at this sample), and its time counts while the body turns at
+    :data:`~mkf_ros.core.state.MAG_NEW_MIN_RATE` or faster: turning is what tells a field
+    fixed in the world (consistent in the almost inertial frame however the body turns) from
+    a magnet carried along. After ``mag_new_first_time`` (the first since the start: the
+    reference learned from the first second is the least trusted) or ``mag_new_time`` it
+    becomes the reference: magnitude and dip (the direction only if learned; north stays the
+    horizontal part). Indoors the undisturbed field differs by 10–25 % from room to room.
+    Returns whether this sample is now plausible."""
+    T = c.mag_new_time if s.mag_adopted else c.mag_new_first_time
+    if not T > 0.0:
+        return False
+    mz = R[2][0] * m_body[0] + R[2][1] * m_body[1] + R[2][2] * m_body[2]
+    dip = np.arcsin(max(-1.0, min(1.0, mz)))
+    if (s.t_mag_cand > 0.0 and abs(m_norm / s.mag_cand_norm - 1.0) <= c.mag_norm_tolerance
+            and abs(dip - s.mag_cand_dip) <= c.mag_dip_tolerance):
+        a = min(1.0, dtm / c.mag_time_constant)
+        s.mag_cand_norm += a * (m_norm - s.mag_cand_norm)
+        s.mag_cand_dip += a * (dip - s.mag_cand_dip)
+        if wl[0] * wl[0] + wl[1] * wl[1] + wl[2] * wl[2] >= MAG_NEW_MIN_RATE ** 2:
+            s.t_mag_cand += dtm
+    else:
+        s.mag_cand_norm = m_norm
+        s.mag_cand_dip = dip
+        s.t_mag_cand = 1e-12  # a candidate, no time yet
+    if s.t_mag_cand < T:
+        return False
+    s.mag_norm = s.mag_cand_norm
+    s.mag_count = max(s.mag_count, MAG_REF_SAMPLES)
+    if not c.mag_ref_given:
+        s.mag_ref[0] = 0.0
+        s.mag_ref[1] = np.cos(s.mag_cand_dip)
+        s.mag_ref[2] = np.sin(s.mag_cand_dip)
+    s.mag_adopted = True
+    s.t_mag_cand = 0.0
     return True
 
 
@@ -759,8 +807,13 @@ def _mag_checks(c: np.record, s: np.record, k: np.record, u: Units, dt: float, d
     s.t_mag_lp = t + dtm
     alm, _ = _lowpass_gain(s, LP_MAG, t, dtm, c.mag_time_constant)
     Rq = rotmat_t(t4(s.q_c))
-    if (not _mag_consistent(c, s, k, m_body, m_norm, alm)
-            or not _mag_plausible(c, s, k, Rq, m_body, m_norm)):
+    rate = np.sqrt(wl[0] * wl[0] + wl[1] * wl[1] + wl[2] * wl[2])
+    ok = _mag_consistent(c, s, k, m_body, m_norm, alm, rate)
+    if ok and not _mag_plausible(c, s, k, Rq, m_body, m_norm):
+        ok = _mag_candidate(c, s, dtm, Rq, m_body, m_norm, wl)
+    elif ok:
+        s.t_mag_cand = 0.0  # the reference holds: no candidate
+    if not ok:
         s.t_mag_ok = 0.0
         s.t_mag_disagree = 0.0  # disturbance, not evidence of a wrong heading
         return False

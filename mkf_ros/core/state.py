@@ -41,9 +41,9 @@ COPIED_PARAMS = (
     "mukf_w0", "rate_process_noise", "max_dt", "gravity",
     "acc_norm_tolerance", "acc_gate", "acc_recovery_time", "acc_time_constant",
     "acc_disturbance_time", "acc_alignment_error", "gyro_scale_error", "gyro_gate",
-    "mag_time_constant", "mag_consistency_tolerance", "mag_undisturbed_time",
+    "mag_time_constant", "mag_consistency_tolerance", "mag_timing_error", "mag_undisturbed_time",
     "mag_disturbance_time", "mag_norm_tolerance", "mag_dip_tolerance", "mag_gate",
-    "mag_recovery_time", "rest_gyro_threshold", "rest_acc_threshold", "rest_time",
+    "mag_recovery_time", "mag_new_time", "mag_new_first_time", "rest_gyro_threshold", "rest_acc_threshold", "rest_time",
     "madgwick_beta",
 )
 
@@ -98,6 +98,10 @@ STATE = np.dtype(
         ("mag_sum", np.float64, 3),  # Σ R(q̂) m of the samples learned so far
         ("mag_norm", np.float64),  # learned magnitude of the calibrated field
         ("mag_count", np.int64),  # samples in the learned reference
+        ("mag_cand_norm", np.float64),  # a candidate new reference: magnitude ...
+        ("mag_cand_dip", np.float64),  # ... and dip (rad), low-passed
+        ("t_mag_cand", np.float64),  # s the candidate has held while the body turned; 0: none
+        ("mag_adopted", np.bool_),  # a candidate has become the reference since the start
         # --- timers (s)
         ("t_acc_refused", np.float64),  # since the last accepted accelerometer sample
         ("t_mag_disagree", np.float64),  # a plausible field has disagreed (χ²); 0: it agrees
@@ -199,6 +203,9 @@ ATTITUDE_VAR_UNKNOWN = np.pi ** 2
 ACC_CLIP_MIN_G = 2.0
 #: ... or this many RMS deviations of the recent samples (``acc_dev``), whichever is larger
 ACC_CLIP_SIGMAS = 4.0
+#: A candidate magnetic reference's time counts only while the body turns at least this fast
+#: (rad/s, VQF's 20°/s): a still body sees any field, a magnet on it included, as consistent.
+MAG_NEW_MIN_RATE = 0.35
 REST_LP_TAU = 0.5  # s: rest detection compares the gyro and accelerometer with their low-pass
 REST_CHI2 = 16.27  # 3 degrees of freedom, 0.1 %: the low-passed rate agrees with the bias
 # Euler baselines' tilt re-alignment (:func:`baseline_realign`): the accelerometer "looks like
