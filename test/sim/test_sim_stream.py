@@ -3,6 +3,7 @@ streaming piece equal to what it replaces, and memory bounded by the chunk, not 
 
 from __future__ import annotations
 
+import itertools
 import json
 import tracemalloc
 
@@ -102,8 +103,7 @@ def test_integrator_in_chunks_is_the_sequential_product() -> None:
     for every in (1, 10):
         it = Integrator(q0, len(w), 1e-3, every=every)
         cuts = [0, 1, 2, 45, 46, 700, 1999, 2000]
-        got = np.concatenate([it.advance(w[a:b]) for a, b in zip(cuts[:-1], cuts[1:],
-                                                                 strict=True)])
+        got = np.concatenate([it.advance(w[a:b]) for a, b in itertools.pairwise(cuts)])
         np.testing.assert_array_equal(got, whole[every::every])
     q = q0.copy()
     for k in range(0, len(w)):
@@ -122,7 +122,7 @@ def test_runs_across_chunks_are_the_runs_of_the_whole_mask() -> None:
         out: list[tuple[float, float]] = []
         r = _Runs(out)
         cuts = np.unique(np.r_[0, rng.integers(0, 300, 8), 300])
-        for a, b in zip(cuts[:-1], cuts[1:], strict=True):
+        for a, b in itertools.pairwise(cuts):
             r.add(t[a:b], mask[a:b])
         r.close()
         assert out == _intervals_where(t, mask)
