@@ -1,6 +1,7 @@
 """Peak memory and throughput of ``mkf process`` (and ``mkf synth``) against recording length.
 
-    ./run bench stream_memory [--minutes 2 10 60] [--synth-minutes 2 10] [--dir DIR]
+    ./run bench stream_memory [--minutes 2 10 60] [--synth-minutes 2 10 60] [--dir DIR]
+                              [--reference CMD]
 
 For each duration, writes an input bag at 1 kHz IMU, 100 Hz magnetometer and 1 kHz ground
 truth (``wiener`` motion: one minute simulated once, then tiled with shifted stamps and log
@@ -8,8 +9,11 @@ times, written as it goes, so the set-up itself stays small; not timed), then ru
 ``mkf process BAG --out OUT --use-mag --no-plot --quiet`` as a child process under
 ``/usr/bin/time -v`` and prints a table: duration, IMU messages, peak RSS of the child, wall
 time, IMU messages/s. ``--synth-minutes`` times ``mkf synth wiener --rate 1000 --mag-rate 100``
-the same way. ``--reference CMD`` runs another ``mkf`` (e.g. a checkout of main) on the same
-bags, and the output bags are compared message by message (topic, log time, bytes).
+the same way (``--synth-scenario``, ``--synth-args`` for other options; seed 7), the
+messages/s being IMU messages (all messages: IMU + magnetometer + ground truth, also listed).
+``--reference CMD`` runs another ``mkf`` (e.g. a checkout of main: ``"env PYTHONPATH=DIR
+python -m mkf_ros.cli.main"``) on the same bags or with the same synth options, and the output
+bags are compared message by message (topic, log time, bytes).
 """
 
 from __future__ import annotations
@@ -82,13 +86,30 @@ def digest(bag: Path) -> dict[str, tuple[str, int]]:
     return out
 
 
+def synth_counts(text: str) -> dict[str, int]:
+    """Messages per topic from ``mkf synth``'s report."""
+    return {t: int(k.replace(",", "")) for t, k in
+            re.findall(r"^\s+(/\S+)\s+([\d,]+) messages$", text, re.M)}
+
+
+def read_description(bag: Path) -> object:
+    from mkf_ros.bags.synth import read_description as rd
+
+    return rd(bag)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--minutes", type=float, nargs="*", default=[2, 10, 60])
-    ap.add_argument("--synth-minutes", type=float, nargs="*", default=[2, 10])
+    ap.add_argument("--synth-minutes", type=float, nargs="*", default=[2, 10, 60])
+    ap.add_argument("--synth-scenario", default="wiener", help="scenario (default wiener)")
+    ap.add_argument("--synth-args", default="", metavar="ARGS",
+                    help="more mkf synth options, e.g. '--split-accel 4 --storage sqlite3'")
     ap.add_argument("--dir", type=Path, default=None, help="work folder (default: a temp dir)")
     ap.add_argument("--reference", default=None, metavar="CMD",
-                    help="another mkf to compare outputs with (e.g. main's)")
+                    help="another mkf to compare outputs with (e.g. main's); for synth the "
+                    "messages (per topic: sha-256 of log times and of CDR bytes) and the "
+                    "bag's description (custom_data) are compared")
     args = ap.parse_args()
     mkf = [sys.executable, "-m", "mkf_ros.cli.main"]
     work = args.dir or Path(tempfile.mkdtemp(prefix="stream_memory-"))
@@ -102,7 +123,7 @@ def main() -> None:
             shutil.rmtree(out, ignore_errors=True)
             rss, wall, _ = timed([*mkf, "process", str(bag), "--out", str(out), "--use-mag",
                                   "--no-plot", "--quiet"])
-            rows.append(("process", m, n, rss, wall))
+            rows.append(("process", m, n, rss, wall, 0))
             print(f"process {m:g} min: {n:,} IMU msgs, {rss:,.0f} MB, {wall:.1f} s", flush=True)
             if args.reference:
                 ref = work / f"ref_{m:g}min"
@@ -118,20 +139,38 @@ def main() -> None:
         for m in args.synth_minutes:
             out = work / f"synth_{m:g}min"
             shutil.rmtree(out, ignore_errors=True)
-            rss, wall, _ = timed([*mkf, "synth", "wiener", "--rate", "1000", "--mag-rate", "100",
-                                  "--duration", f"{m * 60:g}", "--out", str(out)])
-            n = round(m * 60 * 1000) + 1
-            rows.append(("synth", m, n, rss, wall))
-            print(f"synth {m:g} min: {rss:,.0f} MB, {wall:.1f} s", flush=True)
+            synth = ["synth", args.synth_scenario, "--rate", "1000", "--mag-rate", "100",
+                     "--duration", f"{m * 60:g}", "--seed", "7", *args.synth_args.split()]
+            rss, wall, text = timed([*mkf, *synth, "--out", str(out)])
+            counts = synth_counts(text)
+            n = counts.get("/imu/data_raw", counts.get("/imu/gyro", 0))
+            rows.append(("synth", m, n, rss, wall, sum(counts.values())))
+            print(f"synth {m:g} min: {sum(counts.values()):,} msgs ({n:,} IMU), {rss:,.0f} MB, "
+                  f"{wall:.1f} s", flush=True)
+            if args.reference:
+                ref = work / f"synth_ref_{m:g}min"
+                shutil.rmtree(ref, ignore_errors=True)
+                rss_r, wall_r, _ = timed([*args.reference.split(), *synth, "--out", str(ref)])
+                d_out, d_ref = digest(out), digest(ref)
+                same = d_out == d_ref
+                desc = read_description(out) == read_description(ref)
+                print(f"  reference: {rss_r:,.0f} MB, {wall_r:.1f} s; output messages "
+                      f"{'IDENTICAL' if same else 'DIFFERENT'}, description "
+                      f"{'identical' if desc else 'DIFFERENT'}", flush=True)
+                for topic, (h, k) in sorted(d_out.items()):
+                    print(f"    {topic:<20} {k:>9,} msgs  sha256 {h[:16]}…{h[64:80]}…  "
+                          f"{'=' if d_ref.get(topic) == (h, k) else '≠'} reference")
+                shutil.rmtree(ref, ignore_errors=True)
             shutil.rmtree(out, ignore_errors=True)
     finally:
         if args.dir is None:
             shutil.rmtree(work, ignore_errors=True)
-    print("\n| command | duration | IMU messages | peak RSS | wall s | IMU messages/s |")
-    print("| --- | ---: | ---: | ---: | ---: | ---: |")
-    for what, m, n, rss, wall in rows:
-        print(f"| `mkf {what}` | {m:g} min | {n:,} | {rss:,.0f} MB | {wall:.1f} | "
-              f"{n / wall:,.0f} |")
+    print("\n| command | duration | IMU messages | all messages | peak RSS | wall s "
+          "| IMU messages/s |")
+    print("| --- | ---: | ---: | ---: | ---: | ---: | ---: |")
+    for what, m, n, rss, wall, total in rows:
+        print(f"| `mkf {what}` | {m:g} min | {n:,} | {f'{total:,}' if total else ''} | "
+              f"{rss:,.0f} MB | {wall:.1f} | {n / wall:,.0f} |")
 
 
 if __name__ == "__main__":

@@ -417,6 +417,9 @@ ev.register("numba:run_pass", Count())
 import mkf_ros
 from mkf_ros.core import _jit
 mkf_ros.warmup()
+import numpy as np
+from mkf_ros.sim.motion import integrate  # the simulator's kernel (mkf synth) is shipped too
+integrate(np.array([1.0, 0.0, 0.0, 0.0]), np.zeros((2, 3)), 0.01)
 print(json.dumps({"file": mkf_ros.__file__, "passes": passes[0],
                   "packaged": (_jit.PACKAGED_CACHE_ROOT / f"numba-{_jit.KERNEL_HASH}").is_dir()}))
 """

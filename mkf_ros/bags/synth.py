@@ -18,7 +18,7 @@ import numpy as np
 
 from mkf_ros.bags import cdr
 from mkf_ros.bags.writer import BagWriter
-from mkf_ros.sim import SimData
+from mkf_ros.sim import SimData, SimStream
 
 #: 2024-01-01T00:00:00Z: default start of synthetic bags (reproducible bytes)
 DEFAULT_START_NS = 1_704_067_200 * 1_000_000_000
@@ -74,18 +74,21 @@ def sim_streams(sim: SimData, *, start_ns: int = DEFAULT_START_NS, frame_id: str
 
 
 def split_imu(imu: Stream, accel_every: int, accel_topic: str = TOPICS["accel"],
-              gyro_topic: str = TOPICS["gyro"]) -> tuple[Stream, Stream]:
+              gyro_topic: str = TOPICS["gyro"], offset: int = 0) -> tuple[Stream, Stream]:
     """The accelerometer and gyroscope streams a RealSense-like driver publishes from one
     combined ``sensor_msgs/Imu`` stream: every ``accel_every``-th message (from the first)
     with its angular velocity zeroed on ``accel_topic``, every message with its linear
-    acceleration zeroed on ``gyro_topic`` (stamps, log times and covariances kept)."""
+    acceleration zeroed on ``gyro_topic`` (stamps, log times and covariances kept).
+    ``offset``: messages of the stream before ``imu`` (a chunk of it), counted for the
+    every-``accel_every``-th choice."""
     if accel_every < 1:
         raise ValueError(f"accel_every must be >= 1, got {accel_every}")
-    acc_rows = imu.rows[::accel_every].copy()
+    first = -offset % accel_every
+    acc_rows = imu.rows[first::accel_every].copy()
     cdr.set_fields(acc_rows, cdr.IMU, angular_velocity=0.0)
     gyr_rows = imu.rows.copy()
     cdr.set_fields(gyr_rows, cdr.IMU, linear_acceleration=0.0)
-    return (Stream(accel_topic, cdr.IMU.msgtype, imu.log_ns[::accel_every], acc_rows),
+    return (Stream(accel_topic, cdr.IMU.msgtype, imu.log_ns[first::accel_every], acc_rows),
             Stream(gyro_topic, cdr.IMU.msgtype, imu.log_ns, gyr_rows))
 
 
@@ -99,7 +102,7 @@ def interleave(streams: list[Stream]) -> tuple[np.ndarray, np.ndarray, list[byte
     return idx[order], t[order], [raws[i] for i in order.tolist()]
 
 
-def describe(sim: SimData) -> dict[str, Any]:
+def describe(sim: SimData | SimStream) -> dict[str, Any]:
     """JSON-able record of how a synthetic recording was made (scenario, parameters, truth
     intervals), stored in the bag's ``custom_data``."""
     m = sim.meta
@@ -118,33 +121,51 @@ def _jsonable(x: Any) -> Any:
     return str(x)
 
 
-def write_bag(sim: SimData, path: str | Path, storage: str = "mcap", *,
+def write_bag(sim: SimData | SimStream, path: str | Path, storage: str = "mcap", *,
               start_ns: int = DEFAULT_START_NS, frame_id: str = "imu_link",
               overwrite: bool = False, topics: dict[str, str] | None = None,
               compress: bool = False, split_accel: int = 0) -> dict[str, int]:
     """Write ``sim`` to a new bag (atomically); returns the message count per topic.
-    ``split_accel`` > 0: instead of ``imu/data_raw``, separate accelerometer (``imu/accel``,
-    every ``split_accel``-th sample) and gyroscope (``imu/gyro``) topics, as
-    :func:`split_imu` (RealSense-like; process with ``input_mode`` split)."""
-    streams = sim_streams(sim, start_ns=start_ns, frame_id=frame_id, topics=topics)
+    ``sim`` is a whole recording or a :class:`~mkf_ros.sim.SimStream`, written chunk by chunk
+    in bounded memory (the same messages). ``split_accel`` > 0: instead of ``imu/data_raw``,
+    separate accelerometer (``imu/accel``, every ``split_accel``-th sample) and gyroscope
+    (``imu/gyro``) topics, as :func:`split_imu` (RealSense-like; process with ``input_mode``
+    split)."""
+    names = dict(TOPICS, **(topics or {}))
+    if split_accel < 0:
+        raise ValueError(f"split_accel must be >= 0, got {split_accel}")
     if split_accel:
-        names = dict(TOPICS, **(topics or {}))
-        acc, gyr = split_imu(streams["imu"], split_accel, names["accel"], names["gyro"])
-        order = [acc, gyr, streams["mag"], streams["truth"]]
+        keys = ["accel", "gyro", "mag", "truth"]
         # at equal times: magnetometer, accelerometer, gyro (held, then fused with the gyro)
         write_order = [2, 0, 1, 3]
     else:
-        order = [streams["imu"], streams["mag"], streams["truth"]]
+        keys = ["imu", "mag", "truth"]
         # at equal times the magnetometer goes first: the estimator then holds it and fuses
         # it with the IMU sample of that stamp (a first sample initialises with its heading)
         write_order = [1, 0, 2]
+    types = {"imu": cdr.IMU.msgtype, "accel": cdr.IMU.msgtype, "gyro": cdr.IMU.msgtype,
+             "mag": cdr.MAGNETIC_FIELD.msgtype, "truth": cdr.QUATERNION_STAMPED.msgtype}
+    counts = dict.fromkeys((names[k] for k in keys), 0)
+    imu_done = 0
     with BagWriter(path, storage, overwrite=overwrite, compress=compress) as w:
-        conns = [w.add_topic(s.topic, s.msgtype) for s in order]
+        conns = [w.add_topic(names[k], types[k]) for k in keys]
+        ids = np.array([conns[i].id for i in write_order])
+        for chunk in ([sim] if isinstance(sim, SimData) else sim):
+            streams = sim_streams(chunk, start_ns=start_ns, frame_id=frame_id, topics=topics)
+            if split_accel:
+                acc, gyr = split_imu(streams["imu"], split_accel, names["accel"],
+                                     names["gyro"], offset=imu_done)
+                order = [acc, gyr, streams["mag"], streams["truth"]]
+            else:
+                order = [streams["imu"], streams["mag"], streams["truth"]]
+            imu_done += len(streams["imu"].log_ns)
+            which, t, raws = interleave([order[i] for i in write_order])
+            w.write_batch(ids[which], t, raws)
+            for s in order:
+                counts[s.topic] += len(s.log_ns)
+        # after the last chunk: the truth intervals found on the way are complete
         w._w.set_custom_data(CUSTOM_KEY, json.dumps(describe(sim)))
-        which, t, raws = interleave([order[i] for i in write_order])
-        ids = np.array([conns[i].id for i in write_order])[which]
-        w.write_batch(ids, t, raws)
-    return {s.topic: len(s.log_ns) for s in order}
+    return counts
 
 
 def read_description(bag_path: str | Path) -> dict[str, Any] | None:

@@ -56,12 +56,14 @@ def parse_scenario_params(items: list[str]) -> dict[str, Any]:
     return out
 
 
-def simulate_from_args(args: argparse.Namespace) -> Any:
-    """Run the simulator with the options of :func:`add_sim_arguments` (CliError if bad)."""
+def simulate_from_args(args: argparse.Namespace, *, stream: bool = False) -> Any:
+    """Run the simulator with the options of :func:`add_sim_arguments` (CliError if bad):
+    the whole recording, or with ``stream`` a :class:`~mkf_ros.sim.SimStream` that generates
+    it chunk by chunk (bounded memory)."""
     import numpy as np
 
     from mkf_ros.cli.main import CliError
-    from mkf_ros.sim import MAG_FIELD_ENU, simulate
+    from mkf_ros.sim import MAG_FIELD_ENU, SimStream, simulate
 
     kw = parse_scenario_params(args.param)
     if args.mag_rate is not None and args.mag_rate <= 0:
@@ -72,12 +74,13 @@ def simulate_from_args(args: argparse.Namespace) -> Any:
     if args.duration * args.rate > 5e7:
         raise CliError("--duration × --rate is over 50 million samples; make it shorter")
     try:
-        return simulate(args.scenario, duration=args.duration, rate=args.rate, seed=args.seed,
-                        gyro_noise=args.gyro_noise, acc_noise=args.acc_noise,
-                        mag_noise=args.mag_noise, gyro_bias=tuple(args.gyro_bias),
-                        mag_field=MAG_FIELD_ENU if args.mag_field is None
-                        else np.asarray(args.mag_field, float),
-                        mag_rate=min(args.mag_rate, args.rate), **kw)
+        make = SimStream if stream else simulate
+        return make(args.scenario, duration=args.duration, rate=args.rate, seed=args.seed,
+                    gyro_noise=args.gyro_noise, acc_noise=args.acc_noise,
+                    mag_noise=args.mag_noise, gyro_bias=tuple(args.gyro_bias),
+                    mag_field=MAG_FIELD_ENU if args.mag_field is None
+                    else np.asarray(args.mag_field, float),
+                    mag_rate=min(args.mag_rate, args.rate), **kw)
     except ValueError as e:
         raise CliError(str(e)) from None
 
@@ -122,7 +125,7 @@ def run(args: argparse.Namespace) -> int:
     from mkf_ros.bags import BagError
     from mkf_ros.bags.synth import write_bag
 
-    sim = simulate_from_args(args)
+    sim = simulate_from_args(args, stream=True)  # written chunk by chunk: bounded memory
     try:
         counts = write_bag(sim, args.out, args.storage, start_ns=round(args.start * 1e9),
                            frame_id=args.frame_id, overwrite=args.overwrite,

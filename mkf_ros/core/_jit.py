@@ -200,7 +200,8 @@ def compile_tasks() -> tuple[list[str], list[str]]:
     (``"unit:MODULE.NAME"``) and the compiled loops that take them (``"entries:PART"``,
     :func:`mkf_ros.api.compile_entries`), independent of each other, largest first (so that
     the processes end together); then ``"warmup:all"`` (:func:`mkf_ros.api.warmup`: loads
-    them all and compiles whatever they missed)."""
+    them all and compiles whatever they missed; and the simulator's integration kernel,
+    :mod:`mkf_ros.sim._integrate`)."""
     import mkf_ros.api  # noqa: F401  (defines every unit)
 
     costs = {f"unit:{u.__module__}.{u.__qualname__}": u.cost for u in UNITS}
@@ -224,6 +225,11 @@ def run_compile_task(task: str) -> tuple[str, float, float, int]:
         api.compile_entries(name)
     else:
         api.warmup()
+        import numpy as np
+
+        from mkf_ros.sim.motion import integrate
+
+        integrate(np.array([1.0, 0.0, 0.0, 0.0]), np.zeros((2, 3)), 0.01)  # the simulator's
     return (task, time.perf_counter() - t0, time.process_time() - c0,
             resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)
 

@@ -11,8 +11,14 @@ the requested rate and adds noise:
 
 The attitude is integrated exactly for a piecewise-constant rate (docs/math.md §1.3) on ``substeps``
 sub-intervals per sample, as in the paper's study (§7.2: rate updated first, then used). The
-product of the ``substeps·N`` small rotations is a blocked prefix product in NumPy (no compiled
-kernel, so the simulator never touches the filters' kernel cache).
+product of the ``substeps·N`` small rotations is a blocked prefix product (one small compiled
+kernel, :mod:`mkf_ros.sim._integrate`).
+
+A recording is generated in chunks (:class:`SimStream`), so its length is not bounded by memory:
+a scenario makes its random draws when it is set up (long runs of them handed out chunk by
+chunk, :class:`Draws`) and returns a function of a chunk's time range; the integrator carries its
+state from chunk to chunk. The result does not depend on the chunk size, and :func:`simulate`
+(the chunks concatenated) gives the arrays the whole-recording simulator always gave.
 
 Everything a scorer needs is returned: the true attitude, rate and bias per sample, the true
 sampling instants next to the (possibly jittered or jumping) stamps, the linear acceleration and
@@ -22,14 +28,15 @@ the magnetic disturbance, and in ``meta['intervals']`` the time intervals of eac
 
 from __future__ import annotations
 
+import itertools
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
-from mkf_ros.core.quaternion import qmul_np, rotmat_np
+from mkf_ros.core.quaternion import rotmat_np
 
 GRAVITY = 9.80665
 #: Earth field used by default: 50 µT with a 60° dip (north and down), ENU, tesla.
@@ -88,97 +95,198 @@ def q_exp(rotvec: np.ndarray) -> np.ndarray:
     return out.reshape((*rotvec.shape[:-1], 4))
 
 
+class Integrator:
+    """``q_{k+1} = q_k ⊗ q_ω(ω_k, dt)`` (exact for piecewise-constant ω) over a recording of
+    ``m`` rates fed in consecutive chunks (:meth:`advance`), keeping the attitude after every
+    ``every``-th step. A blocked prefix product (blocks of ``√m`` steps: products inside the
+    block, then the block's start attitude times them, renormalised), computed by the compiled
+    kernel :func:`mkf_ros.sim._integrate.integrate_chunk`; the result does not depend on the
+    chunks."""
+
+    def __init__(self, q0: np.ndarray, m: int, dt: float, every: int = 1) -> None:
+        q0 = np.asarray(q0, dtype=float)
+        self.head = q0 / np.linalg.norm(q0)  #: attitude at the start of the current block
+        self.start = self.head.copy()  #: the attitude before the first step
+        self.prefix = np.array([1.0, 0.0, 0.0, 0.0])  #: product inside the current block
+        self.block = max(1, math.isqrt(m))
+        self.m, self.dt, self.every = m, dt, every
+        self.done = 0  #: steps integrated so far
+
+    def advance(self, omega: np.ndarray) -> np.ndarray:
+        """Integrate the next ``len(omega)`` rates; the attitudes after each step ``j``
+        (counted from the start of the recording) with ``(j + 1) % every == 0``, (K, 4)."""
+        from mkf_ros.sim._integrate import integrate_chunk
+
+        f = omega.shape[0]
+        if self.done + f > self.m:
+            raise ValueError(f"{self.done + f} rates for a recording of {self.m}")
+        out = np.empty(((self.done + f) // self.every - self.done // self.every, 4))
+        dq = q_exp(omega * self.dt) if f else np.empty((0, 4))
+        k = integrate_chunk(np.ascontiguousarray(dq), self.done, self.block, self.every,
+                            self.head, self.prefix, out)
+        assert k == out.shape[0]
+        self.done += f
+        return out
+
+
 def integrate(q0: np.ndarray, omega: np.ndarray, dt: float) -> np.ndarray:
     """Attitudes on a grid: ``q_{k+1} = q_k ⊗ q_ω(ω_k, dt)`` (exact for piecewise-constant ω).
 
-    Returns ``(M + 1, 4)`` for ``M`` rates. A blocked prefix product: ``√M`` vectorised passes
-    inside blocks, then one pass over the block totals.
-    """
+    Returns ``(M + 1, 4)`` for ``M`` rates (one :class:`Integrator` chunk)."""
     q0 = np.asarray(q0, dtype=float)
     m = omega.shape[0]
     if m == 0:
         return q0[None, :].copy()
-    b = max(1, math.isqrt(m))
-    nb = -(-m // b)
-    dq = np.zeros((nb * b, 4))
-    dq[:, 0] = 1.0
-    dq[:m] = q_exp(omega * dt)
-    # component-major layout (4, b, nb): every pass below works on contiguous rows
-    c = np.ascontiguousarray(dq.reshape(nb, b, 4).transpose(2, 1, 0))
-    w, x, y, z = c
-    for j in range(1, b):  # prefix products inside each block, all blocks at once
-        pw, px, py, pz = w[j - 1], x[j - 1], y[j - 1], z[j - 1]
-        qw, qx, qy, qz = w[j].copy(), x[j].copy(), y[j].copy(), z[j].copy()
-        w[j] = pw * qw - px * qx - py * qy - pz * qz
-        x[j] = pw * qx + px * qw + py * qz - pz * qy
-        y[j] = pw * qy + py * qw + pz * qx - px * qz
-        z[j] = pw * qz + pz * qw + px * qy - py * qx
-    heads = np.empty((nb, 4))  # attitude at the start of each block (scalar loop)
-    pw, px, py, pz = (q0 / np.linalg.norm(q0)).tolist()
-    for i, (qw, qx, qy, qz) in enumerate(c[:, -1, :].T.tolist()):
-        heads[i] = pw, px, py, pz
-        pw, px, py, pz = (pw * qw - px * qx - py * qy - pz * qz,
-                          pw * qx + px * qw + py * qz - pz * qy,
-                          pw * qy + py * qw + pz * qx - px * qz,
-                          pw * qz + pz * qw + px * qy - py * qx)
-        s = 1.0 / math.sqrt(pw * pw + px * px + py * py + pz * pz)
-        pw, px, py, pz = pw * s, px * s, py * s, pz * s
-    out = qmul_np(heads[:, None, :], c.transpose(2, 1, 0)).reshape(-1, 4)[:m]
-    out /= np.linalg.norm(out, axis=-1, keepdims=True)
-    return np.concatenate([heads[:1], out])
+    it = Integrator(q0, m, dt)
+    return np.concatenate([it.start[None, :], it.advance(np.asarray(omega, dtype=float))])
 
 
 # ------------------------------------------------------------------ scenario machinery
 
 
+class Draws:
+    """A long run of random draws a scenario makes (``normal`` or ``uniform`` of ``shape``,
+    its first axis along the recording), handed out in order, chunk by chunk (:meth:`take`),
+    from a copy of the generator. The scenario's generator is moved past the whole run at once
+    (drawn and discarded in blocks), so what it draws afterwards (and the sensor noise) is what
+    one draw of the whole array would have left: chunked draws equal the whole-array draw
+    because both distributions fill arrays element by element in C order."""
+
+    _BLOCK = 1 << 20
+
+    def __init__(self, rng: np.random.Generator, kind: str, a: float, b: float,
+                 shape: tuple[int, ...]) -> None:
+        if kind not in ("normal", "uniform"):
+            raise ValueError(f"unknown distribution {kind!r}")
+        self.kind, self.a, self.b, self.shape = kind, a, b, shape
+        self.rng = np.random.Generator(type(rng.bit_generator)())
+        self.rng.bit_generator.state = rng.bit_generator.state
+        self.left = shape[0]
+        skip_draws(rng, kind, math.prod(shape))
+
+    def take(self, rows: int) -> np.ndarray:
+        """The next ``rows`` rows of the run."""
+        if rows > self.left:
+            raise ValueError(f"{rows} rows asked of a run with {self.left} left")
+        self.left -= rows
+        size = (rows, *self.shape[1:])
+        if self.kind == "normal":
+            return self.rng.normal(self.a, self.b, size)
+        return self.rng.uniform(self.a, self.b, size)
+
+
+def skip_draws(rng: np.random.Generator, kind: str, count: int) -> None:
+    """Move ``rng`` past ``count`` draws of ``kind`` (``normal``: one standard normal each,
+    whatever loc and scale; ``uniform``: one double each), in blocks of bounded memory."""
+    buf = np.empty(min(count, Draws._BLOCK))
+    while count > 0:
+        k = min(count, buf.size)
+        if kind == "normal":
+            rng.standard_normal(out=buf[:k])
+        else:
+            rng.random(out=buf[:k])
+        count -= k
+
+
+@dataclass
+class Chunk:
+    """One stretch of a recording, what a scenario's chunk function fills in: samples ``i0 ..
+    i1 - 1`` at the true instants ``t`` and the fine rate grid ``j0 .. j1 - 1`` at ``t_fine``."""
+
+    i0: int
+    i1: int
+    t: np.ndarray
+    j0: int
+    j1: int
+    t_fine: np.ndarray
+    omega_fine: np.ndarray | None = None  #: (j1 - j0, 3) body rate on t_fine (required)
+    lin_acc: np.ndarray | None = None  #: (K, 3) ENU linear acceleration at t
+    mag_dist: np.ndarray | None = None  #: (K, 3) ENU field disturbance at t
+    mag_body: np.ndarray | None = None  #: (K, 3) field added in body axes (a magnet on it)
+    bias: np.ndarray | None = None  #: (K, 3) extra gyro bias at t
+    drop: np.ndarray | None = None  #: (K,) bool: sample not delivered at all
+    mag_drop: np.ndarray | None = None  #: (K,) bool: no magnetometer sample
+    stamps: np.ndarray | None = None  #: (K,) stamps if they differ from t
+    #: interval kinds whose intervals are the runs of these (K,) masks (merged over chunks)
+    runs: dict[str, np.ndarray] = field(default_factory=dict)
+
+
+ChunkFn = Callable[[Chunk], None]
+
+
 @dataclass
 class Context:
-    """What a scenario sees and fills in. ``t_fine`` is the rate grid; ``t`` the sample grid."""
+    """What a scenario sees when it is set up: the random generator (its draws in a fixed
+    order), the recording's size (``n`` samples at ``rate``, ``m`` steps of ``fine_dt`` on the
+    rate grid) and its parameters. It makes its random draws here (long runs through
+    :meth:`draws`) and fills in the metadata; the function it returns fills each :class:`Chunk`
+    and may depend on nothing but the chunk's range and what was set up."""
 
     rng: np.random.Generator
-    t_fine: np.ndarray
-    t: np.ndarray
+    n: int
+    m: int
     rate: float
+    fine_dt: float
     duration: float
     args: dict[str, Any]
-    omega_fine: np.ndarray | None = None  #: (M, 3) body rate on t_fine (required)
-    lin_acc: np.ndarray | None = None  #: (N, 3) ENU linear acceleration at t
-    mag_dist: np.ndarray | None = None  #: (N, 3) ENU field disturbance at t
-    mag_body: np.ndarray | None = None  #: (N, 3) field added in body axes (a magnet on it)
-    bias: np.ndarray | None = None  #: (N, 3) extra gyro bias at t
-    drop: np.ndarray | None = None  #: (N,) bool: sample not delivered at all
-    mag_drop: np.ndarray | None = None  #: (N,) bool: no magnetometer sample
-    stamps: np.ndarray | None = None  #: (N,) stamps if they differ from t
     level_start: bool = False  #: start level (random heading) when q0 is not given
     intervals: dict[str, list[tuple[float, float]]] = field(default_factory=dict)
     extra: dict[str, Any] = field(default_factory=dict)
 
+    def draws(self, kind: str, a: float, b: float, shape: tuple[int, ...]) -> Draws:
+        """``rng.normal(a, b, shape)`` or ``rng.uniform(a, b, shape)`` handed out by chunks."""
+        return Draws(self.rng, kind, a, b, shape)
+
 
 @dataclass(frozen=True)
 class Scenario:
-    """A named scenario: a description, its parameters (defaults) and the function."""
+    """A named scenario: a description, its parameters (defaults) and the function that sets it
+    up (:class:`Context`) and returns its chunk function."""
 
     name: str
     description: str
-    fill: Callable[[Context], None]
+    fill: Callable[[Context], ChunkFn]
     params: dict[str, Any] = field(default_factory=dict)
 
 
-def _add_pulse(w: np.ndarray, t: np.ndarray, t0: float, length: float,
-               vec: np.ndarray) -> None:
-    """Add ``vec · (1 − cos 2πτ)``, τ = (t − t0)/length ∈ [0, 1), to ``w`` (in place): a smooth
-    rate pulse whose integral over the pulse is ``vec · length``."""
-    a, b = np.searchsorted(t, [t0, t0 + length])
-    tau = (t[a:b] - t0) / length
-    w[a:b] += (1.0 - np.cos(2.0 * np.pi * tau))[:, None] * vec
+class _Pulses:
+    """Rate pulses ``vec · (1 − cos 2πτ)``, τ = (t − t0)/length ∈ [0, 1), added in order: a
+    smooth rate pulse whose integral over the pulse is ``vec · length``."""
+
+    def __init__(self) -> None:
+        self.items: list[tuple[float, float, np.ndarray]] = []
+        self._ends: tuple[np.ndarray, np.ndarray] | None = None
+
+    def add(self, t0: float, length: float, vec: np.ndarray) -> None:
+        self.items.append((t0, length, vec))
+        self._ends = None
+
+    def apply(self, w: np.ndarray, t: np.ndarray) -> None:
+        """Add the pulses to the rates ``w`` on the sorted grid ``t`` (in place)."""
+        if not t.size or not self.items:
+            return
+        if self._ends is None:
+            self._ends = (np.array([p[0] for p in self.items]),
+                          np.array([p[0] + p[1] for p in self.items]))
+        t0s, t1s = self._ends
+        near = np.flatnonzero((t0s <= t[-1]) & (t1s > t[0]))
+        for i in near.tolist():
+            t0, length, vec = self.items[i]
+            a, b = np.searchsorted(t, [t0, t0 + length])
+            tau = (t[a:b] - t0) / length
+            w[a:b] += (1.0 - np.cos(2.0 * np.pi * tau))[:, None] * vec
 
 
-def _slow_rates(rng: np.random.Generator, t: np.ndarray, scale: float = 1.0) -> np.ndarray:
+class _SlowRates:
     """Smooth rotation about all three axes (≤ ~0.6 rad/s · scale), reaching large tilts."""
-    f = np.array([0.05, 0.07, 0.09])
-    a = np.array([0.5, 0.4, 0.6]) * scale
-    ph = rng.uniform(0, 2 * np.pi, 3)
-    return a * np.sin(2 * np.pi * f * t[:, None] + ph)
+
+    def __init__(self, rng: np.random.Generator, scale: float = 1.0) -> None:
+        self.f = np.array([0.05, 0.07, 0.09])
+        self.a = np.array([0.5, 0.4, 0.6]) * scale
+        self.ph = rng.uniform(0, 2 * np.pi, 3)
+
+    def __call__(self, t: np.ndarray) -> np.ndarray:
+        return self.a * np.sin(2 * np.pi * self.f * t[:, None] + self.ph)
 
 
 def _bursts(rng: np.random.Generator, duration: float, start: float, every: float,
@@ -195,18 +303,38 @@ def _bursts(rng: np.random.Generator, duration: float, start: float, every: floa
         t0 += ln
 
 
-def _static(c: Context) -> None:
-    c.omega_fine = np.zeros((c.t_fine.size, 3))
+def _cumsum(steps: np.ndarray, last: np.ndarray | None) -> np.ndarray:
+    """Running sum of ``steps`` (K, 3) along axis 0 continuing from ``last`` (the sum so far;
+    None at the start), in the order of one ``np.cumsum`` over the whole run."""
+    if last is None:
+        return np.cumsum(steps, axis=0)
+    return np.cumsum(np.concatenate([last[None, :], steps]), axis=0)[1:]
 
 
-def _slow_rotation(c: Context) -> None:
-    c.omega_fine = _slow_rates(c.rng, c.t_fine)
+def _static(c: Context) -> ChunkFn:
+    def chunk(ch: Chunk) -> None:
+        ch.omega_fine = np.zeros((ch.t_fine.size, 3))
+    return chunk
 
 
-def _wiener(c: Context) -> None:
-    dt = c.t_fine[1] - c.t_fine[0] if c.t_fine.size > 1 else 1.0 / c.rate
-    steps = c.rng.normal(0.0, np.sqrt(c.args["q_omega_psd"] * dt), size=(c.t_fine.size, 3))
-    c.omega_fine = np.cumsum(steps, axis=0)
+def _slow_rotation(c: Context) -> ChunkFn:
+    slow = _SlowRates(c.rng)
+
+    def chunk(ch: Chunk) -> None:
+        ch.omega_fine = slow(ch.t_fine)
+    return chunk
+
+
+def _wiener(c: Context) -> ChunkFn:
+    steps = c.draws("normal", 0.0, float(np.sqrt(c.args["q_omega_psd"] * c.fine_dt)), (c.m, 3))
+    last: list[np.ndarray | None] = [None]
+
+    def chunk(ch: Chunk) -> None:
+        w = _cumsum(steps.take(ch.t_fine.size), last[0])
+        if w.size:
+            last[0] = w[-1].copy()
+        ch.omega_fine = w
+    return chunk
 
 
 #: (body axis, angle °, label) of one sweep cycle: full turns about x, y, z, then into both
@@ -225,12 +353,12 @@ SWEEP = (
 )
 
 
-def _sweep(c: Context) -> None:
+def _sweep(c: Context) -> ChunkFn:
     """Raised-cosine rotations of :data:`SWEEP` at mean rate ``sweep_rate`` (°/s), with a
     ``hold`` between them; the cycle repeats until the end."""
     rate = np.radians(c.args["sweep_rate"])
     hold = c.args["hold"]
-    w = np.zeros((c.t_fine.size, 3))
+    pulses = _Pulses()
     t0 = hold
     segments = []
     while t0 < c.duration:
@@ -238,97 +366,137 @@ def _sweep(c: Context) -> None:
             u = np.asarray(axis, float) / np.linalg.norm(axis)
             th = np.radians(ang)
             T = max(0.5, abs(th) / rate)
-            _add_pulse(w, c.t_fine, t0, T, (th / T) * u)
+            pulses.add(t0, T, (th / T) * u)
             segments.append((float(t0), float(t0 + T), label))
             t0 += T + hold
-    c.omega_fine = w
     c.level_start = True
     c.extra["segments"] = segments
 
+    def chunk(ch: Chunk) -> None:
+        w = np.zeros((ch.t_fine.size, 3))
+        pulses.apply(w, ch.t_fine)
+        ch.omega_fine = w
+    return chunk
 
-def _fast_rotation(c: Context) -> None:
+
+def _fast_rotation(c: Context) -> ChunkFn:
     """Spins about random axes peaking at ``max_rate`` rad/s, on top of slow motion."""
-    w = _slow_rates(c.rng, c.t_fine)
+    slow = _SlowRates(c.rng)
+    pulses = _Pulses()
     t0 = 0.5
     while t0 < c.duration:
         T = c.rng.uniform(0.3, 1.0)
         u = c.rng.normal(size=3)
         u /= np.linalg.norm(u)
         peak = c.args["max_rate"] * c.rng.uniform(0.5, 1.0)
-        _add_pulse(w, c.t_fine, t0, T, 0.5 * peak * u)
+        pulses.add(t0, T, 0.5 * peak * u)
         c.intervals.setdefault("fast", []).append((float(t0), float(t0 + T)))
         t0 += T + c.rng.uniform(0.3, 1.0)
-    c.omega_fine = w
+
+    def chunk(ch: Chunk) -> None:
+        w = slow(ch.t_fine)
+        pulses.apply(w, ch.t_fine)
+        ch.omega_fine = w
+    return chunk
 
 
-def _vibration(c: Context) -> None:
+def _vibration(c: Context) -> ChunkFn:
     """Slow motion plus angular and linear vibration (sums of sines at ``vib_freq`` ·
     (1, 1.37, 1.81) Hz), like an IMU on a running engine."""
     f = c.args["vib_freq"] * np.array([1.0, 1.37, 1.81])
     ph = c.rng.uniform(0, 2 * np.pi, (2, 3))
-    w = _slow_rates(c.rng, c.t_fine)
-    w += c.args["vib_rate"] * np.sin(2 * np.pi * f * c.t_fine[:, None] + ph[0])
-    c.omega_fine = w
-    c.lin_acc = c.args["vib_acc"] * np.sin(2 * np.pi * f[::-1] * c.t[:, None] + ph[1])
+    slow = _SlowRates(c.rng)
     c.intervals["acc_disturbed"] = [(0.0, c.duration)]
 
+    def chunk(ch: Chunk) -> None:
+        w = slow(ch.t_fine)
+        w += c.args["vib_rate"] * np.sin(2 * np.pi * f * ch.t_fine[:, None] + ph[0])
+        ch.omega_fine = w
+        ch.lin_acc = c.args["vib_acc"] * np.sin(2 * np.pi * f[::-1] * ch.t[:, None] + ph[1])
+    return chunk
 
-def _gyro_bias(c: Context) -> None:
+
+def _gyro_bias(c: Context) -> ChunkFn:
     """A large constant gyro bias (``bias``, rad/s) on slow motion."""
-    c.omega_fine = _slow_rates(c.rng, c.t_fine)
-    c.bias = np.broadcast_to(np.asarray(c.args["bias"], float), (c.t.size, 3)).copy()
+    slow = _SlowRates(c.rng)
+
+    def chunk(ch: Chunk) -> None:
+        ch.omega_fine = slow(ch.t_fine)
+        ch.bias = np.broadcast_to(np.asarray(c.args["bias"], float), (ch.t.size, 3)).copy()
+    return chunk
 
 
-def _bias_drift(c: Context) -> None:
+def _bias_drift(c: Context) -> ChunkFn:
     """Gyro bias as a random walk (``bias_walk`` rad/s/√s) plus a slow warm-up drift of
     ``bias_ramp`` rad/s per axis over the recording, on slow motion."""
-    c.omega_fine = _slow_rates(c.rng, c.t_fine)
+    slow = _SlowRates(c.rng)
     dt = 1.0 / c.rate
-    walk = np.cumsum(c.rng.normal(0.0, c.args["bias_walk"] * np.sqrt(dt), (c.t.size, 3)), 0)
-    ramp = np.asarray(c.args["bias_ramp"], float) * (1.0 - np.exp(-c.t / (0.3 * c.duration)))[
-        :, None]
-    c.bias = walk + ramp
+    steps = c.draws("normal", 0.0, c.args["bias_walk"] * np.sqrt(dt), (c.n, 3))
+    last: list[np.ndarray | None] = [None]
+
+    def chunk(ch: Chunk) -> None:
+        ch.omega_fine = slow(ch.t_fine)
+        walk = _cumsum(steps.take(ch.t.size), last[0])
+        if walk.size:
+            last[0] = walk[-1].copy()
+        ramp = np.asarray(c.args["bias_ramp"], float) * (
+            1.0 - np.exp(-ch.t / (0.3 * c.duration)))[:, None]
+        ch.bias = walk + ramp
+    return chunk
 
 
-def _mag_disturbance(c: Context) -> None:
+def _mag_disturbance(c: Context) -> ChunkFn:
     """A local field change (``mag_dist`` T, horizontal, east) over the middle fifth of the
     recording, with smooth 0.5 s edges, on slow motion."""
-    c.omega_fine = _slow_rates(c.rng, c.t_fine)
+    slow = _SlowRates(c.rng)
     a, b = 0.4 * c.duration, 0.6 * c.duration
     edge = min(0.5, 0.25 * (b - a))
-    s = np.clip(np.minimum((c.t - a) / edge, (b - c.t) / edge), 0.0, 1.0)
-    s = 0.5 - 0.5 * np.cos(np.pi * s)
-    c.mag_dist = s[:, None] * np.array([c.args["mag_dist"], 0.0, 0.0])
     c.intervals["mag_disturbed"] = [(float(a), float(b))]
 
+    def chunk(ch: Chunk) -> None:
+        ch.omega_fine = slow(ch.t_fine)
+        s = np.clip(np.minimum((ch.t - a) / edge, (b - ch.t) / edge), 0.0, 1.0)
+        s = 0.5 - 0.5 * np.cos(np.pi * s)
+        ch.mag_dist = s[:, None] * np.array([c.args["mag_dist"], 0.0, 0.0])
+    return chunk
 
-def _accel_bursts(c: Context) -> None:
+
+def _accel_bursts(c: Context) -> ChunkFn:
     """Translational acceleration bursts (one full sine period each, so the velocity returns to
     zero) in random directions, peaking at ``acc_peak`` g, on slow motion."""
-    c.omega_fine = _slow_rates(c.rng, c.t_fine)
-    acc = np.zeros((c.t.size, 3))
+    slow = _SlowRates(c.rng)
     ivs = _bursts(c.rng, c.duration, 0.5, c.args["burst_every"], (0.3, 1.0))
+    bursts = []
     for a, b in ivs:
         u = c.rng.normal(size=3)
         u /= np.linalg.norm(u)
         peak = c.args["acc_peak"] * GRAVITY * c.rng.uniform(0.5, 1.0)
-        tau = (c.t - a) / (b - a)
-        inside = (tau >= 0) & (tau <= 1)
-        acc[inside] += peak * np.sin(2 * np.pi * tau[inside])[:, None] * u
-    c.lin_acc = acc
+        bursts.append((a, b, u, peak))
     c.intervals["acc_disturbed"] = ivs
 
+    def chunk(ch: Chunk) -> None:
+        ch.omega_fine = slow(ch.t_fine)
+        acc = np.zeros((ch.t.size, 3))
+        for a, b, u, peak in bursts:
+            if ch.t.size and (a > ch.t[-1] + 1.0 or b < ch.t[0] - 1.0):
+                continue  # τ outside [0, 1] on the whole chunk
+            tau = (ch.t - a) / (b - a)
+            inside = (tau >= 0) & (tau <= 1)
+            acc[inside] += peak * np.sin(2 * np.pi * tau[inside])[:, None] * u
+        ch.lin_acc = acc
+    return chunk
 
-def _shaking(c: Context) -> None:
+
+def _shaking(c: Context) -> ChunkFn:
     """Sustained shaking (the motion that drags a raw accelerometer off, like BROAD's fast
     translation): two stretches of a quarter of the recording each in which the body is shaken back
     and forth at ``shake_freq`` Hz with peaks up to ``shake_acc`` g along a direction that changes
     every second (whole periods of a velocity oscillating about zero), while it also rocks about all
     axes (up to ``shake_rate`` rad/s at the same frequency); slow motion in between."""
-    w = _slow_rates(c.rng, c.t_fine, 0.5)
-    acc = np.zeros((c.t.size, 3))
+    slow = _SlowRates(c.rng, 0.5)
     f = c.args["shake_freq"]
     ivs = [(0.15 * c.duration, 0.4 * c.duration), (0.55 * c.duration, 0.8 * c.duration)]
+    shakes = []
     for a, b in ivs:
         t0 = a
         while t0 + 1.0 <= b:
@@ -337,80 +505,129 @@ def _shaking(c: Context) -> None:
             v = c.rng.normal(size=3)
             v /= np.linalg.norm(v)
             peak = c.args["shake_acc"] * GRAVITY * c.rng.uniform(0.5, 1.0)
-            inside = (c.t >= t0) & (c.t < t0 + 1.0)  # velocity (peak/ω) sin(ωt): mean zero
-            acc[inside] += peak * np.cos(2 * np.pi * f * (c.t[inside] - t0))[:, None] * u
-            fin = (c.t_fine >= t0) & (c.t_fine < t0 + 1.0)
-            w[fin] += (c.args["shake_rate"] * c.rng.uniform(0.5, 1.0)
-                       * np.sin(2 * np.pi * f * (c.t_fine[fin] - t0)))[:, None] * v
+            rock = c.args["shake_rate"] * c.rng.uniform(0.5, 1.0)
+            shakes.append((t0, u, v, peak, rock))
             t0 += 1.0
-    c.omega_fine = w
-    c.lin_acc = acc
     c.intervals["acc_disturbed"] = [(float(a), float(b)) for a, b in ivs]
 
+    def chunk(ch: Chunk) -> None:
+        w = slow(ch.t_fine)
+        acc = np.zeros((ch.t.size, 3))
+        lo = min(ch.t[0] if ch.t.size else np.inf, ch.t_fine[0] if ch.t_fine.size else np.inf)
+        hi = max(ch.t[-1] if ch.t.size else -np.inf,
+                 ch.t_fine[-1] if ch.t_fine.size else -np.inf)
+        for t0, u, v, peak, rock in shakes:
+            if t0 > hi or t0 + 1.0 <= lo:
+                continue  # [t0, t0 + 1) misses the chunk
+            inside = (ch.t >= t0) & (ch.t < t0 + 1.0)  # velocity (peak/ω) sin(ωt): mean zero
+            acc[inside] += peak * np.cos(2 * np.pi * f * (ch.t[inside] - t0))[:, None] * u
+            fin = (ch.t_fine >= t0) & (ch.t_fine < t0 + 1.0)
+            w[fin] += (rock * np.sin(2 * np.pi * f * (ch.t_fine[fin] - t0)))[:, None] * v
+        ch.omega_fine = w
+        ch.lin_acc = acc
+    return chunk
 
-def _slow_turn(c: Context) -> None:
+
+def _slow_turn(c: Context) -> ChunkFn:
     """Level, at rest for ``rest`` s, then a steady turn about the vertical at ``turn_rate``
     rad/s (a robot turning slowly: a turn rest detection must not take for a bias) with a linear
     vibration of ``vib_acc`` m/s² (a rolling robot; 0 = a perfectly smooth turn, which no IMU can
     tell from a gyro bias)."""
     c.level_start = True
-    w = np.zeros((c.t_fine.size, 3))
-    w[c.t_fine >= c.args["rest"], 2] = c.args["turn_rate"]
-    c.omega_fine = w
-    if c.args["vib_acc"] > 0:
-        moving = (c.t >= c.args["rest"])[:, None]
-        c.lin_acc = moving * c.rng.normal(0.0, c.args["vib_acc"], (c.t.size, 3))
+    shake = (c.draws("normal", 0.0, c.args["vib_acc"], (c.n, 3))
+             if c.args["vib_acc"] > 0 else None)
     c.intervals["turning"] = [(float(c.args["rest"]), c.duration)]
 
+    def chunk(ch: Chunk) -> None:
+        w = np.zeros((ch.t_fine.size, 3))
+        w[ch.t_fine >= c.args["rest"], 2] = c.args["turn_rate"]
+        ch.omega_fine = w
+        if shake is not None:
+            moving = (ch.t >= c.args["rest"])[:, None]
+            ch.lin_acc = moving * shake.take(ch.t.size)
+    return chunk
 
-def _mag_attached(c: Context) -> None:
+
+def _mag_attached(c: Context) -> ChunkFn:
     """A magnet attached to the body (a disturbance the magnetometer checks must refuse, like
     BROAD's attached-magnet trials): a constant field ``mag_offset`` (T, body axes; hundreds of µT
     at 1 cm) from 0.3 to 0.7 of the recording, on slow motion: it turns with the body, so the
     measured north swings."""
-    c.omega_fine = _slow_rates(c.rng, c.t_fine)
+    slow = _SlowRates(c.rng)
     a, b = 0.3 * c.duration, 0.7 * c.duration
-    on = ((c.t >= a) & (c.t < b))[:, None]
-    c.mag_body = on * np.asarray(c.args["mag_offset"], float)
     c.intervals["mag_disturbed"] = [(float(a), float(b))]
 
+    def chunk(ch: Chunk) -> None:
+        ch.omega_fine = slow(ch.t_fine)
+        on = ((ch.t >= a) & (ch.t < b))[:, None]
+        ch.mag_body = on * np.asarray(c.args["mag_offset"], float)
+    return chunk
 
-def _dropouts(c: Context) -> None:
+
+def _dropouts(c: Context) -> ChunkFn:
     """Lost messages on slow motion: a short gap (5 samples), a long one (``gap`` s, longer than
     the filters' default ``max_dt``), and a magnetometer outage of 2 s."""
-    c.omega_fine = _slow_rates(c.rng, c.t_fine)
-    n, d = c.t.size, c.duration
-    drop = np.zeros(n, dtype=bool)
+    slow = _SlowRates(c.rng)
+    d = c.duration
     dt = 1.0 / c.rate
     ivs = [(0.25 * d, 0.25 * d + 5 * dt), (0.5 * d, 0.5 * d + c.args["gap"])]
-    for a, b in ivs:
-        drop |= (c.t > a) & (c.t < b + 0.5 * dt)
-    c.drop = drop
     ma, mb = 0.7 * d, min(0.7 * d + 2.0, d)
-    c.mag_drop = (c.t >= ma) & (c.t < mb)
-    # intervals span the true times of the missing samples
-    c.intervals["dropout"] = _intervals_where(c.t, drop)
-    c.intervals["mag_dropout"] = _intervals_where(c.t, c.mag_drop)
+    # intervals span the true times of the missing samples (runs of the masks, over the chunks)
+    c.intervals["dropout"] = []
+    c.intervals["mag_dropout"] = []
+
+    def chunk(ch: Chunk) -> None:
+        ch.omega_fine = slow(ch.t_fine)
+        drop = np.zeros(ch.t.size, dtype=bool)
+        for a, b in ivs:
+            drop |= (ch.t > a) & (ch.t < b + 0.5 * dt)
+        ch.drop = drop
+        ch.mag_drop = (ch.t >= ma) & (ch.t < mb)
+        ch.runs["dropout"] = drop
+        ch.runs["mag_dropout"] = ch.mag_drop
+    return chunk
 
 
-def _jitter(c: Context) -> None:
+def _jitter(c: Context) -> ChunkFn:
     """Stamps off the true sampling instants by up to ± ``jitter`` sample periods (uniform;
     below 0.5 they stay increasing), on slow motion."""
-    c.omega_fine = _slow_rates(c.rng, c.t_fine)
+    slow = _SlowRates(c.rng)
     j = c.args["jitter"] / c.rate
-    c.stamps = c.t + c.rng.uniform(-j, j, c.t.size)
+    offsets = c.draws("uniform", -j, j, (c.n,))
+
+    def chunk(ch: Chunk) -> None:
+        ch.omega_fine = slow(ch.t_fine)
+        ch.stamps = ch.t + offsets.take(ch.t.size)
+    return chunk
 
 
-def _time_jump(c: Context) -> None:
+def _first_at_or_after(x: float, n: int, dt: float) -> int:
+    """``np.searchsorted(np.arange(n) * dt, x)`` without the array: the first sample index
+    whose instant ``i · dt`` is not before ``x`` (``n`` if none)."""
+    k = min(max(math.ceil(x / dt), 0), n) if math.isfinite(x / dt) else (0 if x < 0 else n)
+    while k > 0 and (k - 1) * dt >= x:
+        k -= 1
+    while k < n and k * dt < x:
+        k += 1
+    return k
+
+
+def _time_jump(c: Context) -> ChunkFn:
     """Stamps jump back by ``jump`` s at ``jump_at`` · duration (a clock reset or a bag loop),
     then run on; the motion (slow) does not notice."""
-    c.omega_fine = _slow_rates(c.rng, c.t_fine)
-    k = int(np.searchsorted(c.t, c.args["jump_at"] * c.duration))
-    stamps = c.t.copy()
-    stamps[k:] -= c.args["jump"]
-    c.stamps = stamps
-    if 0 < k < c.t.size:
-        c.extra["time_jumps"] = [(k, float(stamps[k - 1]), float(stamps[k]))]
+    slow = _SlowRates(c.rng)
+    dt = 1.0 / c.rate
+    k = _first_at_or_after(c.args["jump_at"] * c.duration, c.n, dt)
+    jump = c.args["jump"]
+    if 0 < k < c.n:
+        c.extra["time_jumps"] = [(k, float((k - 1) * dt), float(k * dt - jump))]
+
+    def chunk(ch: Chunk) -> None:
+        ch.omega_fine = slow(ch.t_fine)
+        stamps = ch.t.copy()
+        stamps[max(k - ch.i0, 0):] -= jump
+        ch.stamps = stamps
+    return chunk
 
 
 def _register(*scenarios: Scenario) -> dict[str, Scenario]:
@@ -467,6 +684,209 @@ def pitch_deg(quat: np.ndarray) -> np.ndarray:
     return np.degrees(np.arcsin(np.clip(R[..., 2, 0], -1.0, 1.0)))
 
 
+class _Runs:
+    """Maximal runs of a per-sample mask fed chunk by chunk, as (t_first, t_last) pairs
+    appended to ``out`` (what :func:`_intervals_where` gives for the whole mask)."""
+
+    def __init__(self, out: list[tuple[float, float]]) -> None:
+        self.out = out
+        self.open: tuple[float, float] | None = None
+
+    def add(self, t: np.ndarray, mask: np.ndarray) -> None:
+        if not mask.size:
+            return
+        runs = _intervals_where(t, mask)
+        if self.open is not None:
+            if mask[0]:
+                runs[0] = (self.open[0], runs[0][1])
+            else:
+                self.out.append(self.open)
+            self.open = None
+        if mask[-1]:
+            self.open = runs.pop()
+        self.out.extend(runs)
+
+    def close(self) -> None:
+        if self.open is not None:
+            self.out.append(self.open)
+            self.open = None
+
+
+#: Rate-grid steps per chunk that :class:`SimStream` aims at by default (~30 MB of arrays).
+CHUNK_FINE_STEPS = 1 << 18
+#: At most this many samples per chunk by default.
+CHUNK_SAMPLES = 8192
+
+
+class SimStream:
+    """A synthetic recording generated chunk by chunk in bounded memory (see :func:`simulate`
+    for the arguments; ``chunk``: samples per chunk, default ~2¹⁸ steps of the rate grid and at
+    most :data:`CHUNK_SAMPLES`). Iterating yields :class:`SimData` chunks in time order (dropped
+    samples removed, so a chunk may be empty) whose concatenation is :func:`simulate`'s result,
+    whatever the chunk size. Every chunk shares :attr:`meta`, which is complete (the truth
+    intervals found on the way, e.g. ``gimbal_lock``) once the iteration has ended. One pass
+    only: the random draws are consumed."""
+
+    def __init__(
+        self,
+        scenario: str = "slow_rotation",
+        *,
+        duration: float = 20.0,
+        rate: float = 100.0,
+        seed: int = 0,
+        substeps: int = 100,
+        gyro_noise: float = 0.01,
+        acc_noise: float = 0.05,
+        mag_noise: float = 0.5e-6,
+        gyro_bias: object = (0.0, 0.0, 0.0),
+        mag_field: np.ndarray = MAG_FIELD_ENU,
+        mag_rate: float | None = None,
+        q0: np.ndarray | None = None,
+        chunk: int | None = None,
+        **scenario_args: Any,
+    ) -> None:
+        if scenario not in SCENARIOS:
+            raise ValueError(f"unknown scenario {scenario!r}; known: {', '.join(SCENARIOS)}")
+        sc = SCENARIOS[scenario]
+        unknown = set(scenario_args) - set(sc.params)
+        if unknown:
+            known = ", ".join(sc.params) or "none"
+            raise ValueError(f"scenario {scenario!r} has no parameter {sorted(unknown)[0]!r} "
+                             f"(its parameters: {known})")
+        if not (rate > 0 and duration > 0 and substeps >= 1):
+            raise ValueError("rate, duration and substeps must be positive")
+        if mag_rate is not None and not mag_rate > 0:
+            raise ValueError(f"mag_rate must be positive, got {mag_rate!r}")
+        if chunk is not None and chunk < 1:
+            raise ValueError(f"chunk must be at least 1 sample, got {chunk!r}")
+        rng = np.random.default_rng(seed)
+        self.n = n = round(duration * rate) + 1  #: samples (before dropped ones are removed)
+        self.dt = dt = 1.0 / rate
+        self.substeps = substeps
+        self.fine_dt = fine_dt = dt / substeps
+        self.m = m = (n - 1) * substeps  #: steps of the rate grid
+        q0_random = rng.normal(size=4)
+        # the scenario sees a grid of at least two steps (its draws are sized by it)
+        ctx = Context(rng=rng, n=n, m=m if m > 1 else 2, rate=rate, fine_dt=fine_dt,
+                      duration=duration, args=dict(sc.params, **scenario_args))
+        self._fill = sc.fill(ctx)
+        if q0 is None:
+            q0 = q0_random
+            if ctx.level_start:
+                yaw = np.arctan2(q0_random[0], q0_random[1])
+                q0 = np.array([np.cos(yaw / 2), 0.0, 0.0, np.sin(yaw / 2)])
+        self.q0 = np.asarray(q0, dtype=float) / np.linalg.norm(q0)
+        # the noise of each sensor is drawn after everything above, gyro, then accelerometer,
+        # then magnetometer, each (n, 3) at once: three generators at those three positions
+        self._noise = []
+        for _ in range(3):
+            g = np.random.Generator(type(rng.bit_generator)())
+            g.bit_generator.state = rng.bit_generator.state
+            self._noise.append(g)
+            skip_draws(rng, "normal", 3 * n)
+        self.gyro_noise, self.acc_noise, self.mag_noise = gyro_noise, acc_noise, mag_noise
+        self.gyro_bias = np.asarray(gyro_bias, dtype=float)
+        self.mag_field = np.asarray(mag_field, float)
+        self.mag_rate = mag_rate
+        self.duration = duration
+        self.rate = rate
+        if chunk is None:
+            chunk = max(1, min(CHUNK_SAMPLES, CHUNK_FINE_STEPS // substeps))
+        self.chunk = chunk
+        self.meta: dict[str, Any] = dict(
+            scenario=scenario, rate=rate, seed=seed, duration=duration,
+            mag_field=self.mag_field, mag_rate=mag_rate, gyro_noise=gyro_noise,
+            acc_noise=acc_noise, mag_noise=mag_noise, description=sc.description,
+            params=dict(ctx.args), intervals=dict(ctx.intervals), **ctx.extra)
+        self._used = False
+
+    def __len__(self) -> int:
+        """Samples before dropped ones are removed."""
+        return self.n
+
+    def _mag_keep(self, i0: int, i1: int) -> np.ndarray:
+        """(i1 - i0,) bool: the samples of ``i0 .. i1 - 1`` on the magnetometer's grid, as
+        ``round(arange(0, duration, 1 / mag_rate) · rate)`` (its values in that range)."""
+        assert self.mag_rate is not None
+        step = 1.0 / self.mag_rate
+        count = math.ceil(self.duration / step)  # len(np.arange(0, duration, step))
+        per = step * self.rate  # samples per magnetometer sample (≥ 1 in practice)
+        k0 = max(0, math.floor((i0 - 1) / per) - 2)
+        k1 = min(count, math.ceil((i1 + 1) / per) + 2)
+        idx = np.round(np.arange(k0, k1) * step * self.rate).astype(int)
+        idx = idx[(idx >= i0) & (idx < i1)]
+        keep = np.zeros(i1 - i0, dtype=bool)
+        keep[idx - i0] = True
+        return keep
+
+    def __iter__(self) -> Iterator[SimData]:
+        if self._used:
+            raise RuntimeError("a SimStream is iterated once (make a new one)")
+        self._used = True
+        n, S, K = self.n, self.substeps, self.chunk
+        integ = Integrator(self.q0, self.m, self.fine_dt, every=S) if self.m else None
+        runs = {k: _Runs(v) for k, v in self.meta["intervals"].items()}
+        lock = _Runs([])
+        up = np.array([0.0, 0.0, GRAVITY])
+        ng, na, nm = self._noise
+        # the first chunk holds sample 0 too: its rate is the first one of the grid
+        bounds = [0, *range(min(n, K + 1), n, K), n]
+        for i0, i1 in itertools.pairwise(bounds):
+            j0, j1 = max(i0 - 1, 0) * S, (i1 - 1) * S
+            t = np.arange(i0, i1) * self.dt
+            ch = Chunk(i0=i0, i1=i1, t=t, j0=j0, j1=j1,
+                       t_fine=np.arange(j0, j1) * self.fine_dt)
+            self._fill(ch)
+            assert ch.omega_fine is not None, f"scenario {self.meta['scenario']} set no rate"
+            w = ch.omega_fine
+            k = i1 - i0
+            if integ is None:  # one sample: no steps
+                quat = self.q0[None, :].copy()
+                omega = np.zeros((k, 3))
+            else:
+                quat = integ.advance(np.ascontiguousarray(w))
+                # what the gyro reports: the mean rate over the sample interval that ends at
+                # its stamp (a MEMS gyro's anti-alias filter and decimation; at t=0 the first
+                # rate)
+                mean = w.reshape(-1, S, 3).mean(axis=1)
+                if i0 == 0:
+                    quat = np.concatenate([integ.start[None, :], quat])
+                    omega = np.vstack([w[:1], mean])
+                else:
+                    omega = mean
+            R = rotmat_np(quat)
+            bias = np.broadcast_to(self.gyro_bias, (k, 3)).copy()
+            if ch.bias is not None:
+                bias = bias + ch.bias
+            lin_acc = np.zeros((k, 3)) if ch.lin_acc is None else ch.lin_acc
+            mag_dist = np.zeros((k, 3)) if ch.mag_dist is None else ch.mag_dist
+            gyr = omega + bias + ng.normal(0, self.gyro_noise, (k, 3))
+            acc = np.einsum("nji,nj->ni", R, up + lin_acc) + na.normal(0, self.acc_noise, (k, 3))
+            mag = np.einsum("nji,nj->ni", R, self.mag_field + mag_dist) + \
+                nm.normal(0, self.mag_noise, (k, 3))
+            mag_body = np.zeros((k, 3)) if ch.mag_body is None else ch.mag_body
+            mag = mag + mag_body
+            if self.mag_rate is not None:
+                mag[~self._mag_keep(i0, i1)] = np.nan
+            if ch.mag_drop is not None:
+                mag[ch.mag_drop] = np.nan
+            stamps = t.copy() if ch.stamps is None else ch.stamps
+            for kind, mask in ch.runs.items():
+                runs[kind].add(t, mask)
+            pitch_lock = np.abs(pitch_deg(quat)) > 80.0
+            if pitch_lock.any() or lock.open is not None:
+                lock.add(t, pitch_lock)
+                if lock.out or lock.open is not None:
+                    self.meta["intervals"].setdefault("gimbal_lock", lock.out)
+            sd = SimData(t=stamps, gyr=gyr, acc=acc, mag=mag, quat=quat, omega=omega, bias=bias,
+                         meta=self.meta, t_true=t, lin_acc=lin_acc, mag_dist=mag_dist,
+                         mag_body=mag_body)
+            yield sd if ch.drop is None else _select(sd, ~ch.drop)
+        for r in runs.values():
+            r.close()
+        lock.close()
+
+
 def simulate(
     scenario: str = "slow_rotation",
     *,
@@ -481,6 +901,7 @@ def simulate(
     mag_field: np.ndarray = MAG_FIELD_ENU,
     mag_rate: float | None = None,
     q0: np.ndarray | None = None,
+    chunk: int | None = None,
     **scenario_args: Any,
 ) -> SimData:
     """Synthesise a recording of ``duration`` s at ``rate`` Hz (see the module doc).
@@ -489,86 +910,28 @@ def simulate(
     for ``sweep``); ``gyro_bias`` a constant bias added to the scenario's; ``mag_field`` the
     Earth field in ENU (T); ``mag_rate`` (Hz) makes the magnetometer slower (NaN rows between its
     samples). ``scenario_args`` are the scenario's own parameters (``SCENARIOS[name].params``).
+    The whole recording in memory: the chunks of :class:`SimStream` (same arguments; ``chunk``
+    does not change the result) concatenated; for long recordings iterate a :class:`SimStream`.
     """
-    if scenario not in SCENARIOS:
-        raise ValueError(f"unknown scenario {scenario!r}; known: {', '.join(SCENARIOS)}")
-    sc = SCENARIOS[scenario]
-    unknown = set(scenario_args) - set(sc.params)
-    if unknown:
-        known = ", ".join(sc.params) or "none"
-        raise ValueError(f"scenario {scenario!r} has no parameter {sorted(unknown)[0]!r} "
-                         f"(its parameters: {known})")
-    if not (rate > 0 and duration > 0 and substeps >= 1):
-        raise ValueError("rate, duration and substeps must be positive")
-    if mag_rate is not None and not mag_rate > 0:
-        raise ValueError(f"mag_rate must be positive, got {mag_rate!r}")
-    rng = np.random.default_rng(seed)
-    n = round(duration * rate) + 1
-    dt = 1.0 / rate
-    fine_dt = dt / substeps
-    t_fine = np.arange((n - 1) * substeps) * fine_dt
-    q0_random = rng.normal(size=4)
-    t = np.arange(n) * dt
-    ctx = Context(rng=rng, t_fine=t_fine if t_fine.size > 1 else np.array([0.0, fine_dt]),
-                  t=t, rate=rate, duration=duration, args=dict(sc.params, **scenario_args))
-    sc.fill(ctx)
-    assert ctx.omega_fine is not None, f"scenario {scenario} set no rate"
-    if q0 is None:
-        q0 = q0_random
-        if ctx.level_start:
-            yaw = np.arctan2(q0_random[0], q0_random[1])
-            q0 = np.array([np.cos(yaw / 2), 0.0, 0.0, np.sin(yaw / 2)])
-    q0 = np.asarray(q0, dtype=float) / np.linalg.norm(q0)
-    w_fine = ctx.omega_fine[: t_fine.size]
-    q_fine = integrate(q0, np.ascontiguousarray(w_fine), fine_dt)
-    quat = q_fine[::substeps]
-    # what the gyro reports: the mean rate over the sample interval that ends at its stamp
-    # (a MEMS gyro's anti-alias filter and decimation; at t=0 the first rate)
-    if w_fine.size:
-        m = (n - 1) * substeps
-        mean = w_fine[:m].reshape(n - 1, substeps, 3).mean(axis=1)
-        omega = np.vstack([w_fine[:1], mean])
-    else:
-        omega = np.zeros((n, 3))
-    R = rotmat_np(quat)
-    bias = np.broadcast_to(np.asarray(gyro_bias, dtype=float), (n, 3)).copy()
-    if ctx.bias is not None:
-        bias = bias + ctx.bias
-    lin_acc = np.zeros((n, 3)) if ctx.lin_acc is None else ctx.lin_acc
-    mag_dist = np.zeros((n, 3)) if ctx.mag_dist is None else ctx.mag_dist
-    gyr = omega + bias + rng.normal(0, gyro_noise, (n, 3))
-    up = np.array([0.0, 0.0, GRAVITY])
-    acc = np.einsum("nji,nj->ni", R, up + lin_acc) + rng.normal(0, acc_noise, (n, 3))
-    mag = np.einsum("nji,nj->ni", R, np.asarray(mag_field, float) + mag_dist) + \
-        rng.normal(0, mag_noise, (n, 3))
-    mag_body = np.zeros((n, 3)) if ctx.mag_body is None else ctx.mag_body
-    mag = mag + mag_body
-    if mag_rate is not None:
-        keep = np.zeros(n, dtype=bool)
-        keep[np.unique(np.round(np.arange(0, duration, 1.0 / mag_rate) * rate).astype(int))] = True
-        mag[~keep[:n]] = np.nan
-    if ctx.mag_drop is not None:
-        mag[ctx.mag_drop] = np.nan
-    stamps = t.copy() if ctx.stamps is None else ctx.stamps
-    intervals = dict(ctx.intervals)
-    lock = np.abs(pitch_deg(quat)) > 80.0
-    if lock.any():
-        intervals["gimbal_lock"] = _intervals_where(t, lock)
-    meta: dict[str, Any] = dict(scenario=scenario, rate=rate, seed=seed, duration=duration,
-                                mag_field=np.asarray(mag_field, float), mag_rate=mag_rate,
-                                gyro_noise=gyro_noise, acc_noise=acc_noise, mag_noise=mag_noise,
-                                description=sc.description, params=dict(ctx.args),
-                                intervals=intervals, **ctx.extra)
-    sd = SimData(t=stamps, gyr=gyr, acc=acc, mag=mag, quat=quat, omega=omega, bias=bias,
-                 meta=meta, t_true=t, lin_acc=lin_acc, mag_dist=mag_dist, mag_body=mag_body)
-    if ctx.drop is not None:
-        sd = _select(sd, ~ctx.drop)
-    return sd
+    stream = SimStream(scenario, duration=duration, rate=rate, seed=seed, substeps=substeps,
+                       gyro_noise=gyro_noise, acc_noise=acc_noise, mag_noise=mag_noise,
+                       gyro_bias=gyro_bias, mag_field=mag_field, mag_rate=mag_rate, q0=q0,
+                       chunk=chunk, **scenario_args)
+    return concat(list(stream), stream.meta)
+
+
+_FIELDS = ("t", "gyr", "acc", "mag", "quat", "omega", "bias", "t_true", "lin_acc", "mag_dist",
+           "mag_body")
+
+
+def concat(chunks: list[SimData], meta: dict[str, Any]) -> SimData:
+    """One :class:`SimData` of consecutive chunks (with ``meta``)."""
+    if not chunks:
+        raise ValueError("no chunks")
+    return SimData(meta=meta, **{k: np.concatenate([getattr(c, k) for c in chunks])
+                                 for k in _FIELDS})
 
 
 def _select(sd: SimData, keep: np.ndarray) -> SimData:
     """The rows of ``sd`` where ``keep`` is true (dropped messages vanish entirely)."""
-    arrays = {k: getattr(sd, k)[keep] for k in ("t", "gyr", "acc", "mag", "quat", "omega",
-                                                 "bias", "t_true", "lin_acc", "mag_dist",
-                                                 "mag_body")}
-    return SimData(meta=sd.meta, **arrays)
+    return SimData(meta=sd.meta, **{k: getattr(sd, k)[keep] for k in _FIELDS})

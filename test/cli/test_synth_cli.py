@@ -81,3 +81,50 @@ def test_existing_bag_needs_overwrite(tmp_path: Path, capsys: pytest.CaptureFixt
     assert main([*args, "--overwrite", "--storage", "sqlite3"]) == 0
     with BagReader(out) as br:
         assert br.storage == "sqlite3"
+
+
+def _messages(path: Path) -> list[tuple[str, int, bytes]]:
+    from rosbags import rosbag2
+
+    with rosbag2.Reader(path) as r:
+        return [(c.topic, t, bytes(d)) for c, t, d in r.messages()]
+
+
+def test_synth_streams_the_bag_of_the_whole_recording(tmp_path: Path,
+                                                      monkeypatch: pytest.MonkeyPatch) -> None:
+    """With chunks of 7 samples the command writes the messages and the description of the
+    bag of the whole simulation (dropped samples, magnetometer at its own rate, split topics)."""
+    from mkf_ros.bags.synth import write_bag
+    from mkf_ros.sim import motion
+
+    monkeypatch.setattr(motion, "CHUNK_SAMPLES", 7)
+    out = tmp_path / "b"
+    assert main(["synth", "dropouts", "--out", str(out), "--duration", "8", "--rate", "50",
+                 "--mag-rate", "15", "--seed", "5", "--split-accel", "3",
+                 "--param", "gap=0.5"]) == 0
+    ref = tmp_path / "ref"
+    write_bag(simulate("dropouts", duration=8.0, rate=50.0, mag_rate=15.0, seed=5, gap=0.5,
+                       chunk=401), ref, split_accel=3)
+    assert _messages(out) == _messages(ref)
+    assert read_description(out) == read_description(ref)
+
+
+def test_a_failure_while_writing_leaves_no_bag(tmp_path: Path,
+                                               monkeypatch: pytest.MonkeyPatch) -> None:
+    import mkf_ros.bags.synth as synth
+    from mkf_ros.sim import motion
+
+    monkeypatch.setattr(motion, "CHUNK_SAMPLES", 50)
+    real, calls = synth.sim_streams, []
+
+    def failing(*a: object, **k: object) -> object:
+        calls.append(1)
+        if len(calls) == 4:
+            raise OSError("disk full")
+        return real(*a, **k)
+
+    monkeypatch.setattr(synth, "sim_streams", failing)
+    with pytest.raises(OSError, match="disk full"):
+        main(["synth", "wiener", "--out", str(tmp_path / "b"), "--duration", "10",
+              "--rate", "100"])
+    assert len(calls) == 4 and list(tmp_path.iterdir()) == []

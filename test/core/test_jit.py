@@ -163,13 +163,13 @@ def compiled():
                 seen[f"{obj.py_func.__module__}.{attr}"] = sorted(map(str, obj.signatures))
     return seen
 
+from mkf_ros.sim import simulate
+r = simulate("slow_rotation", duration=0.3, rate=100.0, seed=1, mag_rate=50.0)  # the input
 mkf_ros.warmup()
 before = compiled()
 from mkf_ros import estimate
 from mkf_ros.core.filter import AttitudeFilter
-from mkf_ros.sim import simulate
 from mkf_ros.stream.adapter import StreamAdapter
-r = simulate("slow_rotation", duration=0.3, rate=100.0, seed=1, mag_rate=50.0)
 for algo in ("mekf", "mukf"):
     for mag in (r.mag, None):
         estimate(r.gyr, r.acc, mag, dt=0.01, algorithm=algo)
