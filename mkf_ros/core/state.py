@@ -43,7 +43,8 @@ COPIED_PARAMS = (
     "acc_disturbance_time", "acc_alignment_error", "gyro_scale_error", "gyro_gate",
     "mag_time_constant", "mag_consistency_tolerance", "mag_timing_error", "mag_undisturbed_time",
     "mag_disturbance_time", "mag_norm_tolerance", "mag_dip_tolerance", "mag_gate",
-    "mag_recovery_time", "mag_new_time", "mag_new_first_time", "rest_gyro_threshold", "rest_acc_threshold", "rest_time",
+    "mag_recovery_time", "mag_new_time", "mag_new_first_time", "rest_gyro_threshold",
+    "rest_acc_threshold", "rest_time",
     "madgwick_beta",
 )
 

@@ -461,6 +461,24 @@ def _mag_disturbance(c: Context) -> ChunkFn:
     return chunk
 
 
+def _mag_field_change(c: Context) -> ChunkFn:
+    """The undisturbed field changes for good at ``change_at`` of the recording (another room,
+    a rebar floor: indoors 10–25 % in magnitude and some degrees of dip), with a smooth 2 s
+    edge, on slow motion: ``mag_change`` (T, ENU) is added from then on. The default, north
+    and up components only, keeps north and turns the default Earth field (50 µT, dip 60°)
+    into 40 µT at dip 70°."""
+    slow = _SlowRates(c.rng)
+    a = c.args["change_at"] * c.duration
+    c.intervals["mag_changed"] = [(float(a), c.duration)]
+    change = np.asarray(c.args["mag_change"], float)
+
+    def chunk(ch: Chunk) -> None:
+        ch.omega_fine = slow(ch.t_fine)
+        s = np.clip((ch.t - a) / 2.0, 0.0, 1.0)
+        ch.mag_dist = (0.5 - 0.5 * np.cos(np.pi * s))[:, None] * change
+    return chunk
+
+
 def _accel_bursts(c: Context) -> ChunkFn:
     """Translational acceleration bursts (one full sine period each, so the velocity returns to
     zero) in random directions, peaking at ``acc_peak`` g, on slow motion."""
@@ -652,6 +670,9 @@ SCENARIOS: dict[str, Scenario] = _register(
              {"bias_walk": 1e-3, "bias_ramp": (0.01, -0.008, 0.012)}),
     Scenario("mag_disturbance", "a local magnetic field change over the middle fifth",
              _mag_disturbance, {"mag_dist": 25e-6}),
+    Scenario("mag_field_change", "the undisturbed field's magnitude and dip change for good "
+             "(another room)", _mag_field_change,
+             {"change_at": 0.25, "mag_change": (0.0, -11.32e-6, 5.71e-6)}),
     Scenario("accel_bursts", "translational acceleration bursts up to acc_peak g",
              _accel_bursts, {"acc_peak": 3.0, "burst_every": 3.0}),
     Scenario("shaking", "sustained shaking up to shake_acc g with rocking up to shake_rate "
