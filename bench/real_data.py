@@ -133,13 +133,14 @@ class Algo:
     baseline: bool = False  # the seed report's baselines: dropped by --no-baselines
 
 
-def _ours(algorithm: str) -> Callable[[Recording, str, dict[str, Any]], Output]:
+def _ours(algorithm: str, smooth: bool = False
+          ) -> Callable[[Recording, str, dict[str, Any]], Output]:
     def run(rec: Recording, dim: str, overrides: dict[str, Any]) -> Output:
         import mkf_ros
 
         mag = rec.mag if dim == "9D" else None
         res = mkf_ros.estimate(rec.gyr, rec.acc, mag, timestamps=rec.t, algorithm=algorithm,
-                               use_mag=dim == "9D", **overrides)
+                               use_mag=dim == "9D", smooth=smooth, **overrides)
         return res.quat, res.cov  # cov: (N, 3, 3) about the world (ENU) axes
     return run
 
@@ -240,6 +241,10 @@ def _gyro_only(rec: Recording, _dim: str, _o: dict[str, Any]) -> np.ndarray:
 ALGOS: tuple[Algo, ...] = (
     Algo("mekf", ("6D", "9D"), _ours("mekf")),
     Algo("mukf", ("6D", "9D"), _ours("mukf")),
+    # the fixed-interval smoother (docs/math.md §11): acausal, compared with offline VQF
+    Algo("mekf-smooth", ("6D", "9D"), _ours("mekf", True), note="acausal: RTS on the manifold"),
+    Algo("mukf-smooth", ("6D", "9D"), _ours("mukf", True),
+         note="acausal: MUKF forward, linearised RTS backward"),
     # the seed report's baselines (docs/baselines.md, mkf_ros.core.baselines), through the same
     # sensor layer
     Algo("euler_kf", ("6D", "9D"), _ours("euler_kf"), note="report §II, fixed", baseline=True),

@@ -270,7 +270,13 @@ def rts_manifold(c: np.record, r: np.record, qs: np.ndarray, ws: np.ndarray, bs:
             Pn[i, j] = Ps[i, j]
     Qw, Qb = iso33(c.rate_process_noise), iso33(c.bias_process_var)
     qm = mekf_predict_t(qa, wa, Pp, nx, r.dt, Qw, Qb)  # the filter's prediction: q̄⁻, P⁻
-    mekf_predict_t(qa, wa, Qp, nx, r.dt, Qw, Qb)  # Φ Q Φᵀ
+    # the gyro's scale noise W_s (§9.1), added by the filter before the rate updates, is noise
+    # of this transition: out of the posterior, into Q (it leaves the rate updates' gains alone)
+    ws2 = c.gyro_scale_error ** 2 * (wa[0] ** 2 + wa[1] ** 2 + wa[2] ** 2) * r.dt
+    for i in range(3):
+        Pa[i, i] -= ws2
+        Qp[i, i] = ws2
+    mekf_predict_t(qa, wa, Qp, nx, r.dt, Qw, Qb)  # Φ (W_s + Q̂) Φᵀ
     transition_matrix(wa, r.dt, nx, Phi)
     # the smoothed estimate at t_{k+1} in the chart at q̄⁻: the mean φ(q̄⁻* qˢ), the covariance
     # carried by the inverse T-matrix of the reverse move (§3.2)
