@@ -74,8 +74,8 @@ RECORD = np.dtype([("kind", np.int8), ("dt", np.float64), ("q", np.float64, 4),
 
 #: Samples per window and overlap of :func:`smooth_run` (docs/math.md §11.4; measured in
 #: docs/real_data.md: the overlap's truncation error is far below the estimate's own error).
-DEFAULT_WINDOW = 1 << 16
-DEFAULT_OVERLAP = 1 << 14
+DEFAULT_WINDOW = 1 << 17
+DEFAULT_OVERLAP = 1 << 13
 
 
 class SmoothOutputs(NamedTuple):
@@ -158,42 +158,46 @@ def forward_recorded(table: np.ndarray, cfg: np.ndarray, st: np.ndarray, cnt: np
 
 # --- the backward pass -----------------------------------------------------------------------
 @jit_inline
-def rts_linear(nx: int, Pa: np.ndarray, Pp: np.ndarray, Phi: np.ndarray, Qp: np.ndarray,
+def rts_linear(nx: int, Pa: np.ndarray, Pp: np.ndarray, A: tuple, dt: float, Qp: np.ndarray,
                Ps: np.ndarray, dx: np.ndarray, C: np.ndarray, G: np.ndarray, X: np.ndarray,
                Pout: np.ndarray, dxo: np.ndarray) -> bool:
     """One Rauch–Tung–Striebel step of a linear-Gaussian model (docs/math.md §11.2), on the
-    leading ``nx × nx`` blocks: the posterior ``Pa`` at ``t_k``, its prediction
-    ``Pp = Φ (Pa + Q) Φᵀ = Φ Pa Φᵀ + Qp`` at ``t_{k+1}`` (``Qp = Φ Q Φᵀ``), the smoothed
-    covariance ``Ps`` at ``t_{k+1}`` and the smoothed-minus-predicted mean ``dx``. Writes the
-    gain ``C = Pa Φᵀ Pp⁻¹``, the correction ``dxo = C dx`` and the smoothed covariance
+    leading ``nx × nx`` blocks, for the transition of the filter's prediction
+    ``Φ = [[A, Δt I, 0], [0, I, 0], [0, 0, I]]`` (``A`` a 3×3 tuple of rows; §5): the posterior
+    ``Pa`` at ``t_k``, its prediction ``Pp = Φ (Pa + Q) Φᵀ = Φ Pa Φᵀ + Qp`` at ``t_{k+1}``
+    (``Qp = Φ Q Φᵀ``), the smoothed covariance ``Ps`` at ``t_{k+1}`` and the
+    smoothed-minus-predicted mean ``dx``. Writes the gain ``C = Pa Φᵀ Pp⁻¹``, the correction
+    ``dxo = C dx`` and the smoothed covariance
 
         ``Pout = (I − CΦ) Pa (I − CΦ)ᵀ + C (Qp + Ps) Cᵀ``
 
     (equal to ``Pa + C (Ps − Pp) Cᵀ``; a sum of congruences of PSD matrices, computed as such:
-    symmetric PSD by construction). ``G``, ``X``: scratch. False (nothing written) if ``Pp``
-    is not positive definite."""
-    for i in range(nx):  # X = Φ Pa, then Pp⁻¹ Φ Pa = Cᵀ
-        for j in range(nx):
-            a = 0.0
-            for m in range(nx):
-                a += Phi[i, m] * Pa[m, j]
-            X[i, j] = a
-    if not cholesky_into(Pp, G, 0, nx):
+    symmetric PSD by construction). ``G``, ``X``: scratch; ``Pp`` is overwritten (its Cholesky
+    factor). False if ``Pp`` is not positive definite."""
+    for j in range(nx):  # X = Φ Pa (Φ's structure), then Pp⁻¹ Φ Pa = Cᵀ
+        p0, p1, p2 = Pa[0, j], Pa[1, j], Pa[2, j]
+        for i in range(3):
+            X[i, j] = A[i][0] * p0 + A[i][1] * p1 + A[i][2] * p2 + dt * Pa[3 + i, j]
+        for i in range(3, nx):
+            X[i, j] = Pa[i, j]
+    if not cholesky_into(Pp, Pp, 0, nx):
         return False
-    cho_solve_into(G, nx, X, nx)
+    cho_solve_into(Pp, nx, X, nx)
     for i in range(nx):
         for j in range(nx):
             C[i, j] = X[j, i]
-    for i in range(nx):  # dxo = C dx;  G = I − C Φ
+    for i in range(nx):  # dxo = C dx;  G = I − C Φ (Φ's structure)
         a = 0.0
         for m in range(nx):
             a += C[i, m] * dx[m]
         dxo[i] = a
-        for j in range(nx):
-            g = 1.0 if i == j else 0.0
-            for m in range(nx):
-                g -= C[i, m] * Phi[m, j]
-            G[i, j] = g
+        c0, c1, c2 = C[i, 0], C[i, 1], C[i, 2]
+        for j in range(3):
+            G[i, j] = -(c0 * A[0][j] + c1 * A[1][j] + c2 * A[2][j])
+            G[i, 3 + j] = -(C[i, 3 + j] + dt * C[i, j])
+        for j in range(6, nx):
+            G[i, j] = -C[i, j]
+        G[i, i] += 1.0
     for i in range(nx):  # X = G Pa
         for j in range(nx):
             a = 0.0
@@ -251,7 +255,7 @@ def _inv33_t(A: tuple) -> tuple:
              (A[0][0] * A[1][1] - A[0][1] * A[1][0]) * d))
 
 
-@jit
+@jit_inline
 def rts_manifold(c: np.record, r: np.record, qs: np.ndarray, ws: np.ndarray, bs: np.ndarray,
                  Ps: np.ndarray, S: np.ndarray) -> bool:
     """One backward step on the manifold (docs/math.md §11.3), in place: the smoothed estimate
@@ -260,7 +264,7 @@ def rts_manifold(c: np.record, r: np.record, qs: np.ndarray, ws: np.ndarray, bs:
     ``(10, 9, 9)``. False (nothing changed) if the prediction's covariance is not positive
     definite."""
     nx = c.nx
-    Pa, Pp, Qp, Phi, Pn, C, G, X, Po = (S[0], S[1], S[2], S[3], S[4], S[5], S[6], S[7], S[8])
+    Pa, Pp, Qp, Pn, C, G, X, Po = S[0], S[1], S[2], S[4], S[5], S[6], S[7], S[8]
     _load_cov(r, nx, Pa)
     qa, wa, ba = t4(r.q), t3(r.w), t3(r.b)
     for i in range(nx):
@@ -277,7 +281,9 @@ def rts_manifold(c: np.record, r: np.record, qs: np.ndarray, ws: np.ndarray, bs:
         Pa[i, i] -= ws2
         Qp[i, i] = ws2
     mekf_predict_t(qa, wa, Qp, nx, r.dt, Qw, Qb)  # Φ (W_s + Q̂) Φᵀ
-    transition_matrix(wa, r.dt, nx, Phi)
+    R = rotmat_t(q_omega_t(wa, r.dt))
+    Am = ((R[0][0], R[1][0], R[2][0]), (R[0][1], R[1][1], R[2][1]),
+          (R[0][2], R[1][2], R[2][2]))  # R(Δq)ᵀ
     # the smoothed estimate at t_{k+1} in the chart at q̄⁻: the mean φ(q̄⁻* qˢ), the covariance
     # carried by the inverse T-matrix of the reverse move (§3.2)
     d = qconj_mul_t(qm, (qs[0], qs[1], qs[2], qs[3]))
@@ -289,7 +295,7 @@ def rts_manifold(c: np.record, r: np.record, qs: np.ndarray, ws: np.ndarray, bs:
         dx[3 + i] = ws[i] - wa[i]
         if nx == 9:
             dx[6 + i] = bs[i] - ba[i]
-    if not rts_linear(nx, Pa, Pp, Phi, Qp, Pn, dx, C, G, X, Po, dxo):
+    if not rts_linear(nx, Pa, Pp, Am, r.dt, Qp, Pn, dx, C, G, X, Po, dxo):
         return False
     # back to the manifold at the posterior's centre, as the filter's update (§5)
     de = saturate_t(c.chart, (dxo[0], dxo[1], dxo[2]))
