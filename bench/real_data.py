@@ -629,6 +629,28 @@ def _mean_checks(ds: DatasetResult, fmt: str, dim: str, kind: str,
     return out
 
 
+#: The smoother's targets (docs/math.md §11): below offline VQF, measured in the same run.
+SMOOTH_TARGETS = (("broad", "9D", "total"), ("broad", "6D", "inclination"),
+                  ("repoimu", "9D", "total"), ("repoimu", "6D", "inclination"),
+                  ("ese650", "6D", "inclination"))
+
+
+def smoother_checks(data: dict[str, DatasetResult]) -> list[Check]:
+    """The smoothed columns (``mekf-smooth``, ``mukf-smooth``) against offline VQF."""
+    out: list[Check] = []
+    for fmt, dim, kind in SMOOTH_TARGETS:
+        ds = data.get(fmt)
+        off = f"vqf-offline {dim}"
+        if ds is None or off not in ds.cols:
+            continue
+        for o in OURS:
+            col = f"{o}-smooth {dim}"
+            if col in ds.cols:
+                out.append(_le_check(f"{fmt} {dim} mean {kind} (smoothed)", f"{o}-smooth",
+                                     ds.value(col, kind), off, ds.value(off, kind)))
+    return out
+
+
 def target_checks(data: dict[str, DatasetResult]) -> list[Check]:
     """Every target of :data:`TARGETS_DOC` that the datasets given allow, for MEKF and MUKF."""
     out: list[Check] = []
@@ -661,8 +683,9 @@ def target_checks(data: dict[str, DatasetResult]) -> list[Check]:
     for what, vals in pairs:
         out.append(_within(f"mukf within {MUKF_REL_TOL:.0%} of mekf, {what}", vals["mekf"],
                            vals["mukf"]))
+    out += smoother_checks(data)
     for fmt, ds in data.items():
-        for o in OURS:
+        for o in (*OURS, *(f"{o}-smooth" for o in OURS)):
             for dim in ("6D", "9D"):
                 col = f"{o} {dim}"
                 if col not in ds.cols:
@@ -792,6 +815,12 @@ def main(argv: list[str] | None = None) -> int:
           f"{n_samples:,} samples per column")
     print("CPU s per column (summed over recordings): "
           + ", ".join(f"{k} {v:.1f}" for k, v in sorted(cpu.items(), key=lambda kv: -kv[1])))
+    ratios = [f"{o}-smooth {d} / {o} {d} = {cpu[f'{o}-smooth {d}'] / cpu[f'{o} {d}']:.2f}"
+              for o in OURS for d in ("6D", "9D")
+              if cpu.get(f"{o} {d}") and f"{o}-smooth {d}" in cpu]
+    if ratios:
+        print("smoothing cost (forward with records + backward, over the causal filter): "
+              + ", ".join(ratios))
     if args.json:
         payload = {
             "code": _git_state(), "overrides": overrides, "skip_start": args.skip_start,

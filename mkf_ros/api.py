@@ -187,7 +187,13 @@ def compile_entries(part: str) -> None:
     if part == "estimate":
         out = kf.BatchOutputs(np.zeros((1, 4)), np.zeros((1, 3, 3)), rows, rows, rows,
                               np.zeros(1, dtype=np.bool_))
-        calls = [(kf.run_batch, (table, *arrays, np.zeros(1), rows, rows, rows, out))]
+        from mkf_ros.core import smoother as sm
+
+        rec = kf.new_records(sm.RECORD, 1)
+        calls = [(kf.run_batch, (table, *arrays, np.zeros(1), rows, rows, rows, out)),
+                 (sm.forward_recorded, (table, *arrays, np.zeros(1), rows, rows, rows, out,
+                                        rec, 0)),
+                 (sm.backward, (arrays.cfg, rec, 0, sm.new_smooth_outputs(1)))]
     elif part == "filter":
         calls = [(kf.sensor_step, (table, *arrays, 0.0, v3, v3, v3)),
                  (kf.world_output, (table, arrays.cfg, arrays.st, np.zeros(4), m33)),
@@ -219,6 +225,7 @@ def warmup(parts: tuple[str, ...] | list[str] = WARMUP_PARTS) -> None:
     for algo in ("mekf", "mukf"):
         if "estimate" in parts:
             estimate(gyr, acc, mag, dt=0.01, algorithm=algo, estimate_gyro_bias=True)
+            estimate(gyr, acc, mag, dt=0.01, algorithm=algo, smooth=True)
         if "filter" in parts:
             f = AttitudeFilter(algorithm=algo, use_mag=True)
             for k in range(n):

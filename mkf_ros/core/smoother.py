@@ -38,7 +38,7 @@ from mkf_ros.core.filter import (
     kernels_at,
     run_step,
 )
-from mkf_ros.core.linalg import cap_eigenvalues33_t, cholesky_into, cho_solve_into, congruence33_t
+from mkf_ros.core.linalg import cap_eigenvalues33_t, cho_solve_into, cholesky_into, congruence33_t
 from mkf_ros.core.mekf import mekf_predict_t, transport_covariance_t
 from mkf_ros.core.quaternion import (
     q_omega_t,

@@ -14,6 +14,7 @@ from mkf_ros.core.filter import AttitudeFilter
 from mkf_ros.core.mekf import mekf_predict_t
 from mkf_ros.core.quaternion import q_omega, qconj_np, qmul, qmul_np, qnormalize
 from mkf_ros.core.smoother import rts_linear, smooth_run, transition_matrix
+from mkf_ros.core.state import iso33
 from mkf_ros.sim import simulate
 
 
@@ -123,8 +124,7 @@ def test_transition_matrix_against_finite_differences(w: tuple, chart: str) -> N
     Q[6:, 6:] = Qb * dt * np.eye(3)
     Pp = P.copy()
     q = qnormalize(np.array([0.9, 0.1, -0.3, 0.2]))
-    iso = (lambda v: ((v, 0.0, 0.0), (0.0, v, 0.0), (0.0, 0.0, v)))
-    qm = mekf_predict_t(tuple(q), w, Pp, nx, dt, iso(Qw), iso(Qb))
+    qm = mekf_predict_t(tuple(q), w, Pp, nx, dt, iso33(Qw), iso33(Qb))
     np.testing.assert_allclose(Pp, Phi @ (P + Q) @ Phi.T, rtol=1e-12, atol=1e-12)
     cid = chart_id(chart)
 
