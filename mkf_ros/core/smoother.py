@@ -75,7 +75,7 @@ RECORD = np.dtype([("kind", np.int8), ("dt", np.float64), ("q", np.float64, 4),
 #: Samples per window and overlap of :func:`smooth_run` (docs/math.md §11.4; measured in
 #: docs/real_data.md: the overlap's truncation error is far below the estimate's own error).
 DEFAULT_WINDOW = 1 << 17
-DEFAULT_OVERLAP = 1 << 13
+DEFAULT_OVERLAP = 1 << 15
 
 
 class SmoothOutputs(NamedTuple):
