@@ -139,13 +139,14 @@ class Algo:
     baseline: bool = False  # the seed report's baselines: dropped by --no-baselines
 
 
-def _ours(algorithm: str) -> Callable[[Recording, str, dict[str, Any]], Output]:
+def _ours(algorithm: str, smooth: bool = False
+          ) -> Callable[[Recording, str, dict[str, Any]], Output]:
     def run(rec: Recording, dim: str, overrides: dict[str, Any]) -> Output:
         import mkf_ros
 
         mag = rec.mag if dim == "9D" else None
         res = mkf_ros.estimate(rec.gyr, rec.acc, mag, timestamps=rec.t, algorithm=algorithm,
-                               use_mag=dim == "9D", **overrides)
+                               use_mag=dim == "9D", smooth=smooth, **overrides)
         return res.quat, res.cov  # cov: (N, 3, 3) about the world (ENU) axes
     return run
 
@@ -246,6 +247,10 @@ def _gyro_only(rec: Recording, _dim: str, _o: dict[str, Any]) -> np.ndarray:
 ALGOS: tuple[Algo, ...] = (
     Algo("mekf", ("6D", "9D"), _ours("mekf")),
     Algo("mukf", ("6D", "9D"), _ours("mukf")),
+    # the fixed-interval smoother (docs/math.md §11): acausal, compared with offline VQF
+    Algo("mekf-smooth", ("6D", "9D"), _ours("mekf", True), note="acausal: RTS on the manifold"),
+    Algo("mukf-smooth", ("6D", "9D"), _ours("mukf", True),
+         note="acausal: MUKF forward, linearised RTS backward"),
     # the seed report's baselines (docs/baselines.md, mkf_ros.core.baselines), through the same
     # sensor layer
     Algo("euler_kf", ("6D", "9D"), _ours("euler_kf"), note="report §II, fixed", baseline=True),
@@ -630,6 +635,28 @@ def _mean_checks(ds: DatasetResult, fmt: str, dim: str, kind: str,
     return out
 
 
+#: The smoother's targets (docs/math.md §11): below offline VQF, measured in the same run.
+SMOOTH_TARGETS = (("broad", "9D", "total"), ("broad", "6D", "inclination"),
+                  ("repoimu", "9D", "total"), ("repoimu", "6D", "inclination"),
+                  ("ese650", "6D", "inclination"))
+
+
+def smoother_checks(data: dict[str, DatasetResult]) -> list[Check]:
+    """The smoothed columns (``mekf-smooth``, ``mukf-smooth``) against offline VQF."""
+    out: list[Check] = []
+    for fmt, dim, kind in SMOOTH_TARGETS:
+        ds = data.get(fmt)
+        off = f"vqf-offline {dim}"
+        if ds is None or off not in ds.cols:
+            continue
+        for o in OURS:
+            col = f"{o}-smooth {dim}"
+            if col in ds.cols:
+                out.append(_le_check(f"{fmt} {dim} mean {kind} (smoothed)", f"{o}-smooth",
+                                     ds.value(col, kind), off, ds.value(off, kind)))
+    return out
+
+
 def target_checks(data: dict[str, DatasetResult]) -> list[Check]:
     """Every target of :data:`TARGETS_DOC` that the datasets given allow, for MEKF and MUKF."""
     out: list[Check] = []
@@ -679,8 +706,9 @@ def target_checks(data: dict[str, DatasetResult]) -> list[Check]:
     for what, vals in pairs:
         out.append(_within(f"mukf within {MUKF_REL_TOL:.0%} of mekf, {what}", vals["mekf"],
                            vals["mukf"]))
+    out += smoother_checks(data)
     for fmt, ds in data.items():
-        for o in OURS:
+        for o in (*OURS, *(f"{o}-smooth" for o in OURS)):
             for dim in ("6D", "9D"):
                 col = f"{o} {dim}"
                 if col not in ds.cols:
@@ -810,6 +838,12 @@ def main(argv: list[str] | None = None) -> int:
           f"{n_samples:,} samples per column")
     print("CPU s per column (summed over recordings): "
           + ", ".join(f"{k} {v:.1f}" for k, v in sorted(cpu.items(), key=lambda kv: -kv[1])))
+    ratios = [f"{o}-smooth {d} / {o} {d} = {cpu[f'{o}-smooth {d}'] / cpu[f'{o} {d}']:.2f}"
+              for o in OURS for d in ("6D", "9D")
+              if cpu.get(f"{o} {d}") and f"{o}-smooth {d}" in cpu]
+    if ratios:
+        print("smoothing cost (forward with records + backward, over the causal filter): "
+              + ", ".join(ratios))
     if args.json:
         payload = {
             "code": _git_state(), "overrides": overrides, "skip_start": args.skip_start,

@@ -22,6 +22,11 @@ class EstimateResult:
     initialized: np.ndarray  #: (N,) bool: False before the first usable accelerometer sample
     counters: dict[str, int] = field(default_factory=dict)  #: skipped/invalid samples etc.
     params: FilterParams = field(default_factory=FilterParams)
+    #: ``smooth=True``: the causal filter's ``quat`` and ``cov`` (the fields above are then the
+    #: smoother's, docs/math.md §11); None otherwise
+    filtered_quat: np.ndarray | None = None
+    filtered_cov: np.ndarray | None = None
+    smoothed: bool = False  #: whether ``quat``, ``cov``, ``omega``, ``bias`` are smoothed
 
 
 def _as_samples(name: str, a: object, n: int | None) -> np.ndarray:
@@ -77,9 +82,13 @@ def estimate(
     *,
     dt: float | None = None,
     timestamps: object = None,
+    smooth: bool = False,
+    smooth_window: int | None = None,
+    smooth_overlap: int | None = None,
     **params: object,
 ) -> EstimateResult:
-    """Estimate the orientation of a rigid body from IMU samples (offline, causal).
+    """Estimate the orientation of a rigid body from IMU samples (offline; causal, or smoothed
+    with ``smooth=True``).
 
     Args:
         gyr: (N, 3) angular velocity in rad/s, body frame, or None (no gyroscope).
@@ -88,6 +97,13 @@ def estimate(
             unless ``use_mag`` is passed.
         dt: sample period in seconds, or
         timestamps: (N,) strictly increasing sample times in seconds.
+        smooth: use the future too: the fixed-interval manifold smoother (docs/math.md §11;
+            MEKF or MUKF). ``quat``, ``cov``, ``omega``, ``bias`` and ``bias_std`` are then the
+            smoothed ones, ``filtered_quat`` and ``filtered_cov`` the causal filter's.
+        smooth_window, smooth_overlap: the smoother's window and overlap in samples (memory
+            ~0.45 kB per sample of their sum; default
+            :data:`~mkf_ros.core.smoother.DEFAULT_WINDOW`,
+            :data:`~mkf_ros.core.smoother.DEFAULT_OVERLAP`).
         **params: filter parameters (see :data:`mkf_ros.core.params.PARAMS`), e.g.
             ``algorithm="mukf", chart="rv", chart_update=False, world_frame="ned"``.
 
@@ -117,6 +133,18 @@ def estimate(
     p = FilterParams(params)
     dts = _time_steps(n, dt, timestamps)
     f = AttitudeFilter(p)
+    if smooth:
+        from mkf_ros.core import smoother as sm
+
+        filt, s = sm.smooth_run(
+            f, dts, g, a, m,
+            sm.DEFAULT_WINDOW if smooth_window is None else int(smooth_window),
+            sm.DEFAULT_OVERLAP if smooth_overlap is None else int(smooth_overlap))
+        return EstimateResult(
+            quat=s.quat, cov=s.cov, omega=s.omega, bias=s.bias,
+            bias_std=np.sqrt(s.bias_var), initialized=filt.initialized,
+            counters=f.counter_dict(), params=p, filtered_quat=filt.quat,
+            filtered_cov=filt.cov, smoothed=True)
     out = f.run(dts, g, a, m)
     return EstimateResult(
         quat=out.quat, cov=out.cov, omega=out.omega, bias=out.bias, bias_std=np.sqrt(out.bias_var),
@@ -159,7 +187,13 @@ def compile_entries(part: str) -> None:
     if part == "estimate":
         out = kf.BatchOutputs(np.zeros((1, 4)), np.zeros((1, 3, 3)), rows, rows, rows,
                               np.zeros(1, dtype=np.bool_))
-        calls = [(kf.run_batch, (table, *arrays, np.zeros(1), rows, rows, rows, out))]
+        from mkf_ros.core import smoother as sm
+
+        rec = kf.new_records(sm.RECORD, 1)
+        calls = [(kf.run_batch, (table, *arrays, np.zeros(1), rows, rows, rows, out)),
+                 (sm.forward_recorded, (table, *arrays, np.zeros(1), rows, rows, rows, out,
+                                        rec, 0)),
+                 (sm.backward, (arrays.cfg, rec, 0, sm.new_smooth_outputs(1)))]
     elif part == "filter":
         calls = [(kf.sensor_step, (table, *arrays, 0.0, v3, v3, v3)),
                  (kf.world_output, (table, arrays.cfg, arrays.st, np.zeros(4), m33)),
@@ -191,6 +225,7 @@ def warmup(parts: tuple[str, ...] | list[str] = WARMUP_PARTS) -> None:
     for algo in ("mekf", "mukf"):
         if "estimate" in parts:
             estimate(gyr, acc, mag, dt=0.01, algorithm=algo, estimate_gyro_bias=True)
+            estimate(gyr, acc, mag, dt=0.01, algorithm=algo, smooth=True)
         if "filter" in parts:
             f = AttitudeFilter(algorithm=algo, use_mag=True)
             for k in range(n):

@@ -105,6 +105,7 @@ from mkf_ros.core.state import (
     iso33,
     mag_yaw_var,
     recentre,
+    record_posterior,
     set_world_attitude_cov,
 )
 
@@ -1039,6 +1040,8 @@ def _update(c: np.record, s: np.record, k: np.record, w: np.record, u: Units, dt
     if c.algorithm >= ALGO_EULER_KF:
         return u.baseline_update(c, s, k, dt, z)
     ok = _rate_updates(c, s, k, w, z)
+    if c.record_posterior:  # the smoother's forward pass (docs/math.md §11.1)
+        record_posterior(c, s, w)
     if c.algorithm == ALGO_MEKF:
         acc_nis, mag_nis = _mekf_update(c, s, w, dt, z)
     else:

@@ -26,13 +26,13 @@ import numpy as np
 from numba import types as nt
 
 from mkf_ros.core._jit import JIT_DISABLED, jit
-from mkf_ros.core.charts import chart_id, from_chart, t_matrix
+from mkf_ros.core.charts import chart_id, from_chart, from_chart_t, t_matrix, t_matrix_t
 from mkf_ros.core.frames import FROM_ENU
 from mkf_ros.core.linalg import congruence, copy_block, copy_into, mm
-from mkf_ros.core.mekf import MEKF_SCRATCH_ROWS, transport_covariance
+from mkf_ros.core.mekf import MEKF_SCRATCH_ROWS, transport_covariance, transport_covariance_t
 from mkf_ros.core.mukf import MUKF_SCRATCH, NOISE_MODES
 from mkf_ros.core.params import ALGORITHMS, FilterParams
-from mkf_ros.core.quaternion import qmul, qnormalize, rotmat
+from mkf_ros.core.quaternion import qmul, qmul_t, qnormalize, qnormalize_t, rotmat
 
 NX_MAX = 9  # states: attitude error e, rate ω, gyro bias b
 
@@ -62,6 +62,9 @@ CONFIG = np.dtype(
         ("acc_tilt_only", np.bool_),  # acc_mode tilt (else vector)
         ("rest_detection", np.bool_),
         ("split_input", np.bool_),  # gyro and accelerometer in separate samples
+        # the smoother's forward pass: record the posterior before each prediction into WORK's
+        # rec_* (docs/math.md §11, mkf_ros.core.smoother)
+        ("record_posterior", np.bool_),
         ("mag_ref_given", np.bool_),  # mag_reference given (else learned)
         ("gyro_var", np.float64),  # R_ω = gyro_noise² (rad²/s²)
         ("acc_var", np.float64),  # R_a = (acc_noise / g)²: normalised reading, unit g
@@ -158,11 +161,16 @@ COUNTER_NAMES = (
 COUNTERS = np.dtype([(name, np.int64) for name in COUNTER_NAMES])
 
 #: Scratch of one sample's updates: ``dx`` (the MEKF's correction), ``mekf`` (its block
-#: updates, :func:`~mkf_ros.core.mekf.mekf_scratch`) and the MUKF's tables
-#: (:data:`~mkf_ros.core.mukf.MUKF_SCRATCH`).
+#: updates, :func:`~mkf_ros.core.mekf.mekf_scratch`), the MUKF's tables
+#: (:data:`~mkf_ros.core.mukf.MUKF_SCRATCH`) and the smoother's record ``rec_*``
+#: (:func:`record_posterior`).
 WORK = np.dtype(
     [("dx", np.float64, NX_MAX), ("mekf", np.float64, (MEKF_SCRATCH_ROWS, 3)),
-     *MUKF_SCRATCH],
+     *MUKF_SCRATCH,
+     # the smoother's record of this sample (CONFIG.record_posterior): the posterior at the
+     # previous sample's time just before the prediction (docs/math.md §11.1)
+     ("rec_set", np.bool_), ("rec_q", np.float64, 4), ("rec_w", np.float64, 3),
+     ("rec_b", np.float64, 3), ("rec_P", np.float64, (NX_MAX, NX_MAX))],
     align=True,
 )
 
@@ -401,3 +409,28 @@ def mag_yaw_var(c: np.record, ref: np.ndarray) -> float:
     square of the field's horizontal share (floored at 0.05)."""
     h = max(np.sqrt(ref[0] * ref[0] + ref[1] * ref[1]), 0.05)
     return (c.mag_var + c.mag_disturbance_var) / (h * h)
+
+
+@jit
+def record_posterior(c: np.record, s: np.record, w: np.record) -> None:
+    """The smoother's recording hook (docs/math.md §11.1): the posterior at the previous
+    sample's time after this sample's rate updates, just before the prediction, into ``w.rec_*``
+    (``w.rec_set``). The estimate ``q̂ = q̄_c * φ⁻¹(ē)`` and ``P`` moved to the chart at ``q̂``
+    (§3.2; the MEKF's ``ē`` is zero); ``s`` is unchanged."""
+    nx = c.nx
+    P = w.rec_P
+    for i in range(nx):
+        for j in range(nx):
+            P[i, j] = s.P[i, j]
+    q = (s.q_c[0], s.q_c[1], s.q_c[2], s.q_c[3])
+    e = s.e
+    if not (e[0] == 0.0 and e[1] == 0.0 and e[2] == 0.0):
+        d = from_chart_t(c.chart, (e[0], e[1], e[2]))
+        q = qnormalize_t(qmul_t(q, d))
+        transport_covariance_t(P, nx, t_matrix_t(c.chart, d))
+    for i in range(4):
+        w.rec_q[i] = q[i]
+    for i in range(3):
+        w.rec_w[i] = s.w[i]
+        w.rec_b[i] = s.b[i]
+    w.rec_set = True

@@ -1,0 +1,437 @@
+"""The fixed-interval manifold smoother (docs/math.md §11): the causal filter forward, recording
+each step's posterior before its prediction, then a Rauch–Tung–Striebel pass backward over the
+error state, in windows of bounded memory.
+
+Forward (:func:`forward_recorded`): the filter's own per-sample step
+(:func:`~mkf_ros.core.sensor.step`) with ``CONFIG.record_posterior`` set, so that every
+decision of the sensor layer (gates, rest, the magnetometer's checks, re-alignments) is made
+causally, once, and reused. Each sample ``n`` leaves in its :data:`RECORD` slot either the
+posterior at ``t_n`` just before step ``n + 1``'s prediction (after that step's gyro and rest
+rate updates, which observe the rate at ``t_n``: :data:`TRANS`, with ``Δt_{n+1}``), or, until
+that step has run or when it re-aligned, the filter's final state at ``t_n`` (:data:`END`).
+
+Backward (:func:`backward`): from the last slot of a window, each :data:`TRANS` slot is
+combined with the smoothed estimate of the next sample through the prediction it preceded
+(re-done by :func:`~mkf_ros.core.mekf.mekf_predict_t`, hence the filter's own ``P⁻`` and
+``Φ``); an :data:`END` slot starts a new segment at the filtered estimate.
+
+Windows (:func:`smooth_run`): the forward pass is continuous; the records of ``window +
+overlap`` samples are kept; each backward pass starts at the last of them with the filtered
+estimate there and publishes the first ``window``; the next window starts ``window`` samples
+later. Memory: :data:`RECORD` (449 bytes) per kept sample.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+
+from mkf_ros.core._jit import jit, jit_inline
+from mkf_ros.core.charts import from_chart_t, saturate_t, t_matrix_t, to_chart_t
+from mkf_ros.core.filter import (
+    AttitudeFilter,
+    BatchOutputs,
+    Kernels,
+    _write_output,
+    kernel_table,
+    kernels_at,
+    run_step,
+)
+from mkf_ros.core.linalg import cap_eigenvalues33_t, cho_solve_into, cholesky_into, congruence33_t
+from mkf_ros.core.mekf import mekf_predict_t, transport_covariance_t
+from mkf_ros.core.quaternion import (
+    q_omega_t,
+    qconj_mul_t,
+    qmul_t,
+    qnormalize_t,
+    rotmat_t,
+    t3,
+    t4,
+)
+from mkf_ros.core.state import (
+    ALGO_MUKF,
+    NX_MAX,
+    YAW_VAR_UNKNOWN,
+    iso33,
+    new_records,
+    record,
+    record_posterior,
+)
+
+#: Kinds of a :data:`RECORD` slot: no estimate at this sample (before the first alignment);
+#: the filter's final estimate (a segment's end: the last sample so far, or the sample before a
+#: re-alignment); the posterior before the next sample's prediction (a link to the next sample).
+NONE, END, TRANS = 0, 1, 2
+#: Packed upper triangle of a 9×9 covariance.
+NP_PACKED = NX_MAX * (NX_MAX + 1) // 2
+
+#: One sample of the forward pass as the backward pass needs it (docs/math.md §11.1): the
+#: estimate ``(q̂, ω̄, b̄)`` (chart centre at ``q̂``), the packed upper triangle of ``P`` of
+#: ``(e, ω[, b])``, the kind, and for :data:`TRANS` the step ``Δt`` to the next sample.
+RECORD = np.dtype([("kind", np.int8), ("dt", np.float64), ("q", np.float64, 4),
+                   ("w", np.float64, 3), ("b", np.float64, 3), ("P", np.float64, NP_PACKED)])
+
+#: Samples per window and overlap of :func:`smooth_run` (docs/math.md §11.4; measured in
+#: docs/real_data.md: the overlap's truncation error is far below the estimate's own error).
+DEFAULT_WINDOW = 1 << 17
+DEFAULT_OVERLAP = 1 << 15
+
+
+class SmoothOutputs(NamedTuple):
+    """Per-sample smoothed outputs: orientation ``[w, x, y, z]`` in the world frame (``w ≥ 0``),
+    its covariance about world axes (as the filter's, docs/math.md §9.6), rate, bias, bias
+    variance, and whether the sample has an estimate (False before the first alignment: the
+    rows are then undefined and the caller keeps the filter's)."""
+
+    quat: np.ndarray
+    cov: np.ndarray
+    omega: np.ndarray
+    bias: np.ndarray
+    bias_var: np.ndarray
+    valid: np.ndarray
+
+
+def new_smooth_outputs(n: int) -> SmoothOutputs:
+    """Empty :class:`SmoothOutputs` of ``n`` rows."""
+    return SmoothOutputs(np.zeros((n, 4)), np.zeros((n, 3, 3)), np.zeros((n, 3)),
+                         np.zeros((n, 3)), np.zeros((n, 3)), np.zeros(n, dtype=np.bool_))
+
+
+# --- records ---------------------------------------------------------------------------------
+@jit_inline
+def _store(r: np.record, nx: int, q: np.ndarray, w: np.ndarray, b: np.ndarray, P: np.ndarray,
+           kind: int, dt: float) -> None:
+    """Write an estimate and the upper triangle of its ``P`` into the slot ``r``."""
+    r.kind = kind
+    r.dt = dt
+    for i in range(4):
+        r.q[i] = q[i]
+    for i in range(3):
+        r.w[i] = w[i]
+        r.b[i] = b[i]
+    m = 0
+    for i in range(nx):
+        for j in range(i, nx):
+            r.P[m] = P[i, j]
+            m += 1
+
+
+@jit_inline
+def _load_cov(r: np.record, nx: int, P: np.ndarray) -> None:
+    """``P`` (leading ``nx × nx``) from the slot's packed upper triangle."""
+    m = 0
+    for i in range(nx):
+        for j in range(i, nx):
+            P[i, j] = r.P[m]
+            P[j, i] = r.P[m]
+            m += 1
+
+
+@jit
+def forward_recorded(table: np.ndarray, cfg: np.ndarray, st: np.ndarray, cnt: np.ndarray,
+                     work: np.ndarray, dts: np.ndarray, gyr: np.ndarray, acc: np.ndarray,
+                     mag: np.ndarray, out: BatchOutputs, rec: np.ndarray, r0: int) -> None:
+    """The filter's step over ``dts`` (:func:`~mkf_ros.core.filter.run_batch`, the filtered
+    outputs into ``out``), sample ``n`` into the slot ``rec[r0 + n]`` (docs/math.md §11.1):
+    its final state (:data:`END`, :data:`NONE` without an estimate), overwritten by the next
+    step's recorded posterior (:data:`TRANS`) unless that step re-aligned (a gap). ``cfg`` must
+    have ``record_posterior`` set; ``rec[r0 − 1]`` (if ``r0 > 0``) is the previous sample's."""
+    kern: Kernels = kernels_at(table)
+    c, s, k, w = cfg[0], st[0], cnt[0], work[0]
+    nx = c.nx
+    for n in range(dts.shape[0]):
+        w.rec_set = False
+        gaps = k.gaps
+        run_step(kern, c, s, k, w, dts[n], (gyr[n, 0], gyr[n, 1], gyr[n, 2]),
+                 (acc[n, 0], acc[n, 1], acc[n, 2]), (mag[n, 0], mag[n, 1], mag[n, 2]))
+        m = r0 + n
+        if w.rec_set and k.gaps == gaps and m >= 1 and rec[m - 1].kind != NONE:
+            _store(rec[m - 1], nx, w.rec_q, w.rec_w, w.rec_b, w.rec_P, TRANS, dts[n])
+        if s.initialized:
+            record_posterior(c, s, w)  # the final state (moved onto q̂ for the MUKF)
+            _store(rec[m], nx, w.rec_q, w.rec_w, w.rec_b, w.rec_P, END, 0.0)
+        else:
+            rec[m].kind = NONE
+        _write_output(kern, c, s, out, n)
+
+
+# --- the backward pass -----------------------------------------------------------------------
+@jit_inline
+def rts_linear(nx: int, Pa: np.ndarray, Pp: np.ndarray, A: tuple, dt: float, Qp: np.ndarray,
+               Ps: np.ndarray, dx: np.ndarray, C: np.ndarray, G: np.ndarray, X: np.ndarray,
+               Pout: np.ndarray, dxo: np.ndarray) -> bool:
+    """One Rauch–Tung–Striebel step of a linear-Gaussian model (docs/math.md §11.2), on the
+    leading ``nx × nx`` blocks, for the transition of the filter's prediction
+    ``Φ = [[A, Δt I, 0], [0, I, 0], [0, 0, I]]`` (``A`` a 3×3 tuple of rows; §5): the posterior
+    ``Pa`` at ``t_k``, its prediction ``Pp = Φ (Pa + Q) Φᵀ = Φ Pa Φᵀ + Qp`` at ``t_{k+1}``
+    (``Qp = Φ Q Φᵀ``), the smoothed covariance ``Ps`` at ``t_{k+1}`` and the
+    smoothed-minus-predicted mean ``dx``. Writes the gain ``C = Pa Φᵀ Pp⁻¹``, the correction
+    ``dxo = C dx`` and the smoothed covariance
+
+        ``Pout = (I − CΦ) Pa (I − CΦ)ᵀ + C (Qp + Ps) Cᵀ``
+
+    (equal to ``Pa + C (Ps − Pp) Cᵀ``; a sum of congruences of PSD matrices, computed as such:
+    symmetric PSD by construction). ``G``, ``X``: scratch; ``Pp`` is overwritten (its Cholesky
+    factor). False if ``Pp`` is not positive definite."""
+    for j in range(nx):  # X = Φ Pa (Φ's structure), then Pp⁻¹ Φ Pa = Cᵀ
+        p0, p1, p2 = Pa[0, j], Pa[1, j], Pa[2, j]
+        for i in range(3):
+            X[i, j] = A[i][0] * p0 + A[i][1] * p1 + A[i][2] * p2 + dt * Pa[3 + i, j]
+        for i in range(3, nx):
+            X[i, j] = Pa[i, j]
+    if not cholesky_into(Pp, Pp, 0, nx):
+        return False
+    cho_solve_into(Pp, nx, X, nx)
+    for i in range(nx):
+        for j in range(nx):
+            C[i, j] = X[j, i]
+    for i in range(nx):  # dxo = C dx;  G = I − C Φ (Φ's structure)
+        a = 0.0
+        for m in range(nx):
+            a += C[i, m] * dx[m]
+        dxo[i] = a
+        c0, c1, c2 = C[i, 0], C[i, 1], C[i, 2]
+        for j in range(3):
+            G[i, j] = -(c0 * A[0][j] + c1 * A[1][j] + c2 * A[2][j])
+            G[i, 3 + j] = -(C[i, 3 + j] + dt * C[i, j])
+        for j in range(6, nx):
+            G[i, j] = -C[i, j]
+        G[i, i] += 1.0
+    for i in range(nx):  # X = G Pa
+        for j in range(nx):
+            a = 0.0
+            for m in range(nx):
+                a += G[i, m] * Pa[m, j]
+            X[i, j] = a
+    for i in range(nx):  # Pout = X Gᵀ (upper triangle)
+        for j in range(i, nx):
+            a = 0.0
+            for m in range(nx):
+                a += X[i, m] * G[j, m]
+            Pout[i, j] = a
+    for i in range(nx):  # X = C (Qp + Ps)
+        for j in range(nx):
+            a = 0.0
+            for m in range(nx):
+                a += C[i, m] * (Qp[m, j] + Ps[m, j])
+            X[i, j] = a
+    for i in range(nx):  # Pout += X Cᵀ, mirrored
+        for j in range(i, nx):
+            a = Pout[i, j]
+            for m in range(nx):
+                a += X[i, m] * C[j, m]
+            Pout[i, j] = a
+            Pout[j, i] = a
+    return True
+
+
+@jit_inline
+def transition_matrix(w: tuple, dt: float, nx: int, Phi: np.ndarray) -> None:
+    """The error-state transition of :func:`~mkf_ros.core.mekf.mekf_predict_t` (docs/math.md
+    §5): ``Φ = [[R(Δq)ᵀ, Δt I, 0], [0, I, 0], [0, 0, I]]``, ``Δq = q_ω(ω̄, Δt)``."""
+    R = rotmat_t(q_omega_t(w, dt))
+    for i in range(nx):
+        for j in range(nx):
+            Phi[i, j] = 1.0 if i == j else 0.0
+    for i in range(3):
+        for j in range(3):
+            Phi[i, j] = R[j][i]
+        Phi[i, 3 + i] = dt
+
+
+@jit_inline
+def _inv33_t(A: tuple) -> tuple:
+    """Inverse of a general invertible 3×3 matrix (rows) by cofactors."""
+    c00 = A[1][1] * A[2][2] - A[1][2] * A[2][1]
+    c01 = A[1][2] * A[2][0] - A[1][0] * A[2][2]
+    c02 = A[1][0] * A[2][1] - A[1][1] * A[2][0]
+    d = 1.0 / (A[0][0] * c00 + A[0][1] * c01 + A[0][2] * c02)
+    return ((c00 * d, (A[0][2] * A[2][1] - A[0][1] * A[2][2]) * d,
+             (A[0][1] * A[1][2] - A[0][2] * A[1][1]) * d),
+            (c01 * d, (A[0][0] * A[2][2] - A[0][2] * A[2][0]) * d,
+             (A[0][2] * A[1][0] - A[0][0] * A[1][2]) * d),
+            (c02 * d, (A[0][1] * A[2][0] - A[0][0] * A[2][1]) * d,
+             (A[0][0] * A[1][1] - A[0][1] * A[1][0]) * d))
+
+
+@jit_inline
+def rts_manifold(c: np.record, r: np.record, qs: np.ndarray, ws: np.ndarray, bs: np.ndarray,
+                 Ps: np.ndarray, S: np.ndarray) -> bool:
+    """One backward step on the manifold (docs/math.md §11.3), in place: the smoothed estimate
+    ``(qs, ws, bs, Ps)`` at ``t_{k+1}`` (``Ps`` in the chart at ``qs``) becomes that at ``t_k``
+    from the :data:`TRANS` slot ``r`` (the posterior at ``t_k``). ``S``: scratch
+    ``(10, 9, 9)``. False (nothing changed) if the prediction's covariance is not positive
+    definite."""
+    nx = c.nx
+    Pa, Pp, Qp, Pn, C, G, X, Po = S[0], S[1], S[2], S[4], S[5], S[6], S[7], S[8]
+    _load_cov(r, nx, Pa)
+    qa, wa, ba = t4(r.q), t3(r.w), t3(r.b)
+    for i in range(nx):
+        for j in range(nx):
+            Pp[i, j] = Pa[i, j]
+            Qp[i, j] = 0.0
+            Pn[i, j] = Ps[i, j]
+    Qw, Qb = iso33(c.rate_process_noise), iso33(c.bias_process_var)
+    qm = mekf_predict_t(qa, wa, Pp, nx, r.dt, Qw, Qb)  # the filter's prediction: q̄⁻, P⁻
+    # the gyro's scale noise W_s (§9.1), added by the filter before the rate updates, is noise
+    # of this transition: out of the posterior, into Q (it leaves the rate updates' gains alone)
+    ws2 = c.gyro_scale_error ** 2 * (wa[0] ** 2 + wa[1] ** 2 + wa[2] ** 2) * r.dt
+    for i in range(3):
+        Pa[i, i] -= ws2
+        Qp[i, i] = ws2
+    mekf_predict_t(qa, wa, Qp, nx, r.dt, Qw, Qb)  # Φ (W_s + Q̂) Φᵀ
+    R = rotmat_t(q_omega_t(wa, r.dt))
+    Am = ((R[0][0], R[1][0], R[2][0]), (R[0][1], R[1][1], R[2][1]),
+          (R[0][2], R[1][2], R[2][2]))  # R(Δq)ᵀ
+    # the smoothed estimate at t_{k+1} in the chart at q̄⁻: the mean φ(q̄⁻* qˢ), the covariance
+    # carried by the inverse T-matrix of the reverse move (§3.2)
+    d = qconj_mul_t(qm, (qs[0], qs[1], qs[2], qs[3]))
+    e = to_chart_t(c.chart, d)
+    transport_covariance_t(Pn, nx, _inv33_t(t_matrix_t(c.chart, d)))
+    dx, dxo = S[9][0], S[9][1]
+    for i in range(3):
+        dx[i] = e[i]
+        dx[3 + i] = ws[i] - wa[i]
+        if nx == 9:
+            dx[6 + i] = bs[i] - ba[i]
+    if not rts_linear(nx, Pa, Pp, Am, r.dt, Qp, Pn, dx, C, G, X, Po, dxo):
+        return False
+    # back to the manifold at the posterior's centre, as the filter's update (§5)
+    de = saturate_t(c.chart, (dxo[0], dxo[1], dxo[2]))
+    dd = from_chart_t(c.chart, de)
+    q = qnormalize_t(qmul_t(qa, dd))
+    for i in range(4):
+        qs[i] = q[i]
+    for i in range(3):
+        ws[i] = wa[i] + dxo[3 + i]
+        bs[i] = ba[i] + (dxo[6 + i] if nx == 9 else 0.0)
+    for i in range(nx):
+        for j in range(nx):
+            Ps[i, j] = Po[i, j]
+    if c.chart_update:
+        transport_covariance_t(Ps, nx, t_matrix_t(c.chart, dd))
+    return True
+
+
+@jit_inline
+def _load(r: np.record, nx: int, qs: np.ndarray, ws: np.ndarray, bs: np.ndarray,
+          Ps: np.ndarray) -> None:
+    """The slot's estimate as the smoothed one (a segment's last sample)."""
+    for i in range(4):
+        qs[i] = r.q[i]
+    for i in range(3):
+        ws[i] = r.w[i]
+        bs[i] = r.b[i]
+    _load_cov(r, nx, Ps)
+
+
+@jit_inline
+def _write_smoothed(c: np.record, qs: np.ndarray, ws: np.ndarray, bs: np.ndarray,
+                    Ps: np.ndarray, out: SmoothOutputs, j: int) -> None:
+    """Row ``j`` of the outputs, published as the filter's (docs/math.md §9.6): ``q_W`` with
+    ``q0 ≥ 0`` and ``Σ_W = R(q_W) Pˢ_ee R(q_W)ᵀ + diag(σ_a², σ_a², 0)``, capped at ``π²/3``
+    about any axis."""
+    q = qmul_t(t4(c.q_from_enu), (qs[0], qs[1], qs[2], qs[3]))
+    n = np.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
+    if q[0] < 0.0:
+        n = -n
+    q = (q[0] / n, q[1] / n, q[2] / n, q[3] / n)
+    Pb = ((Ps[0, 0], Ps[0, 1], Ps[0, 2]), (Ps[1, 0], Ps[1, 1], Ps[1, 2]),
+          (Ps[2, 0], Ps[2, 1], Ps[2, 2]))
+    Cw = congruence33_t(rotmat_t(q), Pb)
+    f2 = c.acc_alignment_error ** 2
+    c01, c02 = 0.5 * (Cw[0][1] + Cw[1][0]), 0.5 * (Cw[0][2] + Cw[2][0])
+    c12 = 0.5 * (Cw[1][2] + Cw[2][1])
+    Cw = cap_eigenvalues33_t(((Cw[0][0] + f2, c01, c02), (c01, Cw[1][1] + f2, c12),
+                              (c02, c12, Cw[2][2])), YAW_VAR_UNKNOWN)
+    for i in range(4):
+        out.quat[j, i] = q[i]
+    for i in range(3):
+        for k in range(3):
+            out.cov[j, i, k] = Cw[min(i, k)][max(i, k)]
+        out.omega[j, i] = ws[i]
+        out.bias[j, i] = bs[i]
+        out.bias_var[j, i] = Ps[6 + i, 6 + i] if c.nx == 9 else 0.0
+    out.valid[j] = True
+
+
+@jit
+def backward(cfg: np.ndarray, rec: np.ndarray, n: int, out: SmoothOutputs) -> int:
+    """The backward pass over the slots ``rec[0:n]`` (docs/math.md §11.3), from ``rec[n − 1]``
+    (its estimate taken as the smoothed one) down to ``rec[0]``, into rows ``0 … n − 1`` of
+    ``out``. Returns how many links fell back to the filtered estimate (a prediction whose
+    covariance was not positive definite)."""
+    c = cfg[0]
+    nx = c.nx
+    S = np.zeros((10, NX_MAX, NX_MAX))
+    Ps = np.zeros((NX_MAX, NX_MAX))
+    qs, ws, bs = np.zeros(4), np.zeros(3), np.zeros(3)
+    have = False
+    failed = 0
+    for j in range(n - 1, -1, -1):
+        r = rec[j]
+        if r.kind == NONE:
+            out.valid[j] = False
+            have = False
+            continue
+        if r.kind == TRANS and have:
+            if not rts_manifold(c, r, qs, ws, bs, Ps, S):
+                failed += 1
+                _load(r, nx, qs, ws, bs, Ps)
+        else:
+            _load(r, nx, qs, ws, bs, Ps)
+        have = True
+        _write_smoothed(c, qs, ws, bs, Ps, out, j)
+    return failed
+
+
+# --- the driver ------------------------------------------------------------------------------
+def smooth_run(f: AttitudeFilter, dts: np.ndarray, gyr: np.ndarray, acc: np.ndarray,
+               mag: np.ndarray, window: int = DEFAULT_WINDOW,
+               overlap: int = DEFAULT_OVERLAP) -> tuple[BatchOutputs, SmoothOutputs]:
+    """The filter ``f`` (an MEKF or MUKF) forward over a recording (as :meth:`AttitudeFilter.run`,
+    from its current state, which advances) and the backward pass in windows of ``window``
+    samples started ``overlap`` samples later (docs/math.md §11.4); ``window ≥ len(dts)`` is the
+    full-interval smoother. Returns the filtered and the smoothed outputs, one row per sample
+    (rows without an estimate keep the filter's). Readings as for :meth:`AttitudeFilter.run`."""
+    if window < 1 or overlap < 0:
+        raise ValueError(f"smoother window must be >= 1 and overlap >= 0, got {window}, {overlap}")
+    arrays = f.kernel_arrays()
+    c = record(arrays.cfg)
+    if c.algorithm > ALGO_MUKF:
+        raise ValueError(f"the smoother needs algorithm mekf or mukf, not {f.params.algorithm!r}")
+    n = len(dts)
+    filt = BatchOutputs(np.empty((n, 4)), np.empty((n, 3, 3)), np.empty((n, 3)),
+                        np.empty((n, 3)), np.empty((n, 3)), np.empty(n, dtype=np.bool_))
+    sm = new_smooth_outputs(n)
+    cap = min(window + overlap, max(n, 1))
+    rec = new_records(RECORD, cap)
+    local = new_smooth_outputs(cap)
+    table = kernel_table()
+    c.record_posterior = True
+    try:
+        pos = fwd = 0  # first sample not yet smoothed (in rec[0]); first not yet filtered
+        while pos < n:
+            end = min(pos + cap, n)
+            sl = slice(fwd, end)
+            part = BatchOutputs(*(a[sl] for a in filt))
+            forward_recorded(table, arrays.cfg, arrays.st, arrays.counters, arrays.work,
+                             dts[sl], gyr[sl], acc[sl], mag[sl], part, rec, fwd - pos)
+            fwd = end
+            backward(arrays.cfg, rec, end - pos, local)
+            keep = end - pos if end == n else min(window, end - pos)
+            for a, b in zip(sm, local, strict=True):
+                a[pos:pos + keep] = b[:keep]
+            rest = end - pos - keep
+            rec[:rest] = rec[keep:keep + rest]
+            pos += keep
+    finally:
+        c.record_posterior = False
+    bad = ~sm.valid
+    sm.quat[bad] = filt.quat[bad]
+    sm.cov[bad] = filt.cov[bad]
+    sm.omega[bad] = filt.omega[bad]
+    sm.bias[bad] = filt.bias[bad]
+    sm.bias_var[bad] = filt.bias_var[bad]
+    return filt, sm
