@@ -356,44 +356,53 @@ class _Chunk:
 
 class _Smoothing:
     """``--smooth``: the adapter records every filter step (:meth:`StreamAdapter.record_into`)
-    into a :class:`~mkf_ros.core.smoother.Windows`; the windows of the bag wait (encoded, as
-    :class:`_Chunk`) until every output of theirs is smoothed, then get the smoothed
-    orientation and covariance written in (the node's conventions,
-    :meth:`StreamAdapter.published_orientation`) and go out in order. Held: the slots of one
-    smoothing window + overlap, plus the bag windows they span (docs/bags.md)."""
+    into a :class:`~mkf_ros.core.smoother.Windows` of one smoothing window + overlap (the
+    event loop stops when it is full, :meth:`_full` smooths a window and makes room); the
+    windows of the bag wait (encoded, as :class:`_Chunk`) until every output of theirs is
+    smoothed, then get the smoothed orientation and covariance written in (the node's
+    conventions, :meth:`StreamAdapter.published_orientation`) and go out in order. Held: the
+    slots of one smoothing window + overlap, the smoothed rows and the bag windows they span
+    (docs/bags.md)."""
 
     def __init__(self, adapter: Any, window: int, overlap: int) -> None:
         from mkf_ros.core.smoother import Windows
+        from mkf_ros.stream.kernel import MAX_STEPS_PER_EVENT
 
         self.adapter = adapter
         self.wins = Windows(adapter.filter.kernel_arrays().cfg, window, overlap,
-                            window + overlap)
+                            window + overlap + MAX_STEPS_PER_EVENT)
+        adapter.record_into(self.wins.rec, self._full)
         self.pending: list[_Chunk] = []
         self.base = 0  #: global slot of the first row of the smoothed rows held
         self.quat = np.zeros((0, 4))
         self.cov = np.zeros((0, 3, 3))
         self.valid = np.zeros(0, dtype=bool)
+        self.seconds = 0.0  #: spent smoothing
 
-    def before(self, events: int) -> None:
-        """Room for the steps of ``events`` more events (at most one step each)."""
-        self.wins.reserve(events)
-        self.adapter.record_into(self.wins.rec, self.wins.held)
+    def _full(self, filled: int) -> tuple[np.ndarray, int, int]:
+        """The recording is full: smooth what can be; where it goes on."""
+        self.wins.held = filled
+        self._smooth(False)
+        return self.wins.rec, self.wins.held, self.wins.done
 
-    def after(self, outs: Outputs) -> None:
-        """The adapter ran a window: its outputs' slots made global, the new slots held."""
-        outs.slot = outs.slot + self.wins.done
-        self.wins.held = self.adapter.recorded
-
-    def ready(self, chunk: _Chunk | None, final: bool) -> list[_Chunk]:
-        """Queue ``chunk``; smooth what can be (``final``: everything, the bag has ended); the
-        chunks now complete, smoothed, in order."""
-        if chunk is not None:
-            self.pending.append(chunk)
+    def _smooth(self, final: bool) -> None:
+        t0 = time.perf_counter()
         got = self.wins.smooth(final)
         if got:
             self.quat = np.concatenate([self.quat, *(g.quat for g in got)])
             self.cov = np.concatenate([self.cov, *(g.cov for g in got)])
             self.valid = np.concatenate([self.valid, *(g.valid for g in got)])
+        self.seconds += time.perf_counter() - t0
+
+    def ready(self, chunk: _Chunk | None, final: bool) -> list[_Chunk]:
+        """Queue ``chunk`` (``final``: the bag has ended, smooth every step); the chunks now
+        complete, smoothed, in order."""
+        if chunk is not None:
+            self.pending.append(chunk)
+        if final:
+            self.wins.held = self.adapter.recorded
+            self._smooth(True)
+            self.adapter.record_into(None)
         done: list[_Chunk] = []
         while self.pending:
             c = self.pending[0]
@@ -413,8 +422,6 @@ class _Smoothing:
         if k:
             self.quat, self.cov, self.valid = self.quat[k:], self.cov[k:], self.valid[k:]
             self.base += k
-        if final:
-            self.adapter.record_into(None)
         return done
 
     def _apply(self, c: _Chunk) -> None:
@@ -526,7 +533,6 @@ def process_bag(bag: str | Path, out: str | Path, params: Mapping[str, Any] | No
         if sw < 1 or so < 0:
             raise BagError(f"smoother window must be >= 1 and overlap >= 0, got {sw}, {so}")
         smoothing = _Smoothing(adapter, sw, so)
-        tm["smooth"] = 0.0
     use_mag = bool(p["use_mag"])
     t0 = time.perf_counter()
     acc_name = None
@@ -609,14 +615,9 @@ def process_bag(bag: str | Path, out: str | Path, params: Mapping[str, Any] | No
                          if truth_name else None)
                 t1 = time.perf_counter()
                 tm["read"] += t1 - t0
-                if smoothing is not None:
-                    smoothing.before(len(imu_b) + (len(acc_b) if acc_b else 0)
-                                     + (len(mag_b) if mag_b else 0))
                 outs = run_stream(adapter, imu, imu_b.log_ns, mag,
                                   mag_b.log_ns if mag_b else None, p, None, acc,
                                   acc_b.log_ns if acc_b else None)
-                if smoothing is not None:
-                    smoothing.after(outs)
                 if len(imu_b):
                     orientation = orientation or carries_orientation(
                         imu.fields["orientation"], imu.fields["orientation_covariance"][:, 0])
@@ -639,16 +640,13 @@ def process_bag(bag: str | Path, out: str | Path, params: Mapping[str, Any] | No
                 if smoothing is None:
                     emit(chunk)
                     continue
-                done = smoothing.ready(chunk, False)
-                tm["smooth"] += time.perf_counter() - t3
-                for c in done:
+                for c in smoothing.ready(chunk, False):
                     emit(c)
             if smoothing is not None:
-                t3 = time.perf_counter()
-                done = smoothing.ready(None, True)
-                tm["smooth"] += time.perf_counter() - t3
-                for c in done:
+                for c in smoothing.ready(None, True):
                     emit(c)
+                tm["smooth"] = smoothing.seconds
+                tm["filter"] -= smoothing.seconds  # (the event loop's pauses to smooth)
             if n_imu == 0:
                 raise BagError(f"IMU topic {imu_name} in {bag} has no messages")
             found = adapter.input_problems(imu_name, acc_name or "")

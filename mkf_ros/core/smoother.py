@@ -418,7 +418,7 @@ class Windows:
     are held (all of them at the end) and hands out the smoothed rows of the first ``window``
     (all at the end), which leave the buffer. So the windows depend only on the slots'
     sequence, not on how the forward pass was cut, and memory is that of ``capacity`` slots
-    (at least ``window + overlap``; more lets a forward pass append more at once)."""
+    (``window + overlap`` and what a forward pass may append beyond that before it stops)."""
 
     def __init__(self, cfg: np.ndarray, window: int, overlap: int, capacity: int) -> None:
         if window < 1 or overlap < 0:
@@ -432,14 +432,6 @@ class Windows:
         self.done = 0  #: slots smoothed and handed out before ``rec[0]``
         self.failed = 0  #: links that fell back to the filtered estimate
         self._local = new_smooth_outputs(min(self.span, max(capacity, 1)))
-
-    def reserve(self, more: int) -> None:
-        """Room for ``more`` slots after the held ones (the buffer grows if needed)."""
-        need = self.held + more
-        if need > len(self.rec):
-            rec = new_records(RECORD, need)
-            rec[:self.held] = self.rec[:self.held]
-            self.rec = rec
 
     def smooth(self, final: bool) -> list[SmoothOutputs]:
         """The smoothed rows ready now, in order (each a fresh :class:`SmoothOutputs`, rows for

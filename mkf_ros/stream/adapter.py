@@ -332,8 +332,9 @@ class StreamAdapter:
         self._out_present = self._out["present"]
         # the smoother's recording (record_into): slots, [slots filled, out of room]
         self._rec = new_records(smoother.RECORD, 0)
-        self._rn = np.zeros(2, dtype=np.int64)
+        self._rn = np.zeros(4, dtype=np.int64)
         self._recording = False
+        self._on_full: Callable[[int], tuple[np.ndarray, int, int]] | None = None
         self._out_flat = self._out.view(np.float64)
         self._derive()
 
@@ -466,25 +467,35 @@ class StreamAdapter:
         return out
 
     # --- the smoother's recording ------------------------------------------------------------
-    def record_into(self, rec: np.ndarray | None, filled: int = 0) -> None:
+    def record_into(self, rec: np.ndarray | None,
+                    on_full: Callable[[int], tuple[np.ndarray, int, int]] | None = None,
+                    base: int = 0) -> None:
         """Record every filter step for the smoother (docs/math.md §11.1; ``mkf process
-        --smooth``) into the slots ``rec[filled:]`` (:data:`~mkf_ros.core.smoother.RECORD`),
-        one per step (:func:`~mkf_ros.core.smoother.recorded_step`); each output of
-        :meth:`process` names its step's slot (:attr:`StreamOutputs.slot`). Every event
-        makes at most one step: the caller leaves room for the events it passes
-        (RuntimeError otherwise). None: stop recording. ValueError for a baseline
-        algorithm (no smoother)."""
+        --smooth``) into the slots of ``rec`` (:data:`~mkf_ros.core.smoother.RECORD`), one
+        per step (:func:`~mkf_ros.core.smoother.recorded_step`), the first numbered ``base``;
+        each output of :meth:`process` names its step's slot by that number
+        (:attr:`StreamOutputs.slot`). When the slots but
+        :data:`~mkf_ros.stream.kernel.MAX_STEPS_PER_EVENT` are filled, after that event,
+        ``on_full(filled)`` makes room and returns ``(rec, filled, base)`` to go on with.
+        None: stop recording. ValueError for a baseline algorithm (no smoother)."""
         if rec is None:
             self._recording = False
             self._rec, self._rn[:] = new_records(smoother.RECORD, 0), 0
+            self._on_full = None
             record(self.filter.kernel_arrays().cfg).record_posterior = False
             return
         if self.filter.params.algorithm not in ("mekf", "mukf"):
             raise ValueError("the smoother needs algorithm mekf or mukf, not "
                              f"{self.filter.params.algorithm!r}")
-        self._rec = rec
-        self._rn[:] = (filled, 0)
+        if len(rec) <= sk.MAX_STEPS_PER_EVENT:
+            raise ValueError(f"a recording needs more than {sk.MAX_STEPS_PER_EVENT} slots")
+        self._set_recording(rec, 0, base)
+        self._on_full = on_full
         self._recording = True
+
+    def _set_recording(self, rec: np.ndarray, filled: int, base: int) -> None:
+        self._rec = rec
+        self._rn[:] = (filled, 0, len(rec) - sk.MAX_STEPS_PER_EVENT, base)
 
     def published_orientation(self, quat: np.ndarray, cov: np.ndarray,
                               yaw_lost: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -638,6 +649,12 @@ class StreamAdapter:
                                    "per event)")
             if why == sk.R_DONE:
                 return
+            if why == sk.R_FULL:
+                if self._on_full is None:
+                    raise RuntimeError("smoother recording full (record_into: no on_full)")
+                self._set_recording(*self._on_full(int(self._rn[0])))
+                k0 = k
+                continue
             if why == sk.R_TIME_JUMP:  # the same sample again, re-initialising from it
                 self.reset("time jump")
                 k0 = k

@@ -163,7 +163,9 @@ def float_slice(dtype: np.dtype, name: str) -> slice:
 #: The filter's records (:meth:`mkf_ros.core.filter.AttitudeFilter.kernel_arrays`, element
 #: ``[0]`` of each: configuration, state, counters, scratch), its compiled kernels, and the
 #: smoother's recording (:func:`filter_step`): the slots
-#: (:data:`~mkf_ros.core.smoother.RECORD`) and ``rn = [slots filled, 1 if out of room]``.
+#: (:data:`~mkf_ros.core.smoother.RECORD`) and ``rn = [slots filled, 1 if out of room, limit,
+#: base]``: :func:`run_events` returns ``R_FULL`` after the event that filled ``limit`` slots
+#: (0: no limit); ``base`` is the global number of ``rec[0]`` (outputs name global slots).
 FilterRecords = namedtuple("FilterRecords", ("c", "s", "k", "w", "kern", "rec", "rn"))
 #: The adapter's records: node parameters, time state, counters.
 StreamRecords = namedtuple("StreamRecords", ("p", "t", "a"))
@@ -171,6 +173,12 @@ StreamRecords = namedtuple("StreamRecords", ("p", "t", "a"))
 # the outcome of one IMU event: nothing published, published, or a reset request; run_events
 # returns R_DONE or the reset request with the index of the event it stopped at
 _NONE, _OUT, R_TIME_JUMP, R_NONFINITE = 0, 1, 2, 3
+#: run_events stopped after an event that filled the smoother's recording up to its limit
+#: (call again from ``k`` once the recording has room)
+R_FULL = 4
+#: Filter steps one event can make (an IMU event: every held magnetometer and accelerometer
+#: sample, then its own): room the smoother's recording keeps beyond its limit.
+MAX_STEPS_PER_EVENT = 2 * PEND_ROWS + 1
 R_DONE = 0
 
 
@@ -619,7 +627,7 @@ def imu_event(f: FilterRecords, r: StreamRecords, stamp: float, gyr: np.ndarray,
     t.t = t_new
     t.valid = True
     res = output(f, r, gyr, has_g, acc, has_a_in, o)
-    o.slot = f.rn[0] - 1
+    o.slot = f.rn[3] + f.rn[0] - 1 if f.c.record_posterior else -1
     return res
 
 
@@ -735,18 +743,20 @@ def run_events(table: np.ndarray, cfg: np.ndarray, st: np.ndarray, cnt: np.ndarr
     and the outputs); returns ``(k, R_DONE)`` at the end, or the index
     and reason of an event that needs a reset (``R_TIME_JUMP``: call again from ``k`` with
     the time state's ``resume`` set; ``R_NONFINITE``: the event is done, call again from
-    ``k + 1``)."""
+    ``k + 1``; ``R_FULL``: the smoother's recording reached its limit, call again from ``k``
+    once it has room)."""
     f = FilterRecords(cfg[0], st[0], cnt[0], work[0], kernels_at(table), rec, rn)
     r = StreamRecords(npar[0], ts[0], acnt[0])
     for k in range(k0, k1):
         e = ev[k]
         if e.kind == EV_MAG:
             mag_event(f, r, e.stamp, e.v)
-            continue
-        if e.kind == EV_ACC:
+        elif e.kind == EV_ACC:
             acc_event(f, r, e.stamp, e.v)
-            continue
-        res = imu_event(f, r, e.stamp, e.v, e.a, out[e.row])
-        if res >= R_TIME_JUMP:
-            return k, res
+        else:
+            res = imu_event(f, r, e.stamp, e.v, e.a, out[e.row])
+            if res >= R_TIME_JUMP:
+                return k, res
+        if rn[0] >= rn[2] > 0:
+            return k + 1, R_FULL
     return k1, R_DONE
