@@ -167,6 +167,9 @@ class StreamOutput:
     bias: np.ndarray  #: (3,) estimated gyro bias, rad/s
     bias_stddev: np.ndarray  #: (3,) rad/s
     heading_initialized: bool  #: the magnetometer has fixed the heading
+    #: published with the heading lost in a gap (yaw variance of an unknown angle)
+    yaw_lost: bool = False
+    slot: int = -1  #: the smoother's slot of this step (:meth:`StreamAdapter.record_into`)
 
 
 @dataclass(slots=True)
@@ -548,7 +551,8 @@ class StreamAdapter:
             angular_velocity_cov_add=np.diag(o[_WADD]) if flags & sk.OF_WADD else None,
             linear_acceleration=o[_LIN] if flags & sk.OF_LIN else None,
             omega=o[_OMEGA], bias=o[_BIAS], bias_stddev=o[_BSTD],
-            heading_initialized=bool(flags & sk.OF_HEADING))
+            heading_initialized=bool(flags & sk.OF_HEADING),
+            yaw_lost=bool(flags & sk.OF_YAW_LOST), slot=int(self._out["slot"][0]))
 
     def on_gyro(self, stamp: float, gyr: Any) -> StreamOutput | None:
         """Split input: one gyro sample (rad/s); the estimate at ``stamp`` as :meth:`on_imu`."""
