@@ -201,8 +201,8 @@ def compile_entries(part: str) -> None:
                  (kf.from_canonical_entry, (arrays.cfg, arrays.st))]
     elif part == "stream":
         s = StreamAdapter()
-        calls = [(sk.run_events, (table, *arrays, s._npar, s._ts, s._acnt, s._ev[sk.EV_IMU],
-                                  s._out, 0, 1)),
+        calls = [(sk.run_events, (table, *arrays, s._npar, s._ts, s._acnt, s._rec, s._rn,
+                                  s._ev[sk.EV_IMU], s._out, 0, 1)),
                  (sk.covariance_rows, (np.zeros((1, 9)), 0.0, np.zeros((0, 9))))]
     for dispatcher, args in calls:
         dispatcher.compile(tuple(numba.typeof(a) for a in args))

@@ -40,6 +40,10 @@ class Outputs:
     angvel_cov: np.ndarray  #: (M, 9)
     linacc: np.ndarray  #: (M, 3)
     linacc_cov: np.ndarray  #: (M, 9)
+    #: (M,) bool, published with the heading lost in a gap (the node's yaw variance rule)
+    yaw_lost: np.ndarray
+    #: (M,) int, the smoother's slot of each output (``--smooth``; -1 otherwise)
+    slot: np.ndarray
 
 
 @dataclass
@@ -130,7 +134,7 @@ def run_stream(adapter: Any, imu: cdr.Decoded, imu_log: np.ndarray, mag: cdr.Dec
     return Outputs(index=i, quat=res.quat_wxyz, cov=res.orientation_cov.reshape(m, 9),
                    angvel=np.where(w_ok[:, None], res.angular_velocity, 0.0), angvel_cov=w_cov,
                    linacc=np.where(a_ok[:, None], res.linear_acceleration, 0.0),
-                   linacc_cov=a_cov)
+                   linacc_cov=a_cov, yaw_lost=res.yaw_lost, slot=res.slot)
 
 
 def encode_outputs(imu: cdr.Decoded, batch: Any, out: Outputs) -> np.ndarray | list[bytes]:
@@ -336,6 +340,114 @@ class _Scorer:
                       intervals=self.intervals or {})
 
 
+@dataclass
+class _Chunk:
+    """One window of the bag whose messages wait for their smoothed orientation."""
+
+    outs: Outputs  #: the filter's outputs (published form); ``slot``: global slots
+    encoded: np.ndarray | list[bytes]  #: the output messages with the filter's orientation
+    out_log: np.ndarray
+    out_stamp: np.ndarray
+    log_s: np.ndarray
+    truth: Any  #: the window's ground truth (decoded) or None
+    truth_log: np.ndarray | None
+    copies: list[tuple[Any, np.ndarray, Any]]  #: (connection, log times, messages)
+
+
+class _Smoothing:
+    """``--smooth``: the adapter records every filter step (:meth:`StreamAdapter.record_into`)
+    into a :class:`~mkf_ros.core.smoother.Windows` of one smoothing window + overlap (the
+    event loop stops when it is full, :meth:`_full` smooths a window and makes room); the
+    windows of the bag wait (encoded, as :class:`_Chunk`) until every output of theirs is
+    smoothed, then get the smoothed orientation and covariance written in (the node's
+    conventions, :meth:`StreamAdapter.published_orientation`) and go out in order. Held: the
+    slots of one smoothing window + overlap, the smoothed rows and the bag windows they span
+    (docs/bags.md)."""
+
+    def __init__(self, adapter: Any, window: int, overlap: int) -> None:
+        from mkf_ros.core.smoother import Windows
+        from mkf_ros.stream.kernel import MAX_STEPS_PER_EVENT
+
+        self.adapter = adapter
+        self.wins = Windows(adapter.filter.kernel_arrays().cfg, window, overlap,
+                            window + overlap + MAX_STEPS_PER_EVENT)
+        adapter.record_into(self.wins.rec, self._full)
+        self.pending: list[_Chunk] = []
+        self.base = 0  #: global slot of the first row of the smoothed rows held
+        self.quat = np.zeros((0, 4))
+        self.cov = np.zeros((0, 3, 3))
+        self.valid = np.zeros(0, dtype=bool)
+        self.seconds = 0.0  #: spent smoothing
+
+    def _full(self, filled: int) -> tuple[np.ndarray, int, int]:
+        """The recording is full: smooth what can be; where it goes on."""
+        self.wins.held = filled
+        self._smooth(False)
+        return self.wins.rec, self.wins.held, self.wins.done
+
+    def _smooth(self, final: bool) -> None:
+        t0 = time.perf_counter()
+        got = self.wins.smooth(final)
+        if got:
+            self.quat = np.concatenate([self.quat, *(g.quat for g in got)])
+            self.cov = np.concatenate([self.cov, *(g.cov for g in got)])
+            self.valid = np.concatenate([self.valid, *(g.valid for g in got)])
+        self.seconds += time.perf_counter() - t0
+
+    def ready(self, chunk: _Chunk | None, final: bool) -> list[_Chunk]:
+        """Queue ``chunk`` (``final``: the bag has ended, smooth every step); the chunks now
+        complete, smoothed, in order."""
+        if chunk is not None:
+            self.pending.append(chunk)
+        if final:
+            self.wins.held = self.adapter.recorded
+            self._smooth(True)
+            self.adapter.record_into(None)
+        done: list[_Chunk] = []
+        while self.pending:
+            c = self.pending[0]
+            slot = c.outs.slot
+            if len(slot) and slot[-1] >= self.wins.done:
+                break
+            self.pending.pop(0)
+            if len(slot):
+                self._apply(c)
+            done.append(c)
+        first = self.wins.done  # drop the smoothed rows no waiting output needs
+        for c in self.pending:
+            if len(c.outs.slot):
+                first = int(c.outs.slot[0])
+                break
+        k = max(0, first - self.base)
+        if k:
+            self.quat, self.cov, self.valid = self.quat[k:], self.cov[k:], self.valid[k:]
+            self.base += k
+        return done
+
+    def _apply(self, c: _Chunk) -> None:
+        o = c.outs
+        i = o.slot - self.base
+        ok = self.valid[i]
+        q, cov = self.adapter.published_orientation(self.quat[i[ok]], self.cov[i[ok]],
+                                                    o.yaw_lost[ok])
+        o.quat = o.quat.copy()
+        o.cov = o.cov.copy()
+        o.quat[ok] = q
+        o.cov[ok] = cov.reshape(-1, 9)
+        values = dict(orientation=np.column_stack([o.quat[:, 1], o.quat[:, 2], o.quat[:, 3],
+                                                   o.quat[:, 0]]),
+                      orientation_covariance=o.cov)
+        if isinstance(c.encoded, np.ndarray):
+            cdr.set_fields(c.encoded, cdr.IMU, **values)
+            return
+        res = []
+        for j, raw in enumerate(c.encoded):
+            row = np.frombuffer(raw, np.uint8)[None, :].copy()
+            cdr.set_fields(row, cdr.IMU, **{k: v[j] for k, v in values.items()})
+            res.append(row.tobytes())
+        c.encoded = res
+
+
 def stream_param_names() -> list[str]:
     """Parameters that matter offline: the filter's and the node's input/time/output ones."""
     from mkf_ros.core.params import PARAMS
@@ -351,8 +463,9 @@ def process_bag(bag: str | Path, out: str | Path, params: Mapping[str, Any] | No
                 truth_topic: str | None = "imu/ground_truth", output_topic: str = "imu/data",
                 storage: str = "mcap", overwrite: bool = False, copy_input: bool = False,
                 skip: float = 0.0, progress: Any = None,
-                window: int | None = WINDOW_MESSAGES, keep_outputs: bool = False
-                ) -> ProcessResult:
+                window: int | None = WINDOW_MESSAGES, keep_outputs: bool = False,
+                smooth: bool = False, smooth_window: int | None = None,
+                smooth_overlap: int | None = None) -> ProcessResult:
     """Run the estimator over ``bag`` and write ``out`` (see the module docstring).
 
     ``params``: filter and node parameters by name (ValueError if invalid). ``progress``: a
@@ -371,8 +484,18 @@ def process_bag(bag: str | Path, out: str | Path, params: Mapping[str, Any] | No
     the adapter's state carried from one to the next, so memory does not grow with the
     recording and the output does not depend on ``window``. ``keep_outputs``: also return
     every estimate (:class:`Outputs`, ``stamps``, ``log_s``; memory grows with the bag).
+
+    ``smooth``: the output carries the fixed-interval smoother's orientation and covariance
+    (docs/math.md §11; MEKF or MUKF) instead of the filter's: every filter step of the stream
+    is recorded, smoothed in windows of ``smooth_window`` steps with ``smooth_overlap`` more
+    (default :data:`~mkf_ros.core.smoother.DEFAULT_WINDOW`,
+    :data:`~mkf_ros.core.smoother.DEFAULT_OVERLAP`, as :func:`~mkf_ros.core.smoother.smooth_run`)
+    and the messages are written once smoothed: memory and the output's delay are bounded by
+    one smoothing window + overlap plus the bag windows they span. The other fields are the
+    filter's as without it.
     """
     from mkf_ros.bags.synth import read_description
+    from mkf_ros.core import smoother as sm_core
     from mkf_ros.stream.adapter import (
         REJECTIONS,
         StreamAdapter,
@@ -400,6 +523,16 @@ def process_bag(bag: str | Path, out: str | Path, params: Mapping[str, Any] | No
         raise BagError("input_mode split needs --accel-topic and --gyro-topic")
     adapter = StreamAdapter(params)
     p = adapter.params
+    smoothing = None
+    if smooth:
+        if p["algorithm"] not in ("mekf", "mukf"):
+            raise BagError(f"--smooth needs algorithm mekf or mukf (the smoother is the MKFs'), "
+                           f"not {p['algorithm']}")
+        sw = sm_core.DEFAULT_WINDOW if smooth_window is None else int(smooth_window)
+        so = sm_core.DEFAULT_OVERLAP if smooth_overlap is None else int(smooth_overlap)
+        if sw < 1 or so < 0:
+            raise BagError(f"smoother window must be >= 1 and overlap >= 0, got {sw}, {so}")
+        smoothing = _Smoothing(adapter, sw, so)
     use_mag = bool(p["use_mag"])
     t0 = time.perf_counter()
     acc_name = None
@@ -449,6 +582,20 @@ def process_bag(bag: str | Path, out: str | Path, params: Mapping[str, Any] | No
             conn = w.add_topic(out_name, cdr.IMU.msgtype)
             copies = {t: w.add_topic(t, in_types[t]) for t in extra}
             windows = br.read_windows(read, window, tick)
+
+            def emit(c: _Chunk) -> None:
+                """A window's messages out (written, scored, kept)."""
+                t0 = time.perf_counter()
+                w.write_batch(conn, c.out_log, c.encoded)
+                for cn, log_ns, data in c.copies:
+                    w.write_batch(cn, log_ns, data)
+                tm["write"] += time.perf_counter() - t0
+                if scorer is not None and c.truth is not None and c.truth_log is not None:
+                    scorer.add(c.truth, c.truth_log, c.outs.quat, c.out_stamp, c.out_log,
+                               c.log_s)
+                if keep_outputs:
+                    kept.append((c.outs, c.out_stamp * 1e-9, c.log_s))
+
             while True:
                 t0 = time.perf_counter()
                 win = next(windows, None)
@@ -477,25 +624,29 @@ def process_bag(bag: str | Path, out: str | Path, params: Mapping[str, Any] | No
                 t2 = time.perf_counter()
                 tm["filter"] += t2 - t1
                 out_log = imu_b.log_ns[outs.index]
-                w.write_batch(conn, out_log, encode_outputs(imu, imu_b, outs))
-                for t, c in copies.items():
-                    w.write_batch(c, win[t].log_ns, win[t].data)
-                t3 = time.perf_counter()
-                tm["write"] += t3 - t2
-                out_stamp = imu.stamp_ns[outs.index]
-                log_s = (out_log - bag_start) * 1e-9
-                if scorer is not None and truth is not None and truth_name:
-                    if len(imu_b):
-                        scorer.shift((int(imu_b.log_ns[0]) - bag_start) * 1e-9)
-                    scorer.add(truth, win[truth_name].log_ns, outs.quat, out_stamp, out_log,
-                               log_s)
-                if keep_outputs:
-                    outs.index = outs.index + n_imu
-                    kept.append((outs, out_stamp * 1e-9, log_s))
+                if scorer is not None and truth is not None and len(imu_b):
+                    scorer.shift((int(imu_b.log_ns[0]) - bag_start) * 1e-9)
+                chunk = _Chunk(outs, encode_outputs(imu, imu_b, outs), out_log,
+                               imu.stamp_ns[outs.index], (out_log - bag_start) * 1e-9, truth,
+                               win[truth_name].log_ns if truth_name else None,
+                               [(c, win[t].log_ns, win[t].data) for t, c in copies.items()])
+                outs.index = outs.index + n_imu
                 n_imu += len(imu_b)
                 n_acc += len(acc_b) if acc_b else 0
                 n_mag += len(mag_b) if mag_b else 0
                 n_out += len(outs.index)
+                t3 = time.perf_counter()
+                tm["write"] += t3 - t2
+                if smoothing is None:
+                    emit(chunk)
+                    continue
+                for c in smoothing.ready(chunk, False):
+                    emit(c)
+            if smoothing is not None:
+                for c in smoothing.ready(None, True):
+                    emit(c)
+                tm["smooth"] = smoothing.seconds
+                tm["filter"] -= smoothing.seconds  # (the event loop's pauses to smooth)
             if n_imu == 0:
                 raise BagError(f"IMU topic {imu_name} in {bag} has no messages")
             found = adapter.input_problems(imu_name, acc_name or "")

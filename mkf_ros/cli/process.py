@@ -80,6 +80,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--skip", type=float, default=0.0, metavar="S",
                         help="leave the first S seconds out of the scores (default 0)")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
+    sm = parser.add_argument_group("smoothing (offline: the future is known)")
+    sm.add_argument("--smooth", action="store_true",
+                    help="write the fixed-interval manifold smoother's orientation and "
+                    "orientation_covariance (docs/math.md §11; algorithm mekf or mukf) instead "
+                    "of the causal filter's; the other fields as without it. Memory is bounded: "
+                    "messages are written once smoothed, at most one smoothing window + overlap "
+                    "(+ a read window) behind")
+    sm.add_argument("--smooth-window", type=int, default=None, metavar="N",
+                    help="with --smooth: filter steps per smoothing window (default 131072)")
+    sm.add_argument("--smooth-overlap", type=int, default=None, metavar="N",
+                    help="with --smooth: steps smoothed past each window and dropped "
+                    "(default 32768)")
     b = parser.add_argument_group("several bags")
     b.add_argument("--jobs", type=int, default=None, metavar="N",
                    help="bags processed at once on this machine (default: number of cores)")
@@ -178,12 +190,27 @@ def default_plot_path(out: str | Path) -> Path:
     return Path(str(out).rstrip("/") + ".png")
 
 
+def check_smooth(args: argparse.Namespace) -> None:
+    """CliError (one line) for smoothing options without ``--smooth`` or out of range."""
+    from mkf_ros.cli.main import CliError
+
+    for flag in ("smooth_window", "smooth_overlap"):
+        v = getattr(args, flag, None)
+        name = "--" + flag.replace("_", "-")
+        if v is not None and not args.smooth:
+            raise CliError(f"{name} needs --smooth")
+        if v is not None and v < (1 if flag == "smooth_window" else 0):
+            raise CliError(f"{name} must be at least {1 if flag == 'smooth_window' else 0}, "
+                           f"got {v}")
+
+
 def run(args: argparse.Namespace) -> int:
     from mkf_ros.bags import BagError
     from mkf_ros.bags.process import process_bag
     from mkf_ros.cli import process_batch
     from mkf_ros.cli.main import CliError
 
+    check_smooth(args)
     if process_batch.wanted(args):
         return process_batch.run(args)
     args.bag = args.bags[0]
@@ -202,7 +229,9 @@ def run(args: argparse.Namespace) -> int:
                             gyro_topic=args.gyro_topic, truth_topic=args.truth_topic,
                             output_topic=args.output_topic, storage=args.storage,
                             overwrite=args.overwrite, copy_input=args.copy_input,
-                            skip=args.skip, progress=bars)
+                            skip=args.skip, progress=bars, smooth=args.smooth,
+                            smooth_window=args.smooth_window,
+                            smooth_overlap=args.smooth_overlap)
     except BagError as e:
         raise CliError(str(e)) from None
     except ValueError as e:  # an invalid parameter value
@@ -221,8 +250,9 @@ def report(r: Any, args: argparse.Namespace) -> None:
               f"{r.accel_topic} {r.n_accel:,}{mag}")
     else:
         print(f"  input   {r.imu_topic} {r.n_imu:,}{mag}")
+    smoothed = ", smoothed (fixed-interval smoother)" if "smooth" in r.timings else ""
     print(f"  filter  {p['algorithm']}-{p['chart']}, world_frame {p['world_frame']}, "
-          f"use_mag {str(p['use_mag']).lower()}")
+          f"use_mag {str(p['use_mag']).lower()}{smoothed}")
     from mkf_ros.bags import normalize_topic
 
     print(f"  output  {normalize_topic(args.output_topic)} {r.n_out:,} messages")
@@ -253,5 +283,7 @@ def report(r: Any, args: argparse.Namespace) -> None:
             print(f"  plot    {path}")
     tm = r.timings
     total = sum(tm.values())
+    smooth = f", smooth {tm['smooth']:.2f}" if "smooth" in tm else ""
     print(f"  time    {total:.2f} s: read {tm['read']:.2f}, filter {tm['filter']:.2f} "
-          f"({r.n_imu / max(tm['filter'], 1e-9):,.0f} IMU msgs/s), write {tm['write']:.2f}")
+          f"({r.n_imu / max(tm['filter'], 1e-9):,.0f} IMU msgs/s){smooth}, write "
+          f"{tm['write']:.2f}")

@@ -128,32 +128,56 @@ def _load_cov(r: np.record, nx: int, P: np.ndarray) -> None:
             m += 1
 
 
+@jit_inline
+def recorded_step(kern: Kernels, c: np.record, s: np.record, k: np.record, w: np.record,
+                  dt: float, gyr: tuple, acc: tuple, mag: tuple, rec: np.ndarray,
+                  m: int) -> None:
+    """One filter step (:func:`~mkf_ros.core.filter.run_step`, ``c.record_posterior`` set)
+    recorded into the slot ``rec[m]`` (docs/math.md §11.1): its final state (:data:`END`,
+    :data:`NONE` without an estimate), the previous slot ``rec[m − 1]`` (if ``m > 0``)
+    overwritten by this step's recorded posterior (:data:`TRANS`, with ``dt``) unless this step
+    re-aligned (a gap) or started the estimate. The one recording rule of every forward pass
+    (:func:`forward_recorded`, the stream adapter's event loop)."""
+    nx = c.nx
+    w.rec_set = False
+    gaps = k.gaps
+    run_step(kern, c, s, k, w, dt, gyr, acc, mag)
+    if w.rec_set and k.gaps == gaps and m >= 1 and rec[m - 1].kind != NONE:
+        _store(rec[m - 1], nx, w.rec_q, w.rec_w, w.rec_b, w.rec_P, TRANS, dt)
+    if s.initialized:
+        record_posterior(c, s, w)  # the final state (moved onto q̂ for the MUKF)
+        _store(rec[m], nx, w.rec_q, w.rec_w, w.rec_b, w.rec_P, END, 0.0)
+    else:
+        rec[m].kind = NONE
+
+
 @jit
 def forward_recorded(table: np.ndarray, cfg: np.ndarray, st: np.ndarray, cnt: np.ndarray,
                      work: np.ndarray, dts: np.ndarray, gyr: np.ndarray, acc: np.ndarray,
                      mag: np.ndarray, out: BatchOutputs, rec: np.ndarray, r0: int) -> None:
     """The filter's step over ``dts`` (:func:`~mkf_ros.core.filter.run_batch`, the filtered
-    outputs into ``out``), sample ``n`` into the slot ``rec[r0 + n]`` (docs/math.md §11.1):
-    its final state (:data:`END`, :data:`NONE` without an estimate), overwritten by the next
-    step's recorded posterior (:data:`TRANS`) unless that step re-aligned (a gap). ``cfg`` must
-    have ``record_posterior`` set; ``rec[r0 − 1]`` (if ``r0 > 0``) is the previous sample's."""
+    outputs into ``out``), sample ``n`` recorded into the slot ``rec[r0 + n]``
+    (:func:`recorded_step`). ``cfg`` must have ``record_posterior`` set; ``rec[r0 − 1]`` (if
+    ``r0 > 0``) is the previous sample's."""
     kern: Kernels = kernels_at(table)
     c, s, k, w = cfg[0], st[0], cnt[0], work[0]
-    nx = c.nx
     for n in range(dts.shape[0]):
-        w.rec_set = False
-        gaps = k.gaps
-        run_step(kern, c, s, k, w, dts[n], (gyr[n, 0], gyr[n, 1], gyr[n, 2]),
-                 (acc[n, 0], acc[n, 1], acc[n, 2]), (mag[n, 0], mag[n, 1], mag[n, 2]))
-        m = r0 + n
-        if w.rec_set and k.gaps == gaps and m >= 1 and rec[m - 1].kind != NONE:
-            _store(rec[m - 1], nx, w.rec_q, w.rec_w, w.rec_b, w.rec_P, TRANS, dts[n])
-        if s.initialized:
-            record_posterior(c, s, w)  # the final state (moved onto q̂ for the MUKF)
-            _store(rec[m], nx, w.rec_q, w.rec_w, w.rec_b, w.rec_P, END, 0.0)
-        else:
-            rec[m].kind = NONE
+        recorded_step(kern, c, s, k, w, dts[n], (gyr[n, 0], gyr[n, 1], gyr[n, 2]),
+                      (acc[n, 0], acc[n, 1], acc[n, 2]), (mag[n, 0], mag[n, 1], mag[n, 2]),
+                      rec, r0 + n)
         _write_output(kern, c, s, out, n)
+
+
+def cut(rec: np.ndarray, m: int) -> None:
+    """Drop the slot ``rec[m]`` from the chain (an estimate that went non-finite and was
+    reset): it becomes :data:`NONE`, and a :data:`TRANS` link into it from ``rec[m − 1]``
+    becomes that segment's end (:data:`END`, its recorded posterior; :data:`NONE` if that is
+    not finite either)."""
+    rec[m]["kind"] = NONE
+    if m >= 1 and rec[m - 1]["kind"] == TRANS:
+        r = rec[m - 1]
+        finite = all(np.isfinite(r[f]).all() for f in ("q", "w", "b", "P"))
+        r["kind"] = END if finite else NONE
 
 
 # --- the backward pass -----------------------------------------------------------------------
@@ -387,14 +411,55 @@ def backward(cfg: np.ndarray, rec: np.ndarray, n: int, out: SmoothOutputs) -> in
 
 
 # --- the driver ------------------------------------------------------------------------------
+class Windows:
+    """The records of a continuous forward pass, smoothed in windows (docs/math.md §11.4): a
+    forward pass appends slots to ``rec[held:]`` (and adds them to ``held``); :meth:`smooth`
+    runs the backward pass over the first ``window + overlap`` held slots whenever that many
+    are held (all of them at the end) and hands out the smoothed rows of the first ``window``
+    (all at the end), which leave the buffer. So the windows depend only on the slots'
+    sequence, not on how the forward pass was cut, and memory is that of ``capacity`` slots
+    (``window + overlap`` and what a forward pass may append beyond that before it stops)."""
+
+    def __init__(self, cfg: np.ndarray, window: int, overlap: int, capacity: int) -> None:
+        if window < 1 or overlap < 0:
+            raise ValueError(f"smoother window must be >= 1 and overlap >= 0, got {window}, "
+                             f"{overlap}")
+        self.cfg = cfg
+        self.window, self.overlap = window, overlap
+        self.span = window + overlap
+        self.rec = new_records(RECORD, max(capacity, 1))
+        self.held = 0  #: slots held: ``rec[0:held]``
+        self.done = 0  #: slots smoothed and handed out before ``rec[0]``
+        self.failed = 0  #: links that fell back to the filtered estimate
+        self._local = new_smooth_outputs(min(self.span, max(capacity, 1)))
+
+    def smooth(self, final: bool) -> list[SmoothOutputs]:
+        """The smoothed rows ready now, in order (each a fresh :class:`SmoothOutputs`, rows for
+        the slots ``done …``); ``final``: the forward pass has ended, smooth every held slot."""
+        res = []
+        while self.held >= self.span or (final and self.held > 0):
+            n = min(self.held, self.span)
+            if len(self._local) < n:
+                self._local = new_smooth_outputs(n)
+            self.failed += backward(self.cfg, self.rec, n, self._local)
+            keep = n if (final and n == self.held) else min(self.window, n)
+            res.append(SmoothOutputs(*(a[:keep].copy() for a in self._local)))
+            rest = self.held - keep
+            self.rec[:rest] = self.rec[keep:self.held]
+            self.held = rest
+            self.done += keep
+        return res
+
+
 def smooth_run(f: AttitudeFilter, dts: np.ndarray, gyr: np.ndarray, acc: np.ndarray,
                mag: np.ndarray, window: int = DEFAULT_WINDOW,
                overlap: int = DEFAULT_OVERLAP) -> tuple[BatchOutputs, SmoothOutputs]:
     """The filter ``f`` (an MEKF or MUKF) forward over a recording (as :meth:`AttitudeFilter.run`,
     from its current state, which advances) and the backward pass in windows of ``window``
-    samples started ``overlap`` samples later (docs/math.md §11.4); ``window ≥ len(dts)`` is the
-    full-interval smoother. Returns the filtered and the smoothed outputs, one row per sample
-    (rows without an estimate keep the filter's). Readings as for :meth:`AttitudeFilter.run`."""
+    samples started ``overlap`` samples later (docs/math.md §11.4, :class:`Windows`);
+    ``window ≥ len(dts)`` is the full-interval smoother. Returns the filtered and the smoothed
+    outputs, one row per sample (rows without an estimate keep the filter's). Readings as for
+    :meth:`AttitudeFilter.run`."""
     if window < 1 or overlap < 0:
         raise ValueError(f"smoother window must be >= 1 and overlap >= 0, got {window}, {overlap}")
     arrays = f.kernel_arrays()
@@ -406,26 +471,25 @@ def smooth_run(f: AttitudeFilter, dts: np.ndarray, gyr: np.ndarray, acc: np.ndar
                         np.empty((n, 3)), np.empty((n, 3)), np.empty(n, dtype=np.bool_))
     sm = new_smooth_outputs(n)
     cap = min(window + overlap, max(n, 1))
-    rec = new_records(RECORD, cap)
-    local = new_smooth_outputs(cap)
+    wins = Windows(arrays.cfg, window, overlap, cap)
     table = kernel_table()
     c.record_posterior = True
     try:
-        pos = fwd = 0  # first sample not yet smoothed (in rec[0]); first not yet filtered
-        while pos < n:
-            end = min(pos + cap, n)
+        fwd = 0  # first sample not yet filtered
+        while fwd < n or wins.held:
+            end = min(fwd + cap - wins.held, n)
             sl = slice(fwd, end)
             part = BatchOutputs(*(a[sl] for a in filt))
             forward_recorded(table, arrays.cfg, arrays.st, arrays.counters, arrays.work,
-                             dts[sl], gyr[sl], acc[sl], mag[sl], part, rec, fwd - pos)
+                             dts[sl], gyr[sl], acc[sl], mag[sl], part, wins.rec, wins.held)
+            wins.held += end - fwd
             fwd = end
-            backward(arrays.cfg, rec, end - pos, local)
-            keep = end - pos if end == n else min(window, end - pos)
-            for a, b in zip(sm, local, strict=True):
-                a[pos:pos + keep] = b[:keep]
-            rest = end - pos - keep
-            rec[:rest] = rec[keep:keep + rest]
-            pos += keep
+            pos = wins.done
+            for rows in wins.smooth(fwd == n):
+                k = len(rows.valid)
+                for a, b in zip(sm, rows, strict=True):
+                    a[pos:pos + k] = b
+                pos += k
     finally:
         c.record_posterior = False
     bad = ~sm.valid

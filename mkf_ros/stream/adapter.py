@@ -60,11 +60,13 @@ from typing import Any
 
 import numpy as np
 
+from mkf_ros.core import smoother
 from mkf_ros.core.filter import COUNTER_NAMES as FILTER_COUNTERS
 from mkf_ros.core.filter import (
     MAX_ACC_G,
     MAX_GYRO_RATE,
     MAX_MAG,
+    YAW_VAR_UNKNOWN,
     AttitudeFilter,
     kernel_table,
     new_records,
@@ -165,6 +167,9 @@ class StreamOutput:
     bias: np.ndarray  #: (3,) estimated gyro bias, rad/s
     bias_stddev: np.ndarray  #: (3,) rad/s
     heading_initialized: bool  #: the magnetometer has fixed the heading
+    #: published with the heading lost in a gap (yaw variance of an unknown angle)
+    yaw_lost: bool = False
+    slot: int = -1  #: the smoother's slot of this step (:meth:`StreamAdapter.record_into`)
 
 
 @dataclass(slots=True)
@@ -184,6 +189,12 @@ class StreamOutputs:
     bias: np.ndarray  #: (M, 3)
     bias_stddev: np.ndarray  #: (M, 3)
     heading_initialized: np.ndarray  #: (M,) bool
+    #: (M,) bool, published with the heading lost in a gap (yaw variance raised to
+    #: :data:`~mkf_ros.core.state.YAW_VAR_UNKNOWN` until the magnetometer fixes it)
+    yaw_lost: np.ndarray
+    #: (M,) int, the smoother's slot of each output's filter step (:meth:`record_into`;
+    #: -1 when not recording)
+    slot: np.ndarray
 
 
 def _check(p: Param, value: Any) -> Any:
@@ -322,6 +333,11 @@ class StreamAdapter:
             ev["kind"] = kind
         self._out = new_records(sk.OUTPUT)
         self._out_present = self._out["present"]
+        # the smoother's recording (record_into): slots, [slots filled, out of room]
+        self._rec = new_records(smoother.RECORD, 0)
+        self._rn = np.zeros(4, dtype=np.int64)
+        self._recording = False
+        self._on_full: Callable[[int], tuple[np.ndarray, int, int]] | None = None
         self._out_flat = self._out.view(np.float64)
         self._derive()
 
@@ -453,6 +469,64 @@ class StreamAdapter:
                             f"far from gravity) in all {n_acc} {what}{acc}: {hint}")
         return out
 
+    # --- the smoother's recording ------------------------------------------------------------
+    def record_into(self, rec: np.ndarray | None,
+                    on_full: Callable[[int], tuple[np.ndarray, int, int]] | None = None,
+                    base: int = 0) -> None:
+        """Record every filter step for the smoother (docs/math.md §11.1; ``mkf process
+        --smooth``) into the slots of ``rec`` (:data:`~mkf_ros.core.smoother.RECORD`), one
+        per step (:func:`~mkf_ros.core.smoother.recorded_step`), the first numbered ``base``;
+        each output of :meth:`process` names its step's slot by that number
+        (:attr:`StreamOutputs.slot`). When the slots but
+        :data:`~mkf_ros.stream.kernel.MAX_STEPS_PER_EVENT` are filled, after that event,
+        ``on_full(filled)`` makes room and returns ``(rec, filled, base)`` to go on with.
+        None: stop recording. ValueError for a baseline algorithm (no smoother)."""
+        if rec is None:
+            self._recording = False
+            self._rec, self._rn[:] = new_records(smoother.RECORD, 0), 0
+            self._on_full = None
+            record(self.filter.kernel_arrays().cfg).record_posterior = False
+            return
+        if self.filter.params.algorithm not in ("mekf", "mukf"):
+            raise ValueError("the smoother needs algorithm mekf or mukf, not "
+                             f"{self.filter.params.algorithm!r}")
+        if len(rec) <= sk.MAX_STEPS_PER_EVENT:
+            raise ValueError(f"a recording needs more than {sk.MAX_STEPS_PER_EVENT} slots")
+        self._set_recording(rec, 0, base)
+        self._on_full = on_full
+        self._recording = True
+
+    def _set_recording(self, rec: np.ndarray, filled: int, base: int) -> None:
+        self._rec = rec
+        self._rn[:] = (filled, 0, len(rec) - sk.MAX_STEPS_PER_EVENT, base)
+
+    def published_orientation(self, quat: np.ndarray, cov: np.ndarray,
+                              yaw_lost: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Orientations ``(M, 4)`` ``[w, x, y, z]`` and covariances ``(M, 3, 3)`` about the
+        world axes (the filter's or the smoother's, docs/math.md §9.6) as published, by the
+        node's rules of :func:`~mkf_ros.stream.kernel.output`: the yaw offset / declination
+        turn (``w ≥ 0``), the yaw variance of an unknown heading where ``yaw_lost``, a fixed
+        ``orientation_stddev``. New arrays."""
+        p = record(self._npar)
+        q = np.array(quat, dtype=float)
+        c = np.array(cov, dtype=float)
+        if p.has_offset:
+            q = qmul_np(np.array(p.q_offset), q)
+            q[q[:, 0] < 0.0] *= -1.0
+            R = np.array(p.R_offset)
+            c = R @ c @ R.T
+        lost = np.asarray(yaw_lost, dtype=bool)
+        c[lost, 2, 2] = np.maximum(c[lost, 2, 2], YAW_VAR_UNKNOWN)
+        sd = float(p.orientation_stddev)
+        if sd > 0.0:
+            c[:] = np.eye(3) * sd * sd
+        return q, c
+
+    @property
+    def recorded(self) -> int:
+        """Slots of the recording filled so far (:meth:`record_into`)."""
+        return int(self._rn[0])
+
     # --- input -----------------------------------------------------------------------------
     def on_imu(self, stamp: float, gyr: Any, acc: Any = None) -> StreamOutput | None:
         """Process one IMU sample (rad/s, m/s²; None or all-NaN = not reported); with split
@@ -477,7 +551,8 @@ class StreamAdapter:
             angular_velocity_cov_add=np.diag(o[_WADD]) if flags & sk.OF_WADD else None,
             linear_acceleration=o[_LIN] if flags & sk.OF_LIN else None,
             omega=o[_OMEGA], bias=o[_BIAS], bias_stddev=o[_BSTD],
-            heading_initialized=bool(flags & sk.OF_HEADING))
+            heading_initialized=bool(flags & sk.OF_HEADING),
+            yaw_lost=bool(flags & sk.OF_YAW_LOST), slot=int(self._out["slot"][0]))
 
     def on_gyro(self, stamp: float, gyr: Any) -> StreamOutput | None:
         """Split input: one gyro sample (rad/s); the estimate at ``stamp`` as :meth:`on_imu`."""
@@ -567,16 +642,30 @@ class StreamAdapter:
     def _run(self, ev: np.ndarray, out: np.ndarray, k0: int, k1: int) -> None:
         """Events ``k0 … k1-1`` through the compiled rules. Only resets come back here: the
         filter gets new state, then the loop resumes."""
+        if self._recording:  # (set_params builds a new configuration)
+            record(self.filter.kernel_arrays().cfg).record_posterior = True
         while True:
             k, why = sk.run_events(kernel_table(), *self.filter.kernel_arrays(), self._npar,
-                                   self._ts, self._acnt, ev, out, k0, k1)
+                                   self._ts, self._acnt, self._rec, self._rn, ev, out, k0,
+                                   k1)
+            if self._rn[1]:
+                raise RuntimeError("smoother recording out of room (record_into: leave a slot "
+                                   "per event)")
             if why == sk.R_DONE:
                 return
+            if why == sk.R_FULL:
+                if self._on_full is None:
+                    raise RuntimeError("smoother recording full (record_into: no on_full)")
+                self._set_recording(*self._on_full(int(self._rn[0])))
+                k0 = k
+                continue
             if why == sk.R_TIME_JUMP:  # the same sample again, re-initialising from it
                 self.reset("time jump")
                 k0 = k
                 record(self._ts).resume = True
             else:  # R_NONFINITE: nothing published for that sample
+                if self._recording:  # its step leaves the smoother's chain
+                    smoother.cut(self._rec, int(self._rn[0]) - 1)
                 self.reset("non-finite estimate")
                 k0 = k + 1
 
@@ -599,4 +688,5 @@ def _outputs(out: np.ndarray, stamps: np.ndarray) -> StreamOutputs:
         angular_velocity=out["w"], angular_velocity_cov=out["wcov"],
         angular_velocity_cov_add=wadd, linear_acceleration=out["lin"],
         omega=out["omega"], bias=out["bias"], bias_stddev=out["bstd"],
-        heading_initialized=(flags & sk.OF_HEADING) > 0)
+        heading_initialized=(flags & sk.OF_HEADING) > 0,
+        yaw_lost=(flags & sk.OF_YAW_LOST) > 0, slot=out["slot"])

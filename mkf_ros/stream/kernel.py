@@ -52,6 +52,7 @@ from mkf_ros.core.filter import (
     uses_mag,
 )
 from mkf_ros.core.quaternion import q_from_rotvec, qmul, rotate_inv, rotmat, t3
+from mkf_ros.core.smoother import recorded_step
 
 #: Out-of-order IMU samples in a row after which the stream is taken to have jumped back.
 MAX_BACKWARDS = 10
@@ -145,8 +146,11 @@ EV_IMU, EV_MAG, EV_ACC = 0, 1, 2  # EV_ACC: split input, an accelerometer sample
 OUTPUT = np.dtype([("present", np.int64), ("q", np.float64, 4), ("cov", np.float64, (3, 3)),
                    ("w", np.float64, 3), ("wcov", np.float64, (3, 3)), ("wadd", np.float64, 3),
                    ("lin", np.float64, 3), ("omega", np.float64, 3), ("bias", np.float64, 3),
-                   ("bstd", np.float64, 3)])
-OF_PUB, OF_W, OF_WCOV, OF_WADD, OF_LIN, OF_HEADING = 1, 2, 4, 8, 16, 32
+                   ("bstd", np.float64, 3), ("slot", np.int64)])
+#: ``OF_YAW_LOST``: published with the heading lost in a gap (yaw variance raised to
+#: YAW_VAR_UNKNOWN); ``slot``: the smoother's record of this output's filter step (-1: not
+#: recording).
+OF_PUB, OF_W, OF_WCOV, OF_WADD, OF_LIN, OF_HEADING, OF_YAW_LOST = 1, 2, 4, 8, 16, 32, 64
 
 
 def float_slice(dtype: np.dtype, name: str) -> slice:
@@ -157,14 +161,24 @@ def float_slice(dtype: np.dtype, name: str) -> slice:
     return slice(offset // 8, offset // 8 + sub.itemsize // 8)
 
 #: The filter's records (:meth:`mkf_ros.core.filter.AttitudeFilter.kernel_arrays`, element
-#: ``[0]`` of each: configuration, state, counters, scratch) and its compiled kernels.
-FilterRecords = namedtuple("FilterRecords", ("c", "s", "k", "w", "kern"))
+#: ``[0]`` of each: configuration, state, counters, scratch), its compiled kernels, and the
+#: smoother's recording (:func:`filter_step`): the slots
+#: (:data:`~mkf_ros.core.smoother.RECORD`) and ``rn = [slots filled, 1 if out of room, limit,
+#: base]``: :func:`run_events` returns ``R_FULL`` after the event that filled ``limit`` slots
+#: (0: no limit); ``base`` is the global number of ``rec[0]`` (outputs name global slots).
+FilterRecords = namedtuple("FilterRecords", ("c", "s", "k", "w", "kern", "rec", "rn"))
 #: The adapter's records: node parameters, time state, counters.
 StreamRecords = namedtuple("StreamRecords", ("p", "t", "a"))
 
 # the outcome of one IMU event: nothing published, published, or a reset request; run_events
 # returns R_DONE or the reset request with the index of the event it stopped at
 _NONE, _OUT, R_TIME_JUMP, R_NONFINITE = 0, 1, 2, 3
+#: run_events stopped after an event that filled the smoother's recording up to its limit
+#: (call again from ``k`` once the recording has room)
+R_FULL = 4
+#: Filter steps one event can make (an IMU event: every held magnetometer and accelerometer
+#: sample, then its own): room the smoother's recording keeps beyond its limit.
+MAX_STEPS_PER_EVENT = 2 * PEND_ROWS + 1
 R_DONE = 0
 
 
@@ -283,10 +297,26 @@ def hold(t: np.record, a: np.record, stamp: float, m: np.ndarray, is_acc: bool) 
 
 
 @jit_inline
+def filter_step(f: FilterRecords, dt: float, gyr: tuple, acc: tuple, mag: tuple) -> None:
+    """One filter step; with the configuration's ``record_posterior`` (the smoother's forward
+    pass, ``mkf process --smooth``) recorded into the next slot of ``f.rec``
+    (:func:`~mkf_ros.core.smoother.recorded_step`), or, with no slot left, not recorded and
+    ``f.rn[1]`` set (the caller reserves room for every event: each makes at most one step)."""
+    if f.c.record_posterior:
+        n = f.rn[0]
+        if n < f.rec.shape[0]:
+            recorded_step(f.kern, f.c, f.s, f.k, f.w, dt, gyr, acc, mag, f.rec, n)
+            f.rn[0] = n + 1
+            return
+        f.rn[1] = 1
+    run_step(f.kern, f.c, f.s, f.k, f.w, dt, gyr, acc, mag)
+
+
+@jit_inline
 def _filter_step(f: FilterRecords, a: np.record, dt: float, v: np.ndarray,
                  is_acc: bool) -> None:
     """One filter step with only a magnetometer (or accelerometer) sample; counted."""
-    run_step(f.kern, f.c, f.s, f.k, f.w, dt, NAN3, t3(v) if is_acc else NAN3,
+    filter_step(f, dt, NAN3, t3(v) if is_acc else NAN3,
              NAN3 if is_acc else t3(v))
     if is_acc:
         a.acc_fused += 1
@@ -586,7 +616,7 @@ def imu_event(f: FilterRecords, r: StreamRecords, stamp: float, gyr: np.ndarray,
             a_held = True
     gaps = gap_count(f.k)
     dt_step = dt if not t.valid or r.p.constant_dt > 0.0 else t_new - t.t
-    run_step(f.kern, f.c, f.s, f.k, f.w, dt_step, t3(gyr) if has_g else NAN3, a_in,
+    filter_step(f, dt_step, t3(gyr) if has_g else NAN3, a_in,
              t3(mag) if has_m else NAN3)
     if gap_count(f.k) != gaps:
         t.yaw_lost = True
@@ -596,7 +626,9 @@ def imu_event(f: FilterRecords, r: StreamRecords, stamp: float, gyr: np.ndarray,
         r.a.acc_fused += 1
     t.t = t_new
     t.valid = True
-    return output(f, r, gyr, has_g, acc, has_a_in, o)
+    res = output(f, r, gyr, has_g, acc, has_a_in, o)
+    o.slot = f.rn[3] + f.rn[0] - 1 if f.c.record_posterior else -1
+    return res
 
 
 @jit
@@ -696,7 +728,7 @@ def output(f: FilterRecords, r: StreamRecords, g: np.ndarray, has_g: bool, a: np
         o.omega[i] = rate(s, i)
         o.bias[i] = bias(s, i)
         o.bstd[i] = np.sqrt(bias_variance(f.c, s, i))
-    flags = OF_PUB | (OF_HEADING if heading else 0)
+    flags = OF_PUB | (OF_HEADING if heading else 0) | (OF_YAW_LOST if t.yaw_lost else 0)
     o.present = flags | _optional_fields(f, r, g, has_g, a, has_a, q, o)
     return _OUT
 
@@ -704,24 +736,27 @@ def output(f: FilterRecords, r: StreamRecords, g: np.ndarray, has_g: bool, a: np
 @jit
 def run_events(table: np.ndarray, cfg: np.ndarray, st: np.ndarray, cnt: np.ndarray,
                work: np.ndarray, npar: np.ndarray, ts: np.ndarray, acnt: np.ndarray,
-               ev: np.ndarray, out: np.ndarray, k0: int, k1: int) -> tuple[int, int]:
+               rec: np.ndarray, rn: np.ndarray, ev: np.ndarray, out: np.ndarray, k0: int,
+               k1: int) -> tuple[int, int]:
     """Events ``k0 … k1-1`` in order (the filter's compiled kernels,
     :func:`~mkf_ros.core.filter.kernel_table`, and record arrays, the adapter's, the events
     and the outputs); returns ``(k, R_DONE)`` at the end, or the index
     and reason of an event that needs a reset (``R_TIME_JUMP``: call again from ``k`` with
     the time state's ``resume`` set; ``R_NONFINITE``: the event is done, call again from
-    ``k + 1``)."""
-    f = FilterRecords(cfg[0], st[0], cnt[0], work[0], kernels_at(table))
+    ``k + 1``; ``R_FULL``: the smoother's recording reached its limit, call again from ``k``
+    once it has room)."""
+    f = FilterRecords(cfg[0], st[0], cnt[0], work[0], kernels_at(table), rec, rn)
     r = StreamRecords(npar[0], ts[0], acnt[0])
     for k in range(k0, k1):
         e = ev[k]
         if e.kind == EV_MAG:
             mag_event(f, r, e.stamp, e.v)
-            continue
-        if e.kind == EV_ACC:
+        elif e.kind == EV_ACC:
             acc_event(f, r, e.stamp, e.v)
-            continue
-        res = imu_event(f, r, e.stamp, e.v, e.a, out[e.row])
-        if res >= R_TIME_JUMP:
-            return k, res
+        else:
+            res = imu_event(f, r, e.stamp, e.v, e.a, out[e.row])
+            if res >= R_TIME_JUMP:
+                return k, res
+        if rn[0] >= rn[2] > 0:
+            return k + 1, R_FULL
     return k1, R_DONE
