@@ -233,7 +233,7 @@ PARAMS: tuple[Param, ...] = (
     _P("mag_norm_tolerance", float, 0.1, "Magnetometer samples whose magnitude differs from the "
        "learned field by more than this fraction are not fused", unit="1", range=(0.0, 1000.0),
        group="robustness"),
-    _P("mag_dip_tolerance", float, 0.1745, "Magnetometer samples whose dip angle differs from "
+    _P("mag_dip_tolerance", float, 0.2618, "Magnetometer samples whose dip angle differs from "
        "the learned field's by more than this are not fused", unit="rad", range=(0.0, 3.1416),
        group="robustness"),
     _P("mag_new_time", float, 10.0, "A field of another magnitude or dip than the learned "
