@@ -12,10 +12,11 @@ with it (9D):
 1. :func:`mkf_ros.bags.process.process_bag` (what ``mkf process`` runs) on the bag, its IMU
    topic the bag's one ``sensor_msgs/Imu`` topic, into a throw-away output bag;
 2. the same messages (the IMU topic, plus the magnetometer topic in 9D: the topics
-   ``process_bag`` reads), read back with the project's reader (ROS 1 → CDR), deserialised to
-   rclpy messages and published in recording order to an in-process ``estimator`` node with the
-   same parameters, one message at a time (each taken before the next is published, so the
-   executor cannot reorder the two subscriptions), its ``imu/data`` recorded;
+   ``process_bag`` reads; ``--all-topics``: the magnetometer in 6D too), read back with the
+   project's reader (ROS 1 → CDR), deserialised to rclpy messages and published in recording
+   order to an in-process ``estimator`` node with the same parameters, one message at a time
+   (each taken before the next is published, so the executor cannot reorder the two
+   subscriptions), its ``imu/data`` recorded;
 3. per output, the node's message against the process tool's estimate for the same input
    message: orientation (x, y, z, w) and orientation covariance compared bit for bit; the
    node's stream counters against the process run's.
@@ -105,7 +106,7 @@ def _ties(path: Path, imu_topic: str, mag_topic: str) -> int:
 
 
 def run_case(ctx: Any, path: Path, imu_topic: str, mag_topic: str | None, params: dict[str, Any],
-             tmp: Path) -> Result:
+             tmp: Path, all_topics: bool = False) -> Result:
     from rosharness import Harness, bag_messages, output_arrays, send_one_by_one
     from sensor_msgs.msg import Imu
 
@@ -118,7 +119,7 @@ def run_case(ctx: Any, path: Path, imu_topic: str, mag_topic: str | None, params
                     keep_outputs=True)
     o = r.outputs
     assert o is not None
-    topics = [imu_topic, mag_topic] if use_mag and mag_topic else [imu_topic]
+    topics = [imu_topic, mag_topic] if (use_mag or all_topics) and mag_topic else [imu_topic]
     msgs = bag_messages(path, topics)
     imus = [m for m in msgs if isinstance(m, Imu)]
     h = Harness(ctx, params)
@@ -142,8 +143,11 @@ def run_case(ctx: Any, path: Path, imu_topic: str, mag_topic: str | None, params
                  if node_counters.get(k) != r.counters.get(k))
     counters = "equal" if not bad else ", ".join(
         f"{k} {node_counters.get(k)}≠{r.counters.get(k)}" for k in bad)
-    ties = _ties(path, imu_topic, mag_topic) if use_mag and mag_topic else 0
-    return Result(path.name, f"{params['algorithm']} {'9D' if use_mag else '6D'}", len(msgs),
+    ties = _ties(path, imu_topic, mag_topic) if len(topics) == 2 and mag_topic else 0
+    label = f"{params['algorithm']} {'9D' if use_mag else '6D'}"
+    if len(topics) == 2 and not use_mag:
+        label += " + mag published"
+    return Result(path.name, label, len(msgs),
                   len(st), len(o.index), int(same_row.sum()),
                   float(np.nanmax(dq)) if dq.size else 0.0,
                   float(np.nanmax(dc)) if dc.size else 0.0, first, ties, counters,
@@ -173,6 +177,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--only", metavar="GLOB", help="only the bags whose file name matches")
     ap.add_argument("--algorithm", choices=ALGORITHMS, nargs="+", default=["mekf"],
                     help="filters to run (default mekf)")
+    ap.add_argument("--all-topics", action="store_true",
+                    help="6D: publish the magnetometer topic to the node too (what mkf play "
+                         "and a live sensor send; process_bag does not read it in 6D)")
     ap.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
                     help="override a parameter for every run (repeatable)")
     args = ap.parse_args(argv)
@@ -216,7 +223,8 @@ def main(argv: list[str] | None = None) -> int:
                 for alg in args.algorithm:
                     for use_mag in ([False, True] if mag else [False]):
                         params = {**overrides, "algorithm": alg, "use_mag": use_mag}
-                        res = run_case(ctx, path, imu, mag, params, Path(td))
+                        res = run_case(ctx, path, imu, mag, params, Path(td),
+                                       args.all_topics)
                         results.append(res)
                         print(f"| {res.bag} | {res.label} | {res.n_in} | {res.n_node} / "
                               f"{res.n_proc} | {res.identical} | "
