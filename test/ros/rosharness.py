@@ -275,3 +275,41 @@ def finite(m: Imu) -> bool:
             m.angular_velocity.z, m.linear_acceleration.x, m.linear_acceleration.y,
             m.linear_acceleration.z]
     return all(math.isfinite(v) for v in vals)
+
+
+# --- node vs ``mkf process``: the same bag's messages, one at a time ---------------------------
+def bag_messages(path: Any, topics: Sequence[str]) -> list[Imu | MagneticField]:
+    """The messages of ``topics`` in ``path`` (any format :class:`~mkf_ros.bags.reader.BagReader`
+    reads, ROS 1 converted to CDR), in recording order (as the reader yields them: log time,
+    what ``mkf play`` publishes), deserialised to rclpy ``Imu`` / ``MagneticField`` objects."""
+    from rclpy.serialization import deserialize_message
+
+    from mkf_ros.bags import cdr
+    from mkf_ros.bags.reader import BagReader, normalize_topic
+
+    cls = {cdr.IMU.msgtype: Imu, cdr.MAGNETIC_FIELD.msgtype: MagneticField}
+    with BagReader(path) as br:
+        names = [normalize_topic(t) for t in topics]
+        types = {n: cls[br.topics[n].msgtype] for n in names}
+        return [deserialize_message(raw, types[topic])
+                for topic, _, raw in br.messages(names)]
+
+
+def send_one_by_one(h: Harness, msgs: Sequence[Imu | MagneticField],
+                    timeout: float = 10.0) -> None:
+    """Publish ``msgs`` one at a time, each taken by the node before the next is published:
+    the node sees them in exactly this order whatever the executor does with its two
+    subscriptions."""
+    for m in msgs:
+        h.send([m], timeout)
+
+
+def output_arrays(msgs: Sequence[Imu]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Stamps (ns), orientations [w, x, y, z] and covariances (9) of published messages."""
+    st = np.array([m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec for m in msgs],
+                  dtype=np.int64)
+    q = np.array([[m.orientation.w, m.orientation.x, m.orientation.y, m.orientation.z]
+                  for m in msgs], dtype=float).reshape(-1, 4)
+    cov = np.array([np.asarray(m.orientation_covariance) for m in msgs],
+                   dtype=float).reshape(-1, 9)
+    return st, q, cov
