@@ -170,7 +170,8 @@ def _range_value(draw: st.DrawFn, name: str) -> Any:
     elif pick == "default":
         return p.default
     elif lo > 0:
-        v = float(np.exp(draw(st.floats(np.log(lo), np.log(hi)))))
+        # exp(log(hi)) can round above hi: clip to the range the parameter accepts
+        v = float(min(hi, max(lo, np.exp(draw(st.floats(np.log(lo), np.log(hi)))))))
     else:
         v = draw(st.floats(lo, hi))
     if p.type is list:
