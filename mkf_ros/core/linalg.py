@@ -282,17 +282,62 @@ def scale_direction(P: np.ndarray, n: int, u: tuple, s: float) -> None:
 
 @jit
 def cap_eigenvalues33_t(C: tuple, cap: float) -> tuple:
-    """The symmetric 3×3 ``C`` with every eigenvalue above ``cap`` lowered to ``cap``
-    (``C − Σ (λ − cap) v vᵀ``; its other eigenpairs unchanged). ``C`` itself when none is.
-    ``C`` positive semidefinite: its trace then bounds its eigenvalues (the quick case)."""
+    """The symmetric positive semidefinite 3×3 ``C`` with its eigenvalues clamped to
+    ``[0, cap]``: rebuilt as ``Σ λₖ vₖ vₖᵀ`` from its eigenpairs (the largest from
+    :func:`largest_eigh33_t`, the other two in closed form in the plane orthogonal to it), so
+    that the result is positive semidefinite by construction. A subtraction
+    ``C − (λ − cap) v vᵀ`` or a congruence along ``v`` is not: at λ ≈ 10⁹ the rounding of
+    either left eigenvalues of −10⁻⁸. ``C`` itself when no eigenvalue exceeds ``cap`` (the
+    trace bounds them: the quick case)."""
     if C[0][0] + C[1][1] + C[2][2] <= cap:
         return C
-    for _ in range(3):
-        lam, v = largest_eigh33_t(C)
-        if not lam > cap:
-            break
-        d = lam - cap
-        C = ((C[0][0] - d * v[0] * v[0], C[0][1] - d * v[0] * v[1], C[0][2] - d * v[0] * v[2]),
-             (C[1][0] - d * v[1] * v[0], C[1][1] - d * v[1] * v[1], C[1][2] - d * v[1] * v[2]),
-             (C[2][0] - d * v[2] * v[0], C[2][1] - d * v[2] * v[1], C[2][2] - d * v[2] * v[2]))
-    return C
+    lam, v = largest_eigh33_t(C)
+    if not lam > cap:
+        return C
+    # an orthonormal basis (e, h) of the plane orthogonal to v
+    k = 0
+    if abs(v[1]) < abs(v[k]):
+        k = 1
+    if abs(v[2]) < abs(v[k]):
+        k = 2
+    a = (1.0 if k == 0 else 0.0, 1.0 if k == 1 else 0.0, 1.0 if k == 2 else 0.0)
+    av = a[0] * v[0] + a[1] * v[1] + a[2] * v[2]
+    e = (a[0] - av * v[0], a[1] - av * v[1], a[2] - av * v[2])
+    ne = np.sqrt(e[0] * e[0] + e[1] * e[1] + e[2] * e[2])
+    e = (e[0] / ne, e[1] / ne, e[2] / ne)
+    h = (v[1] * e[2] - v[2] * e[1], v[2] * e[0] - v[0] * e[2], v[0] * e[1] - v[1] * e[0])
+    # the 2×2 block of C in that plane, and its eigenpairs
+    Ce = (C[0][0] * e[0] + C[0][1] * e[1] + C[0][2] * e[2],
+          C[1][0] * e[0] + C[1][1] * e[1] + C[1][2] * e[2],
+          C[2][0] * e[0] + C[2][1] * e[1] + C[2][2] * e[2])
+    Ch = (C[0][0] * h[0] + C[0][1] * h[1] + C[0][2] * h[2],
+          C[1][0] * h[0] + C[1][1] * h[1] + C[1][2] * h[2],
+          C[2][0] * h[0] + C[2][1] * h[1] + C[2][2] * h[2])
+    b11 = e[0] * Ce[0] + e[1] * Ce[1] + e[2] * Ce[2]
+    b22 = h[0] * Ch[0] + h[1] * Ch[1] + h[2] * Ch[2]
+    b12 = 0.5 * (e[0] * Ch[0] + e[1] * Ch[1] + e[2] * Ch[2]
+                 + h[0] * Ce[0] + h[1] * Ce[1] + h[2] * Ce[2])
+    m = 0.5 * (b11 + b22)
+    d = np.sqrt(0.25 * (b11 - b22) ** 2 + b12 * b12)
+    l2, l3 = m + d, m - d
+    x, y = b12, l2 - b11  # eigenvector of l2 in (e, h): the longer of two equivalent forms
+    x2, y2 = l2 - b22, b12
+    if x2 * x2 + y2 * y2 > x * x + y * y:
+        x, y = x2, y2
+    n = np.sqrt(x * x + y * y)
+    if n > 0.0:
+        x, y = x / n, y / n
+    else:
+        x, y = 1.0, 0.0
+    u = (x * e[0] + y * h[0], x * e[1] + y * h[1], x * e[2] + y * h[2])
+    w = (v[1] * u[2] - v[2] * u[1], v[2] * u[0] - v[0] * u[2], v[0] * u[1] - v[1] * u[0])
+    l1 = cap
+    l2 = min(max(l2, 0.0), cap)
+    l3 = min(max(l3, 0.0), cap)
+    c00 = l1 * v[0] * v[0] + l2 * u[0] * u[0] + l3 * w[0] * w[0]
+    c11 = l1 * v[1] * v[1] + l2 * u[1] * u[1] + l3 * w[1] * w[1]
+    c22 = l1 * v[2] * v[2] + l2 * u[2] * u[2] + l3 * w[2] * w[2]
+    c01 = l1 * v[0] * v[1] + l2 * u[0] * u[1] + l3 * w[0] * w[1]
+    c02 = l1 * v[0] * v[2] + l2 * u[0] * u[2] + l3 * w[0] * w[2]
+    c12 = l1 * v[1] * v[2] + l2 * u[1] * u[2] + l3 * w[1] * w[2]
+    return ((c00, c01, c02), (c01, c11, c12), (c02, c12, c22))

@@ -95,6 +95,10 @@ def test_eigenvalues_capped_and_the_rest_kept() -> None:
         expected = V @ np.diag(np.minimum(w, cap)) @ V.T
         scale = max(np.abs(w).max(), 1.0)
         np.testing.assert_allclose(C, expected, atol=1e-8 * scale)
+        # positive semidefinite by construction, even below a 10⁹ eigenvalue (a subtraction
+        # or congruence along the eigenvector left −10⁻⁸ there)
+        np.testing.assert_array_equal(C, C.T)
+        assert np.linalg.eigvalsh(C).min() >= -1e-15 * cap
 
 
 def test_scaling_a_direction_is_a_congruence() -> None:
