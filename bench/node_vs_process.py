@@ -51,6 +51,9 @@ os.environ.setdefault("ROS_DOMAIN_ID", str(random.randint(1, 101)))
 os.environ.setdefault("ROS_LOG_DIR", tempfile.mkdtemp(prefix="mkf_ros-bench-log-"))
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from ros_bags import only_topic, parse_set  # noqa: E402  (the ROS-bag bench's readers)
+
 ALGORITHMS = ("mekf", "mukf")
 
 
@@ -87,13 +90,10 @@ def _bags(folder: Path, only: str | None) -> list[Path]:
 
 
 def _topic(path: Path, msgtype: str) -> str | None:
-    from mkf_ros.bags import BagError, BagReader
+    from mkf_ros.bags import BagReader
 
     with BagReader(path) as br:
-        names = br.of_type(msgtype)
-    if len(names) > 1:
-        raise BagError(f"{path}: several {msgtype} topics ({', '.join(names)})")
-    return names[0] if names else None
+        return only_topic(br, msgtype)
 
 
 def _ties(path: Path, imu_topic: str, mag_topic: str) -> int:
@@ -152,22 +152,6 @@ def run_case(ctx: Any, path: Path, imu_topic: str, mag_topic: str | None, params
                   float(np.nanmax(dq)) if dq.size else 0.0,
                   float(np.nanmax(dc)) if dc.size else 0.0, first, ties, counters,
                   time.monotonic() - t0)
-
-
-def parse_set(items: list[str]) -> dict[str, Any]:
-    """``NAME=VALUE`` overrides, validated and typed by the adapter (ValueError)."""
-    out: dict[str, Any] = {}
-    for it in items:
-        name, sep, val = it.partition("=")
-        if not sep:
-            raise ValueError(f"--set expects NAME=VALUE, got {it!r}")
-        out[name.strip()] = val.strip()
-    if out:
-        from mkf_ros.stream.adapter import StreamAdapter
-
-        typed = StreamAdapter(out).params
-        out = {k: typed[k] for k in out}
-    return out
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -583,7 +583,8 @@ def _within(what: str, mekf: float, mukf: float) -> Check:
 
 
 def _per_trial(label: str, trials: Iterable[tuple[str, float, float]],
-               judge: Callable[[float, float], tuple[bool, str]], outside: str) -> Check:
+               judge: Callable[[float, float], tuple[bool, str]], outside: str,
+               noun: str = "trials") -> Check:
     """One line over ``(trial, value, reference)``: how many trials ``judge`` accepts and,
     after ``outside``, the others with ``judge``'s text; n/a when any value is missing."""
     bad, n, n_ok, missing = [], 0, 0, False
@@ -597,7 +598,7 @@ def _per_trial(label: str, trials: Iterable[tuple[str, float, float]],
             n_ok += 1
         else:
             bad.append(f"{name} {why}")
-    text = f"{label} {n_ok}/{n} trials"
+    text = f"{label} {n_ok}/{n} {noun}"
     if bad:
         text += f"; {outside}: " + ", ".join(bad)
     return Check(_status(None if missing else not bad), text)
@@ -702,7 +703,8 @@ def target_checks(data: dict[str, DatasetResult]) -> list[Check]:
                     f"tyrex every motion class {dim} {kind} ≤ {TYREX_FACTOR:g} × vqf + {off:g}: "
                     f"{o}", ((g, mean(o, rs), mean("vqf", rs)) for g, rs in motions),
                     lambda v, p, off=off: (v <= TYREX_FACTOR * p + off,
-                                           f"{v:.2f} > {TYREX_FACTOR * p + off:.2f}"), "over"))
+                                           f"{v:.2f} > {TYREX_FACTOR * p + off:.2f}"), "over",
+                    "classes"))
     for what, vals in pairs:
         out.append(_within(f"mukf within {MUKF_REL_TOL:.0%} of mekf, {what}", vals["mekf"],
                            vals["mukf"]))

@@ -141,7 +141,8 @@ class BagData:
         return np.column_stack([q[:, 3], q[:, 0], q[:, 1], q[:, 2]])
 
 
-def _only_topic(br: BagReader, msgtype: str) -> str | None:
+def only_topic(br: BagReader, msgtype: str) -> str | None:
+    """The bag's one topic of ``msgtype`` (None without; BagError if several)."""
     names = sorted(t for t, i in br.topics.items() if i.msgtype == msgtype)
     if len(names) > 1:
         raise BagError(f"{br.path}: several {msgtype} topics ({', '.join(names)})")
@@ -150,11 +151,11 @@ def _only_topic(br: BagReader, msgtype: str) -> str | None:
 
 def read_bag(path: Path) -> BagData:
     with BagReader(path) as br:
-        imu_topic = _only_topic(br, cdr.IMU.msgtype)
+        imu_topic = only_topic(br, cdr.IMU.msgtype)
         if imu_topic is None:
             raise BagError(f"{path}: no {cdr.IMU.msgtype} topic")
-        mag_topic = _only_topic(br, cdr.MAGNETIC_FIELD.msgtype)
-        odom_topic = _only_topic(br, ODOM_TYPE)
+        mag_topic = only_topic(br, cdr.MAGNETIC_FIELD.msgtype)
+        odom_topic = only_topic(br, ODOM_TYPE)
         batches = br.read([t for t in (imu_topic, mag_topic, odom_topic) if t])
         start = br.start_ns
     b = batches[imu_topic]

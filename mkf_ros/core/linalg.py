@@ -211,6 +211,26 @@ def congruence33_t(A: tuple, B: tuple) -> tuple:
     return mul33_t(A, mul33_t(B, transpose33_t(A)))
 
 
+@jit_inline
+def cross_t(a: tuple, b: tuple) -> tuple:
+    """``a × b`` for 3-tuples."""
+    return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
+
+
+@jit_inline
+def orthogonal_unit_t(x: tuple) -> tuple:
+    """A unit vector orthogonal to the non-zero 3-tuple ``x``: ``x`` × the axis least aligned
+    with it, normalised."""
+    k = 0
+    if abs(x[1]) < abs(x[k]):
+        k = 1
+    if abs(x[2]) < abs(x[k]):
+        k = 2
+    c = cross_t(x, (1.0 if k == 0 else 0.0, 1.0 if k == 1 else 0.0, 1.0 if k == 2 else 0.0))
+    n = np.sqrt(c[0] * c[0] + c[1] * c[1] + c[2] * c[2])
+    return (c[0] / n, c[1] / n, c[2] / n)
+
+
 @jit
 def largest_eigh33_t(A: tuple) -> tuple[float, tuple]:
     """The largest eigenvalue of a symmetric 3×3 ``A`` (tuple of rows) and a unit eigenvector
@@ -237,7 +257,7 @@ def largest_eigh33_t(A: tuple) -> tuple[float, tuple]:
     best = (1.0, 0.0, 0.0)
     n_best = 0.0
     for u, v in ((r0, r1), (r0, r2), (r1, r2)):
-        c = (u[1] * v[2] - u[2] * v[1], u[2] * v[0] - u[0] * v[2], u[0] * v[1] - u[1] * v[0])
+        c = cross_t(u, v)
         n = c[0] * c[0] + c[1] * c[1] + c[2] * c[2]
         if n > n_best:
             best, n_best = c, n
@@ -250,16 +270,7 @@ def largest_eigh33_t(A: tuple) -> tuple[float, tuple]:
         nr = row[0] ** 2 + row[1] ** 2 + row[2] ** 2
         if nr <= (1e-12 * scale) ** 2:
             return lam, (1.0, 0.0, 0.0)
-        # a unit vector orthogonal to row: row × the axis least aligned with it
-        k = 0
-        if abs(row[1]) < abs(row[k]):
-            k = 1
-        if abs(row[2]) < abs(row[k]):
-            k = 2
-        e = (1.0 if k == 0 else 0.0, 1.0 if k == 1 else 0.0, 1.0 if k == 2 else 0.0)
-        best = (row[1] * e[2] - row[2] * e[1], row[2] * e[0] - row[0] * e[2],
-                row[0] * e[1] - row[1] * e[0])
-        n_best = best[0] ** 2 + best[1] ** 2 + best[2] ** 2
+        return lam, orthogonal_unit_t(row)
     n = np.sqrt(n_best)
     return lam, (best[0] / n, best[1] / n, best[2] / n)
 
@@ -294,25 +305,10 @@ def cap_eigenvalues33_t(C: tuple, cap: float) -> tuple:
     lam, v = largest_eigh33_t(C)
     if not lam > cap:
         return C
-    # an orthonormal basis (e, h) of the plane orthogonal to v
-    k = 0
-    if abs(v[1]) < abs(v[k]):
-        k = 1
-    if abs(v[2]) < abs(v[k]):
-        k = 2
-    a = (1.0 if k == 0 else 0.0, 1.0 if k == 1 else 0.0, 1.0 if k == 2 else 0.0)
-    av = a[0] * v[0] + a[1] * v[1] + a[2] * v[2]
-    e = (a[0] - av * v[0], a[1] - av * v[1], a[2] - av * v[2])
-    ne = np.sqrt(e[0] * e[0] + e[1] * e[1] + e[2] * e[2])
-    e = (e[0] / ne, e[1] / ne, e[2] / ne)
-    h = (v[1] * e[2] - v[2] * e[1], v[2] * e[0] - v[0] * e[2], v[0] * e[1] - v[1] * e[0])
-    # the 2×2 block of C in that plane, and its eigenpairs
-    Ce = (C[0][0] * e[0] + C[0][1] * e[1] + C[0][2] * e[2],
-          C[1][0] * e[0] + C[1][1] * e[1] + C[1][2] * e[2],
-          C[2][0] * e[0] + C[2][1] * e[1] + C[2][2] * e[2])
-    Ch = (C[0][0] * h[0] + C[0][1] * h[1] + C[0][2] * h[2],
-          C[1][0] * h[0] + C[1][1] * h[1] + C[1][2] * h[2],
-          C[2][0] * h[0] + C[2][1] * h[1] + C[2][2] * h[2])
+    # an orthonormal basis (e, h) of the plane orthogonal to v; C e and C h (C symmetric)
+    e = orthogonal_unit_t(v)
+    h = cross_t(v, e)
+    Ce, Ch = _row_times33_t(e, C), _row_times33_t(h, C)
     b11 = e[0] * Ce[0] + e[1] * Ce[1] + e[2] * Ce[2]
     b22 = h[0] * Ch[0] + h[1] * Ch[1] + h[2] * Ch[2]
     b12 = 0.5 * (e[0] * Ch[0] + e[1] * Ch[1] + e[2] * Ch[2]
@@ -330,7 +326,7 @@ def cap_eigenvalues33_t(C: tuple, cap: float) -> tuple:
     else:
         x, y = 1.0, 0.0
     u = (x * e[0] + y * h[0], x * e[1] + y * h[1], x * e[2] + y * h[2])
-    w = (v[1] * u[2] - v[2] * u[1], v[2] * u[0] - v[0] * u[2], v[0] * u[1] - v[1] * u[0])
+    w = cross_t(v, u)
     l1 = cap
     l2 = min(max(l2, 0.0), cap)
     l3 = min(max(l3, 0.0), cap)

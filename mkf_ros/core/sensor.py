@@ -687,6 +687,14 @@ def _rest_test(c: np.record, s: np.record, dt: float, g: tuple, has_g: bool, a: 
 
 # --- 6. the magnetometer ---------------------------------------------------------------------
 @hot
+def _dip(R: tuple, m_body: tuple) -> float:
+    """Dip of the unit field ``m_body`` (rad, negative below the horizon) in the world frame of
+    ``R`` = R(q̂): the elevation of ``R m``."""
+    mz = R[2][0] * m_body[0] + R[2][1] * m_body[1] + R[2][2] * m_body[2]
+    return np.arcsin(max(-1.0, min(1.0, mz)))
+
+
+@hot
 def _mag_plausible(c: np.record, s: np.record, k: np.record, R: tuple, m_body: tuple,
                    m_norm: float) -> bool:
     """Field magnitude and dip against the learned reference (extension); counted if not."""
@@ -695,8 +703,7 @@ def _mag_plausible(c: np.record, s: np.record, k: np.record, R: tuple, m_body: t
     if abs(m_norm / s.mag_norm - 1.0) > c.mag_norm_tolerance:
         k.mag_rejected_norm += 1
         return False
-    mz = R[2][0] * m_body[0] + R[2][1] * m_body[1] + R[2][2] * m_body[2]
-    dip = np.arcsin(max(-1.0, min(1.0, mz)))
+    dip = _dip(R, m_body)
     dip_ref = np.arcsin(max(-1.0, min(1.0, s.mag_ref[2])))
     if abs(dip - dip_ref) > c.mag_dip_tolerance:
         k.mag_rejected_dip += 1
@@ -746,8 +753,7 @@ def _mag_candidate(c: np.record, s: np.record, dtm: float, R: tuple, m_body: tup
     T = c.mag_new_time if s.mag_adopted else c.mag_new_first_time
     if not T > 0.0:
         return False
-    mz = R[2][0] * m_body[0] + R[2][1] * m_body[1] + R[2][2] * m_body[2]
-    dip = np.arcsin(max(-1.0, min(1.0, mz)))
+    dip = _dip(R, m_body)
     if (s.t_mag_cand > 0.0 and abs(m_norm / s.mag_cand_norm - 1.0) <= c.mag_norm_tolerance
             and abs(dip - s.mag_cand_dip) <= c.mag_dip_tolerance):
         a = min(1.0, dtm / c.mag_time_constant)

@@ -740,13 +740,17 @@ CHUNK_SAMPLES = 8192
 
 
 class SimStream:
-    """A synthetic recording generated chunk by chunk in bounded memory (see :func:`simulate`
-    for the arguments; ``chunk``: samples per chunk, default ~2¹⁸ steps of the rate grid and at
-    most :data:`CHUNK_SAMPLES`). Iterating yields :class:`SimData` chunks in time order (dropped
-    samples removed, so a chunk may be empty) whose concatenation is :func:`simulate`'s result,
-    whatever the chunk size. Every chunk shares :attr:`meta`, which is complete (the truth
-    intervals found on the way, e.g. ``gimbal_lock``) once the iteration has ended. One pass
-    only: the random draws are consumed."""
+    """A synthetic recording of ``duration`` s at ``rate`` Hz generated chunk by chunk in bounded
+    memory. ``q0`` is the initial attitude (default: random, uniform on S³; level with a random
+    heading for ``sweep``); ``gyro_bias`` a constant bias added to the scenario's; ``mag_field``
+    the Earth field in ENU (T); ``mag_rate`` (Hz) makes the magnetometer slower (NaN rows
+    between its samples); ``scenario_args`` the scenario's own parameters
+    (``SCENARIOS[name].params``); ``chunk``: samples per chunk, default ~2¹⁸ steps of the rate
+    grid and at most :data:`CHUNK_SAMPLES`. Iterating yields :class:`SimData` chunks in time
+    order (dropped samples removed, so a chunk may be empty) whose concatenation is
+    :func:`simulate`'s result, whatever the chunk size. Every chunk shares :attr:`meta`, which
+    is complete (the truth intervals found on the way, e.g. ``gimbal_lock``) once the iteration
+    has ended. One pass only: the random draws are consumed."""
 
     def __init__(
         self,
@@ -908,36 +912,13 @@ class SimStream:
         lock.close()
 
 
-def simulate(
-    scenario: str = "slow_rotation",
-    *,
-    duration: float = 20.0,
-    rate: float = 100.0,
-    seed: int = 0,
-    substeps: int = 100,
-    gyro_noise: float = 0.01,
-    acc_noise: float = 0.05,
-    mag_noise: float = 0.5e-6,
-    gyro_bias: object = (0.0, 0.0, 0.0),
-    mag_field: np.ndarray = MAG_FIELD_ENU,
-    mag_rate: float | None = None,
-    q0: np.ndarray | None = None,
-    chunk: int | None = None,
-    **scenario_args: Any,
-) -> SimData:
-    """Synthesise a recording of ``duration`` s at ``rate`` Hz (see the module doc).
-
-    ``q0`` is the initial attitude (default: random, uniform on S³; level with a random heading
-    for ``sweep``); ``gyro_bias`` a constant bias added to the scenario's; ``mag_field`` the
-    Earth field in ENU (T); ``mag_rate`` (Hz) makes the magnetometer slower (NaN rows between its
-    samples). ``scenario_args`` are the scenario's own parameters (``SCENARIOS[name].params``).
-    The whole recording in memory: the chunks of :class:`SimStream` (same arguments; ``chunk``
-    does not change the result) concatenated; for long recordings iterate a :class:`SimStream`.
-    """
-    stream = SimStream(scenario, duration=duration, rate=rate, seed=seed, substeps=substeps,
-                       gyro_noise=gyro_noise, acc_noise=acc_noise, mag_noise=mag_noise,
-                       gyro_bias=gyro_bias, mag_field=mag_field, mag_rate=mag_rate, q0=q0,
-                       chunk=chunk, **scenario_args)
+def simulate(scenario: str = "slow_rotation", **kwargs: Any) -> SimData:
+    """Synthesise a recording (see the module doc), the arguments those of :class:`SimStream`
+    (``duration``, ``rate``, ``seed``, noise, ``gyro_bias``, ``mag_field``, ``mag_rate``,
+    ``q0``, ``chunk`` and the scenario's own parameters, ``SCENARIOS[name].params``). The
+    whole recording in memory: the stream's chunks concatenated (``chunk`` does not change the
+    result); for long recordings iterate a :class:`SimStream`."""
+    stream = SimStream(scenario, **kwargs)
     return concat(list(stream), stream.meta)
 
 

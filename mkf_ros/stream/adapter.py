@@ -66,7 +66,6 @@ from mkf_ros.core.filter import (
     MAX_ACC_G,
     MAX_GYRO_RATE,
     MAX_MAG,
-    YAW_VAR_UNKNOWN,
     AttitudeFilter,
     kernel_table,
     new_records,
@@ -507,19 +506,9 @@ class StreamAdapter:
         node's rules of :func:`~mkf_ros.stream.kernel.output`: the yaw offset / declination
         turn (``w ≥ 0``), the yaw variance of an unknown heading where ``yaw_lost``, a fixed
         ``orientation_stddev``. New arrays."""
-        p = record(self._npar)
         q = np.array(quat, dtype=float)
         c = np.array(cov, dtype=float)
-        if p.has_offset:
-            q = qmul_np(np.array(p.q_offset), q)
-            q[q[:, 0] < 0.0] *= -1.0
-            R = np.array(p.R_offset)
-            c = R @ c @ R.T
-        lost = np.asarray(yaw_lost, dtype=bool)
-        c[lost, 2, 2] = np.maximum(c[lost, 2, 2], YAW_VAR_UNKNOWN)
-        sd = float(p.orientation_stddev)
-        if sd > 0.0:
-            c[:] = np.eye(3) * sd * sd
+        sk.published_batch(self._npar, q, c, np.ascontiguousarray(yaw_lost, dtype=np.bool_))
         return q, c
 
     @property

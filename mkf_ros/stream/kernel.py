@@ -650,6 +650,38 @@ def _offset(p: np.record, q: tuple, cov: np.ndarray) -> tuple:
 
 
 @jit
+def published(p: np.record, q: tuple, cov: np.ndarray, yaw_lost: bool) -> tuple:
+    """The node's rules for an orientation and its covariance as published (``cov`` in place,
+    the quaternion returned): the yaw offset / declination turn (:func:`_offset`), the yaw
+    variance of an unknown heading where ``yaw_lost`` (world z is vertical in ENU, NED and
+    NWU), a fixed ``orientation_stddev``. The one place of these rules: the filter's estimate
+    (:func:`output`) and the smoother's (:func:`published_batch`) go through it."""
+    if p.has_offset:
+        q = _offset(p, q, cov)
+    if yaw_lost and cov[2, 2] < YAW_VAR_UNKNOWN:
+        cov[2, 2] = YAW_VAR_UNKNOWN
+    sd = p.orientation_stddev
+    if sd > 0.0:
+        cov[:, :] = 0.0
+        for i in range(3):
+            cov[i, i] = sd * sd
+    return q
+
+
+@jit
+def published_batch(npar: np.ndarray, quat: np.ndarray, cov: np.ndarray,
+                    yaw_lost: np.ndarray) -> None:
+    """:func:`published` of every row, in place: ``quat`` (M, 4) ``[w, x, y, z]``, ``cov``
+    (M, 3, 3), ``yaw_lost`` (M,); ``npar`` the node's parameter record array."""
+    p = npar[0]
+    for k in range(quat.shape[0]):
+        q = published(p, (quat[k, 0], quat[k, 1], quat[k, 2], quat[k, 3]), cov[k],
+                      yaw_lost[k])
+        for i in range(4):
+            quat[k, i] = q[i]
+
+
+@jit
 def _optional_fields(f: FilterRecords, r: StreamRecords, g: np.ndarray, has_g: bool,
                      acc: np.ndarray, has_a: bool, q: tuple, o: np.record) -> int:
     """The output's optional fields per the node parameters (angular velocity and its
@@ -708,18 +740,10 @@ def output(f: FilterRecords, r: StreamRecords, g: np.ndarray, has_g: bool, a: np
     if not np.isfinite(tot):
         r.a.output_nonfinite += 1
         return R_NONFINITE
-    q = _offset(p, qt, cov) if p.has_offset else qt
     heading = heading_fixed(f.c, s)
-    if t.yaw_lost:
-        if heading:
-            t.yaw_lost = False
-        elif cov[2, 2] < YAW_VAR_UNKNOWN:
-            cov[2, 2] = YAW_VAR_UNKNOWN  # world z is vertical in ENU, NED and NWU
-    sd = p.orientation_stddev
-    if sd > 0.0:
-        cov[:, :] = 0.0
-        for i in range(3):
-            cov[i, i] = sd * sd
+    if t.yaw_lost and heading:
+        t.yaw_lost = False
+    q = published(p, qt, cov, t.yaw_lost)
     for i in range(4):
         o.q[i] = q[i]
     for i in range(3):
