@@ -192,7 +192,7 @@ def _prune_old_caches(root: Path, keep_days: float = 7.0) -> None:
 
 #: The compiled loops that take the units (:func:`mkf_ros.api.compile_entries`), and their
 #: compile times on the reference machine (``./run bench compile_time --tasks``).
-_ENTRY_COSTS = {"estimate": 1.6, "filter": 3.0, "stream": 11.0}
+_ENTRY_COSTS = {"estimate": 11.0, "filter": 2.0, "stream": 20.0}
 
 
 def compile_tasks() -> tuple[list[str], list[str]]:
