@@ -172,7 +172,7 @@ def _needs_joseph(P: np.ndarray, nx: int, work: np.ndarray) -> bool:
 
 
 @jit
-def _joseph(P: np.ndarray, nx: int, work: np.ndarray, hk: int, vb: tuple) -> None:
+def _joseph(P: np.ndarray, nx: int, work: np.ndarray, hk: int, vb: tuple, Hb: tuple) -> None:
     """``P ← (I − K H) P (I − K H)ᵀ + K R Kᵀ`` for any gain ``K`` (rows ``nx:2nx`` of ``work``),
     ``R`` in rows ``2nx+9…``, ``H`` of kind ``hk`` (``vb`` = v̄ for :data:`H_VECTOR`): PSD for
     any gain, and computed as that product, so that the rounding of the large prior terms is
@@ -189,6 +189,11 @@ def _joseph(P: np.ndarray, nx: int, work: np.ndarray, hk: int, vb: tuple) -> Non
         if hk == H_VECTOR:  # (B Hᵀ)_i = v̄ × B[i, 0:3]
             b0, b1, b2 = P[i, 0], P[i, 1], P[i, 2]
             h0, h1, h2 = vb[1] * b2 - vb[2] * b1, vb[2] * b0 - vb[0] * b2, vb[0] * b1 - vb[1] * b0
+            if nx == 9:  # + B[i, 6:9] H_bᵀ (the bias columns of H, :func:`mekf_vector_update_t`)
+                c6, c7, c8 = P[i, 6], P[i, 7], P[i, 8]
+                h0 += c6 * Hb[0][0] + c7 * Hb[0][1] + c8 * Hb[0][2]
+                h1 += c6 * Hb[1][0] + c7 * Hb[1][1] + c8 * Hb[1][2]
+                h2 += c6 * Hb[2][0] + c7 * Hb[2][1] + c8 * Hb[2][2]
         elif hk == H_RATE:
             h0, h1, h2 = P[i, 3], P[i, 4], P[i, 5]
         else:
@@ -205,9 +210,34 @@ def _joseph(P: np.ndarray, nx: int, work: np.ndarray, hk: int, vb: tuple) -> Non
             P[j, i] = p
 
 
+_Z33 = ((0.0, 0.0, 0.0), (0.0, 0.0, 0.0), (0.0, 0.0, 0.0))
+
+
+@jit_inline
+def _cross_rows(v: tuple, S: tuple) -> tuple:
+    """``[v]× S`` (``S`` and the result as rows): column ``j`` is ``v × S[:, j]``."""
+    r0, r1, r2 = S
+    a, b, c = v
+    return ((b * r2[0] - c * r1[0], b * r2[1] - c * r1[1], b * r2[2] - c * r1[2]),
+            (c * r0[0] - a * r2[0], c * r0[1] - a * r2[1], c * r0[2] - a * r2[2]),
+            (a * r1[0] - b * r0[0], a * r1[1] - b * r0[1], a * r1[2] - b * r0[2]))
+
+
+@jit_inline
+def _scale_bias_gain(work: np.ndarray, nx: int, bias_gain: float) -> None:
+    """The bias rows of the gain ``K`` (rows ``nx+6 … nx+8`` of ``work``) times ``bias_gain``:
+    a partial update of the bias (Brink, *Partial-Update Schmidt–Kalman Filter*, J. Guid.
+    Control Dyn. 40(9), 2017; docs/math.md §9.1), any gain being valid with the Joseph form."""
+    if nx == 9 and bias_gain < 1.0:
+        for i in range(nx + 6, nx + 9):
+            for j in range(3):
+                work[i, j] *= bias_gain
+
+
 @jit_inline
 def _block_update(P: np.ndarray, nx: int, dx: np.ndarray, work: np.ndarray, r: tuple,
-                  gate: float, hk: int, vb: tuple, frozen: int = 0) -> float:
+                  gate: float, hk: int, vb: tuple, frozen: int, Hb: tuple,
+                  bias_gain: float) -> float:
     """Kalman update for one 3-row block given ``P Hᵀ`` (nx×3), ``S`` and ``R`` in ``work``
     (layout above), ``H`` of kind ``hk`` (``vb`` for a vector sensor) and the innovation ``r``
     (already corrected for earlier blocks): ``K = P Hᵀ S⁻¹``, ``Δx += K r``,
@@ -219,16 +249,20 @@ def _block_update(P: np.ndarray, nx: int, dx: np.ndarray, work: np.ndarray, r: t
     ``frozen`` (0 or 3): the gain of the first ``frozen`` states is set to zero, ``K = Π K₀``
     with ``Π = blockdiag(0, I)``: their estimate and their own covariance block stay, the
     rest follows the Joseph form ``(I − KH) P (I − KH)ᵀ + K R Kᵀ``, which for this ``Π`` is
-    ``P − K₀ (PHᵀ)ᵀ`` everywhere but that block (valid for any gain: PSD by construction)."""
+    ``P − K₀ (PHᵀ)ᵀ`` everywhere but that block (valid for any gain: PSD by construction).
+    ``bias_gain`` < 1 scales the bias rows of the gain (:func:`_scale_bias_gain`), Joseph form;
+    ``Hb`` the bias columns of a vector sensor's ``H`` (:func:`mekf_vector_update_t`)."""
     go, nis, Si = _innovation_test(work, nx, r, gate)
     if not go:
         return nis
-    if _needs_joseph(P, nx, work):
+    if bias_gain < 1.0 or _needs_joseph(P, nx, work):
         for i in range(nx):
             k0, k1, k2 = _gain_row(work, i, Si) if i >= frozen else (0.0, 0.0, 0.0)
             work[nx + i, 0], work[nx + i, 1], work[nx + i, 2] = k0, k1, k2
-            dx[i] += k0 * r[0] + k1 * r[1] + k2 * r[2]
-        _joseph(P, nx, work, hk, vb)
+        _scale_bias_gain(work, nx, bias_gain)
+        for i in range(nx):
+            dx[i] += work[nx + i, 0] * r[0] + work[nx + i, 1] * r[1] + work[nx + i, 2] * r[2]
+        _joseph(P, nx, work, hk, vb, Hb)
         return nis
     for i in range(nx):  # row i of K, then of Δx and P (P Hᵀ is a copy: P may change)
         k0, k1, k2 = _gain_row(work, i, Si)
@@ -243,7 +277,7 @@ def _block_update(P: np.ndarray, nx: int, dx: np.ndarray, work: np.ndarray, r: t
 
 @jit_inline
 def _joseph_projected(P: np.ndarray, nx: int, dx: np.ndarray, work: np.ndarray, r: tuple,
-                      gate: float, u: tuple, vb: tuple) -> float:
+                      gate: float, u: tuple, vb: tuple, Hb: tuple, bias_gain: float) -> float:
     """:func:`_block_update` with the gain of every 3-row group (attitude, rate, bias) projected
     off the direction ``u`` (the world vertical in body axes), so that this measurement cannot
     change heading, vertical rate or vertical bias: ``K = Π K₀``, ``K₀ = P Hᵀ S⁻¹``,
@@ -253,23 +287,25 @@ def _joseph_projected(P: np.ndarray, nx: int, dx: np.ndarray, work: np.ndarray, 
     its group block ``(g, h)`` is ``P_gh − M_gh + c_gh u uᵀ``, ``c_gh = ℓ_gᵀ S⁻¹ ℓ_h``,
     ``ℓ_g = (PHᵀ)_gᵀ u``. That expansion assumes the exact ``K₀``; where ``S`` is too
     ill-conditioned for that (:data:`JOSEPH_TAU`) the Joseph form is computed as the product
-    (:func:`_joseph`, ``H = [v̄]×``)."""
+    (:func:`_joseph`, ``H = [v̄]×``); so is it with ``bias_gain`` < 1 (the bias rows of ``K``
+    scaled after the projection, :func:`_scale_bias_gain`)."""
     go, nis, Si = _innovation_test(work, nx, r, gate)
     if not go:
         return nis
     ng = nx // 3
     for i in range(nx):  # K₀
         work[nx + i, 0], work[nx + i, 1], work[nx + i, 2] = _gain_row(work, i, Si)
-    if _needs_joseph(P, nx, work):  # K = Π K₀, then the Joseph form as a product
+    if bias_gain < 1.0 or _needs_joseph(P, nx, work):  # K = Π K₀, the Joseph form (product)
         for g in range(ng):
             k = nx + 3 * g
             for col in range(3):
                 ku = u[0] * work[k, col] + u[1] * work[k + 1, col] + u[2] * work[k + 2, col]
                 for i in range(3):
                     work[k + i, col] -= u[i] * ku
+        _scale_bias_gain(work, nx, bias_gain)
         for i in range(nx):
             dx[i] += work[nx + i, 0] * r[0] + work[nx + i, 1] * r[1] + work[nx + i, 2] * r[2]
-        _joseph(P, nx, work, H_VECTOR, vb)
+        _joseph(P, nx, work, H_VECTOR, vb, Hb)
         return nis
     _projected_correction(P, nx, dx, work, r, u, Si)
     return nis
@@ -318,24 +354,36 @@ def _projected_correction(P: np.ndarray, nx: int, dx: np.ndarray, work: np.ndarr
 @jit_inline
 def mekf_vector_update_t(
     P: np.ndarray, nx: int, dx: np.ndarray, R: tuple, vm: tuple, vref: tuple, Rv: tuple,
-    Qv: tuple, gate: float, tilt_only: bool, work: np.ndarray,
+    Qv: tuple, gate: float, tilt_only: bool, work: np.ndarray, Sb: tuple, bias_gain: float,
 ) -> float:
     """:func:`mekf_vector_update` on tuples (``R``, ``Rv``, ``Qv`` tuples of rows) with scratch
-    ``work``."""
+    ``work``; with a bias state, ``Sb`` (3×3, rows) the reading's rotation per unit bias
+    error, ``H = [[v̄]×, 0, [v̄]× S_b]`` (a low-passed accelerometer turned by the bias-corrected
+    gyro, docs/math.md §9.1; zeros otherwise), and ``bias_gain`` the share of the gain the bias
+    takes (:func:`_scale_bias_gain`; 1: the Kalman gain)."""
     vb = (R[0][0] * vref[0] + R[1][0] * vref[1] + R[2][0] * vref[2],  # v̄ = R(q̄⁻)ᵀ v
           R[0][1] * vref[0] + R[1][1] * vref[1] + R[2][1] * vref[2],
           R[0][2] * vref[0] + R[1][2] * vref[1] + R[2][2] * vref[2])
-    # innovation y − ȳ − H Δx, with H Δx = [v̄]× Δe = v̄ × Δe
+    Hb = _cross_rows(vb, Sb) if nx == 9 else _Z33  # H_b = [v̄]× S_b
+    # innovation y − ȳ − H Δx, with H Δx = [v̄]× Δe + H_b Δb = v̄ × Δe + H_b Δb
     r = (vm[0] - vb[0] - (vb[1] * dx[2] - vb[2] * dx[1]),
          vm[1] - vb[1] - (vb[2] * dx[0] - vb[0] * dx[2]),
          vm[2] - vb[2] - (vb[0] * dx[1] - vb[1] * dx[0]))
-    # P Hᵀ = P[:, 0:3] [v̄]×ᵀ = −P[:, 0:3] [v̄]×   (rows 0:nx of work)
+    if nx == 9:
+        r = (r[0] - (Hb[0][0] * dx[6] + Hb[0][1] * dx[7] + Hb[0][2] * dx[8]),
+             r[1] - (Hb[1][0] * dx[6] + Hb[1][1] * dx[7] + Hb[1][2] * dx[8]),
+             r[2] - (Hb[2][0] * dx[6] + Hb[2][1] * dx[7] + Hb[2][2] * dx[8]))
+    # P Hᵀ = P[:, 0:3] [v̄]×ᵀ + P[:, 6:9] H_bᵀ = −P[:, 0:3] [v̄]× + …   (rows 0:nx of work)
     for i in range(nx):
         p0, p1, p2 = P[i, 0], P[i, 1], P[i, 2]
         work[i, 0] = -(p1 * vb[2] - p2 * vb[1])
         work[i, 1] = -(p2 * vb[0] - p0 * vb[2])
         work[i, 2] = -(p0 * vb[1] - p1 * vb[0])
-    # S = [v̄]× (P Hᵀ)[0:3] + R(q̄⁻)ᵀ Q_v R(q̄⁻) + R_v   (rows 2nx:2nx+3 of work)
+        if nx == 9:
+            c6, c7, c8 = P[i, 6], P[i, 7], P[i, 8]
+            for j in range(3):
+                work[i, j] += c6 * Hb[j][0] + c7 * Hb[j][1] + c8 * Hb[j][2]
+    # S = [v̄]× (P Hᵀ)[0:3] + H_b (P Hᵀ)[6:9] + R(q̄⁻)ᵀ Q_v R(q̄⁻) + R_v   (rows 2nx:2nx+3)
     isotropic = (Qv[0][1] == 0.0 and Qv[0][2] == 0.0 and Qv[1][2] == 0.0
                  and Qv[0][0] == Qv[1][1] and Qv[1][1] == Qv[2][2])
     s0 = 2 * nx
@@ -343,6 +391,10 @@ def mekf_vector_update_t(
         work[s0, j] = vb[1] * work[2, j] - vb[2] * work[1, j]
         work[s0 + 1, j] = vb[2] * work[0, j] - vb[0] * work[2, j]
         work[s0 + 2, j] = vb[0] * work[1, j] - vb[1] * work[0, j]
+        if nx == 9:
+            for i in range(3):
+                work[s0 + i, j] += (Hb[i][0] * work[6, j] + Hb[i][1] * work[7, j]
+                                    + Hb[i][2] * work[8, j])
     for i in range(3):
         for j in range(3):
             if isotropic:  # Rᵀ (σ² I) R = σ² I
@@ -356,8 +408,9 @@ def mekf_vector_update_t(
             work[s0 + i, j] += rn
             work[s0 + 9 + i, j] = rn  # the block's R (for the Joseph form)
     if tilt_only:
-        return _joseph_projected(P, nx, dx, work, r, gate, R[2], vb)  # u = R(q̄)ᵀ ẑ
-    return _block_update(P, nx, dx, work, r, gate, H_VECTOR, vb)
+        return _joseph_projected(P, nx, dx, work, r, gate, R[2], vb, Hb,
+                                 bias_gain)  # u = R(q̄)ᵀ ẑ
+    return _block_update(P, nx, dx, work, r, gate, H_VECTOR, vb, 0, Hb, bias_gain)
 
 
 @jit
@@ -370,7 +423,7 @@ def mekf_vector_update(
     ``tilt_only`` (extension, for gravity) the gain is kept off the world vertical
     (:func:`_joseph_projected`). Returns the NIS (see :func:`_block_update`)."""
     return mekf_vector_update_t(P, nx, dx, t33(R), t3(vm), t3(vref), t33(Rv), t33(Qv), gate,
-                                tilt_only, mekf_scratch(nx))
+                                tilt_only, mekf_scratch(nx), _Z33, 1.0)
 
 
 @jit_inline
@@ -395,7 +448,7 @@ def mekf_rate_update_t(
             work[s0 + i, j] = work[3 + i, j] + (work[6 + i, j] if bias else 0.0) + Rw[i][j]
             work[s0 + 9 + i, j] = Rw[i][j]
     return _block_update(P, nx, dx, work, (r0, r1, r2), gate,
-                         H_RATE_BIAS if bias else H_RATE, (0.0, 0.0, 0.0), frozen)
+                         H_RATE_BIAS if bias else H_RATE, (0.0, 0.0, 0.0), frozen, _Z33, 1.0)
 
 
 @jit
@@ -597,8 +650,8 @@ def mekf_update(chart: int, chart_update: bool, x: tuple, P: np.ndarray, nx: int
     ok = True
     for k in range(use_v.shape[0]):
         if use_v[k]:
-            ok &= mekf_vector_update_t(P, nx, dx, R, t3(vm[k]), t3(vref[k]), t33(Rv[k]), t33(Qv[k]),
-                                 np.inf, False, work) >= 0
+            ok &= mekf_vector_update_t(P, nx, dx, R, t3(vm[k]), t3(vref[k]), t33(Rv[k]),
+                                       t33(Qv[k]), np.inf, False, work, _Z33, 1.0) >= 0
     if use_w:
         ok &= mekf_rate_update_t(P, nx, dx, wt, bt, t3(wm), t33(Rw), True, np.inf, work) >= 0
     mekf_apply(chart, chart_update, qc, w, b, P, nx, dx)

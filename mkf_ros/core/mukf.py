@@ -25,7 +25,7 @@ import numpy as np
 from mkf_ros.core._jit import jit, jit_inline
 from mkf_ros.core.charts import from_chart_at_t, from_chart_t, saturate_t, to_chart_t
 from mkf_ros.core.linalg import cho_solve_into, cholesky_into, congruence33_t, transpose33_t
-from mkf_ros.core.mekf import heading_residual_t
+from mkf_ros.core.mekf import _Z33, _cross_rows, heading_residual_t
 from mkf_ros.core.quaternion import (
     q_omega_t,
     qconj_mul_t,
@@ -53,7 +53,7 @@ NOISE_MODES = ("consistent", "published", "integrated")
 #: ``gated`` there: ``gates`` not empty).
 MukfMeasurement = namedtuple("MukfMeasurement", (
     "vm", "vref", "Rv", "Qv", "use_v", "wm", "use_w", "Rw", "hm", "href", "use_h", "var_h",
-    "use_z", "var_z", "gates", "gated", "tilt_v0"))
+    "use_z", "var_z", "gates", "gated", "tilt_v0", "sens_v0", "bias_gain_v0"))
 
 
 @jit_inline
@@ -84,7 +84,8 @@ def mukf_step(chart: int, chart_update: bool, noise_mode: int, w0: float, x: tup
     none = x[0][:0]  # no heading sensor (hm, href unused), no gates (nis unused)
     return mukf_step_ext(chart, chart_update, noise_mode, w0, x, P, nx, dt, Qw, Qb,
                          MukfMeasurement(vm, vref, Rv, Qv, use_v, wm, use_w, Rw, none, none,
-                                         False, 0.0, False, 0.0, none, False, False), none)
+                                         False, 0.0, False, 0.0, none, False, False,
+                                         np.zeros((3, 3)), 1.0), none)
 
 
 # measurement rows at most: two vectors, heading, gyro, zero rate
@@ -228,7 +229,7 @@ def mukf_step_ext(chart: int, chart_update: bool, noise_mode: int, w0: float, x:
         t3(z.wm) if z.use_w else z3, z.use_w, t33(z.Rw) if z.use_w else z33,
         t3(z.hm) if z.use_h else z3, t3(z.href) if z.use_h else z3, z.use_h, z.var_h,
         z.use_z, z.var_z, (z.gates[0], z.gates[1], z.gates[2], z.gates[3]) if gated else inf4,
-        gated, z.tilt_v0)
+        gated, z.tilt_v0, t33(z.sens_v0), z.bias_gain_v0)
     ok, q, e, w_, b_, nis_ = mukf_step_t(
         chart, chart_update, noise_mode, w0, (t4(qc), t3(ebar), t3(w), t3(b)), P, nx, dt,
         t33(Qw), t33(Qb), zt, mukf_scratch(nx))
@@ -282,13 +283,15 @@ def mukf_step_t(chart: int, chart_update: bool, noise_mode: int, w0: float, x: t
     qm = _means(X, ns, w_0, wj, w, b, row_g, row_z, z.use_w, z.use_z)
     _to_chart_of_mean(X, ns, chart, qm, row_g)
     _sigma_covariances(X, Pxx, Pxy, Pyy, ns, w_0, wj, nx, row_g)
-    _linear_covariances(P, Pxx, Pxy, Pyy, nx, m, Qw, qa, row_g, row_z)
+    Hb = _cross_rows(rotate_inv_t(qm, z.vref[0]), z.sens_v0) if nx == 9 else _Z33
+    _linear_covariances(P, Pxx, Pxy, Pyy, nx, m, Qw, qa,
+                        (first[0] if z.use_v[0] else -1, row_g, row_z), Hb)
     _noise_and_innovation(X, Pyy, ns, first, z, (row_h, row_g, row_z))
     ok, nis, rejected = _chi2_gate(X, Pyy, Ly, KPyy, ns, first, z.gates, z.gated)
     if not ok:
         return False, qc, ebar, w, b, nis
     ma, row_v0k, row_hk = _keep_rows(X, Pxy, Pyy, ns, nx, m, first, rejected)
-    if not _update(X, scratch, ns, nx, ma, qm, z.tilt_v0, row_v0k, row_hk):
+    if not _update(X, scratch, ns, nx, ma, qm, (z.tilt_v0, z.bias_gain_v0), row_v0k, row_hk):
         return False, qc, ebar, w, b, nis
     e, w, b = _new_state(X, P, Pxx, ns, nx, chart, w, b)
     return True, qm, e, w, b, nis
@@ -547,12 +550,41 @@ def _sigma_covariances(X: np.ndarray, Pxx: np.ndarray, Pxy: np.ndarray, Pyy: np.
 
 
 @jit_inline
+def _bias_columns(Pxx: np.ndarray, Pxy: np.ndarray, Pyy: np.ndarray, r0: int, m_nl: int,
+                  Hb: tuple) -> None:
+    """Step 6 for a vector reading with a part linear in the bias error (a low-passed
+    accelerometer, docs/math.md §9.1): ``y = h(e) + H_b δb`` on rows ``r0 … r0+2`` adds
+    ``H_b P_by + P_yb H_bᵀ + H_b P_bb H_bᵀ`` to their ``P_yy`` (``P_yb H_bᵀ`` to their cross
+    terms with the other non-linear rows, lower triangle) and ``P_xb H_bᵀ`` to their columns of
+    ``P_xy`` (the sums of a linear term are exact; ``ȳ`` is unchanged: ``E[δb] = 0``)."""
+    for a in range(3):  # P_yy, lower triangle: the block, then the rows below it
+        ra = r0 + a
+        for a2 in range(a + 1):
+            v = 0.0
+            for k in range(3):
+                v += Hb[a][k] * Pxy[6 + k, r0 + a2] + Pxy[6 + k, ra] * Hb[a2][k]
+                for k2 in range(3):
+                    v += Hb[a][k] * Pxx[6 + k, 6 + k2] * Hb[a2][k2]
+            Pyy[ra, r0 + a2] += v
+        for i in range(r0 + 3, m_nl):
+            Pyy[i, ra] += (Pxy[6, i] * Hb[a][0] + Pxy[7, i] * Hb[a][1]
+                           + Pxy[8, i] * Hb[a][2])
+    for a in range(3):  # P_xy (after P_yy: that used the columns as they were)
+        for i in range(9):
+            Pxy[i, r0 + a] += (Pxx[i, 6] * Hb[a][0] + Pxx[i, 7] * Hb[a][1]
+                               + Pxx[i, 8] * Hb[a][2])
+
+
+@jit_inline
 def _linear_covariances(P: np.ndarray, Pxx: np.ndarray, Pxy: np.ndarray, Pyy: np.ndarray,
-                        nx: int, m: int, Qw: tuple, qa: float, row_g: int, row_z: int) -> None:
+                        nx: int, m: int, Qw: tuple, qa: float, rows: tuple, Hb: tuple) -> None:
     """Step 6, the exact parts: ``P_zz = P_zz + Q_ωᵃ`` (:func:`_weights`), ``P_xx`` completed
-    from its lower triangle; the gyro and zero-rate rows are linear in the state, ``y_j = H x_j``,
-    so their sums are ``P_xy = P_xx Hᵀ`` and ``P_yy = H P_xy`` (the weighted sums are linear);
-    ``P_yy`` completed from its lower triangle."""
+    from its lower triangle; the first vector's linear part in the bias (``Hb``, rows
+    ``rows[0] …``: :func:`_bias_columns`); the gyro and zero-rate rows are linear in the state,
+    ``y_j = H x_j``, so their sums are ``P_xy = P_xx Hᵀ`` and ``P_yy = H P_xy`` (the weighted
+    sums are linear); ``P_yy`` completed from its lower triangle. ``rows``: the first rows of
+    the first vector (−1: none), the gyro and the zero rate."""
+    row_v0, row_g, row_z = rows
     for i in range(3, nx):  # P_zz = P_zz + Q_ωᵃ (lower triangle)
         for jj in range(3, i + 1):
             Pxx[i, jj] = P[i, jj] + (Qw[i - 3][jj - 3] * qa if i < 6 else 0.0)
@@ -562,6 +594,8 @@ def _linear_covariances(P: np.ndarray, Pxx: np.ndarray, Pxy: np.ndarray, Pyy: np
     for i in range(nx):  # the loops above filled the lower triangle
         for jj in range(i):
             Pxx[jj, i] = Pxx[i, jj]
+    if nx == 9 and row_v0 >= 0:
+        _bias_columns(Pxx, Pxy, Pyy, row_v0, row_g, Hb)
     for r in range(row_g, m):  # linear rows: column r of P_xy is P_xx Hᵀ, row r of P_yy H P_xy
         k = r - row_g if r < row_z else r - row_z
         bias = r < row_z and nx == 9  # the gyro measures ω + b
@@ -673,9 +707,10 @@ def _keep_rows(X: np.ndarray, Pxy: np.ndarray, Pyy: np.ndarray, ns: int, nx: int
 
 @jit_inline
 def _update(X: np.ndarray, scratch: tuple, ns: int, nx: int, ma: int, qm: tuple,
-            tilt_v0: bool, row_v0k: int, row_hk: int) -> bool:
+            v0: tuple, row_v0k: int, row_hk: int) -> bool:
     """Step 7 with the ``ma`` kept rows: ``K = P_xy P_yy⁻¹`` (:func:`_gain`), projected for the
-    tilt-only gravity and the heading rows (:func:`_gain_projection`), ``Δx = K (y − ȳ)`` into
+    gravity rows (``v0 = (tilt_v0, bias_gain_v0)``) and the heading row
+    (:func:`_gain_projection`), ``Δx = K (y − ȳ)`` into
     row ``ns + 1`` of ``X`` (:func:`_correction`), ``P ← P_xx − K P_yy Kᵀ`` in ``Pxx``
     (:func:`_covariance_update`); ``scratch`` as in :func:`mukf_step_t`. False if ``P_yy`` is
     not positive definite."""
@@ -687,7 +722,7 @@ def _update(X: np.ndarray, scratch: tuple, ns: int, nx: int, ma: int, qm: tuple,
     if not _gain(Pxy, Pyy, Ly, Kt, nx, ma):
         return False
     dK = KPyy  # (free here)
-    np_, pc = _gain_projection(Kt, dK, nx, qm, tilt_v0, row_v0k, row_hk)
+    np_, pc = _gain_projection(Kt, dK, nx, qm, v0, row_v0k, row_hk)
     _correction(X, Kt, dK, ns, nx, ma, np_, pc)
     _covariance_update(Pxx, Pxy, Pyy, Ly, Kt, dK, nx, ma, np_, pc)
     return True
@@ -708,25 +743,34 @@ def _gain(Pxy: np.ndarray, Pyy: np.ndarray, Ly: np.ndarray, Kt: np.ndarray, nx: 
 
 
 @jit_inline
-def _gain_projection(Kt: np.ndarray, dK: np.ndarray, nx: int, qm: tuple, tilt_v0: bool,
+def _gain_projection(Kt: np.ndarray, dK: np.ndarray, nx: int, qm: tuple, v0: tuple,
                      row_v0k: int, row_hk: int) -> tuple:
     """Gain projections (extensions): ``K = K₀ + ΔK`` with ``K₀ = P_xy P_yy⁻¹``. ``ΔK`` has
     ``np_`` non-zero columns, kept dense in ``dK``; column ``t`` belongs to row ``pc[t]`` of the
-    stacked measurement: the gravity rows with ``tilt_v0`` (every group's gain — attitude, rate,
-    bias — kept off the world vertical), then the heading row (every group's gain onto the
-    vertical). Returns ``(np_, pc)``."""
+    stacked measurement: the gravity rows (``v0 = (tilt_v0, bias_gain_v0)``: with ``tilt_v0``
+    every group's gain — attitude, rate, bias — kept off the world vertical; the bias's times
+    ``bias_gain_v0``, the partial update of docs/math.md §9.1), then the heading row (every
+    group's gain onto the vertical). Returns ``(np_, pc)``."""
+    tilt_v0, bias_gain = v0
+    if nx < 9:
+        bias_gain = 1.0
     Rm = rotmat_t(qm)
     u0, u1, u2 = Rm[2][0], Rm[2][1], Rm[2][2]  # world vertical in the new chart's axes
-    g0 = row_v0k if tilt_v0 else -1
+    if not tilt_v0:  # no projection: the vertical's share is kept
+        u0 = u1 = u2 = 0.0
+    g0 = row_v0k if (tilt_v0 or bias_gain < 1.0) else -1
     ng = 3 if g0 >= 0 else 0
     np_ = ng + (1 if row_hk >= 0 else 0)
     pc = (g0, g0 + 1, g0 + 2, row_hk) if ng else (row_hk, row_hk, row_hk, row_hk)
     for t in range(np_):
         a = pc[t]
-        if t < ng:  # gravity: keep every group's gain (attitude, rate, bias) off the vertical
-            for g in range(nx // 3):
+        if t < ng:  # gravity: every group's gain (attitude, rate, bias) off the vertical
+            for g in range(nx // 3):  # K_g = γ_g (I − u uᵀ) K₀_g, γ = bias_gain for the bias
                 ku = u0 * Kt[a, 3 * g] + u1 * Kt[a, 3 * g + 1] + u2 * Kt[a, 3 * g + 2]
-                dK[3 * g, t], dK[3 * g + 1, t], dK[3 * g + 2, t] = -u0 * ku, -u1 * ku, -u2 * ku
+                gm = bias_gain if g == 2 else 1.0
+                for i in range(3):
+                    ui = u0 if i == 0 else (u1 if i == 1 else u2)
+                    dK[3 * g + i, t] = (gm - 1.0) * Kt[a, 3 * g + i] - gm * ui * ku
         else:  # heading: every group's gain (attitude, rate, bias) onto the vertical u
             for g in range(nx // 3):
                 ku = u0 * Kt[a, 3 * g] + u1 * Kt[a, 3 * g + 1] + u2 * Kt[a, 3 * g + 2]

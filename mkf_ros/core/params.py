@@ -185,6 +185,15 @@ PARAMS: tuple[Param, ...] = (
        "however the body turns; shaking, vibration and other non-gravitational acceleration "
        "(the derivative of a bounded velocity) average out. 0 = every raw sample (the paper)",
        unit="s", range=(0.0, 100.0), group="robustness"),
+    _P("acc_bias_excess", float, 0.3, "Under sustained non-gravitational acceleration "
+       "(running, a vehicle) the gyro bias learns from the accelerometer at the weight "
+       "1/(1 + E/e^2), E the recent excess power of the accelerometer's magnitude "
+       "((|a|/g - 1)^2, low-passed over acc_time_constant) and e this value: what the "
+       "low-pass leaves of that acceleration is correlated with the motion over the times the "
+       "bias integrates, and a full Kalman gain on the bias would follow it (a partial-update "
+       "Schmidt-Kalman filter: only the bias's gain is scaled, its covariance follows by the "
+       "Joseph form); 0 = the full gain always", unit="1", range=(0.0, 100.0),
+       group="robustness"),
     _P("acc_disturbance_time", float, 0.1, "Correlation time of the non-gravitational "
        "acceleration left in the fused accelerometer: its per-sample variance is "
        "acc_disturbance^2 * max(1, time/dt), so that its information per second does not grow "

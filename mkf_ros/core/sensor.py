@@ -98,6 +98,7 @@ from mkf_ros.core.state import (
     WORK_T,
     YAW0_STDDEV,
     YAW_VAR_UNKNOWN,
+    Z33,
     Fusion,
     classify_reading,
     count_reading,
@@ -135,6 +136,30 @@ def _turn(v: np.ndarray, R: tuple) -> None:
     x = (v[0], v[1], v[2])
     for i in range(3):
         v[i] = R[0][i] * x[0] + R[1][i] * x[1] + R[2][i] * x[2]
+
+
+@hot
+def _age_sensitivity(S: np.ndarray, R: tuple, dt: float) -> None:
+    """The low-pass memory's rotation error per unit gyro bias error ages one step
+    (docs/math.md §9.1): its content is turned by ``R(Δq)ᵀ`` with the bias-corrected gyro, so
+    a bias error ``δb`` turns all of it by a further ``δb Δt`` in this sample's axes:
+    ``S ← R(Δq)ᵀ S + I Δt``."""
+    for j in range(3):
+        x0, x1, x2 = S[0, j], S[1, j], S[2, j]
+        for i in range(3):
+            S[i, j] = R[0][i] * x0 + R[1][i] * x1 + R[2][i] * x2
+        S[j, j] += dt
+
+
+@hot
+def _lowpass_sensitivity(s: np.record, a1: float, a2: float) -> None:
+    """The sensitivities follow the two stages: a new sample has none (``S₁ ← (1 − α₁) S₁``),
+    the second stage low-passes the first (``S₂ ← S₂ + α₂ (S₁ − S₂)``)."""
+    S1, S2 = s.acc_sens, s.acc_sens2
+    for i in range(3):
+        for j in range(3):
+            S1[i, j] *= 1.0 - a1
+            S2[i, j] += a2 * (S1[i, j] - S2[i, j])
 
 
 @hot
@@ -272,6 +297,9 @@ def _restart_memory(s: np.record, gyr: np.ndarray, has_g: bool, acc: np.ndarray)
         s.acc_lp2[i] = acc[i]
         s.rest_acc_lp[i] = acc[i]
         s.rest_gyr_lp[i] = gyr[i] if has_g else 0.0
+        for j in range(3):
+            s.acc_sens[i, j] = 0.0
+            s.acc_sens2[i, j] = 0.0
     s.rest_gyr_dev = 0.0
     s.rest_acc_dev = 0.0
     s.rest_dt_gyr = 0.0
@@ -448,7 +476,7 @@ def _gyro(c: np.record, s: np.record, k: np.record, g: tuple, has_g: bool) -> tu
 def _acc_blend(c: np.record, s: np.record, kq: float, u_raw: tuple, q_raw: float, ex: float,
                ex2: float) -> tuple:
     """The low-pass view of gravity and its blend with the raw one (:func:`_acc_measurement`);
-    returns ``(u, q, status)``."""
+    returns ``(u, q, status)``; the low-pass's weight in ``u`` into ``acc_lp_share``."""
     g0 = c.gravity
     tol = c.acc_norm_tolerance
     lp = (s.acc_lp2[0], s.acc_lp2[1], s.acc_lp2[2])
@@ -460,12 +488,14 @@ def _acc_blend(c: np.record, s: np.record, kq: float, u_raw: tuple, q_raw: float
     a1 = s.acc_lp
     d2 = ((a1[0] - lp[0]) ** 2 + (a1[1] - lp[1]) ** 2 + (a1[2] - lp[2]) ** 2) / (g0 * g0)
     q_lp = c.acc_disturbance_var + ex_lp * ex_lp + d2 + rot * rot
+    s.acc_lp_share = 1.0
     if abs(ex_lp) > tol:  # refused (the low-pass holds a sustained acceleration)
         return u_lp, kq * q_lp, 2
     if abs(ex) > tol:  # an implausible raw sample has no say (the low-pass still takes it:
         return u_lp, kq * q_lp, 1  # shaking is symmetric about gravity)
     q_rw = c.acc_disturbance_var + ex2 + 2.0 * s.acc_excess
     w = q_rw / (q_rw + q_lp)
+    s.acc_lp_share = w
     u = (w * u_lp[0] + (1.0 - w) * u_raw[0], w * u_lp[1] + (1.0 - w) * u_raw[1],
          w * u_lp[2] + (1.0 - w) * u_raw[2])
     return _unit_t(u), kq * q_lp * q_rw / (q_lp + q_rw), 0
@@ -529,6 +559,9 @@ def _acc_measurement(c: np.record, s: np.record, dt: float, wl: tuple, Rw: tuple
     if tau > 0.0:
         _turn(s.acc_lp, Rw)
         _turn(s.acc_lp2, Rw)
+        _age_sensitivity(s.acc_sens, Rw, dt)
+        _age_sensitivity(s.acc_sens2, Rw, dt)
+    s.acc_lp_share = 0.0
     s.dt_acc += dt
     if not has_a:
         return ZERO3, 0.0, ZERO3, 0.0, 2
@@ -549,12 +582,28 @@ def _acc_measurement(c: np.record, s: np.record, dt: float, wl: tuple, Rw: tuple
     a_lp, ex2_lp = _acc_robust(c, s, a, al, ex2)
     _lowpass(s.acc_lp, a_lp, al)
     _lowpass(s.acc_lp2, (s.acc_lp[0], s.acc_lp[1], s.acc_lp[2]), 1.0 if start else al)
+    _lowpass_sensitivity(s, al, 1.0 if start else al)
     s.acc_excess += al * (ex2_lp - s.acc_excess)
     s.acc_rate_lp += al * (np.sqrt(wl[0] ** 2 + wl[1] ** 2 + wl[2] ** 2) - s.acc_rate_lp)
     if start:  # the low-pass is still forming its first average: the raw sample alone
         return u_raw, kq * q_raw, u_raw, q_raw, raw_status
     u, q, status = _acc_blend(c, s, kq, u_raw, q_raw, ex, ex2)
     return u, q, u_raw, q_raw, status
+
+
+@hot
+def _acc_bias_coupling(c: np.record, s: np.record) -> tuple:
+    """How the fused gravity direction depends on the gyro bias, and how much the bias may
+    learn from it (docs/math.md §9.1): ``(S_b, γ)``, ``S_b`` the low-pass's rotation per unit
+    bias error times its weight in the fused direction, ``γ = 1/(1 + E/e²)`` the bias's share
+    of the gain, ``E`` the recent excess power of the magnitude (``acc_excess``) and ``e``
+    ``acc_bias_excess``."""
+    f = s.acc_lp_share
+    S = s.acc_sens2
+    Sb = ((f * S[0, 0], f * S[0, 1], f * S[0, 2]), (f * S[1, 0], f * S[1, 1], f * S[1, 2]),
+          (f * S[2, 0], f * S[2, 1], f * S[2, 2]))
+    e = c.acc_bias_excess
+    return Sb, (1.0 / (1.0 + s.acc_excess / (e * e)) if e > 0.0 else 1.0)
 
 
 @unit(nt.void(CONFIG_T, STATE_T, CANONICAL_T, F3, F3, F3), cost=5)
@@ -874,9 +923,11 @@ def _mekf_rate(s: np.record, w: np.record, nx: int, wt: tuple, b: tuple, wm: tup
 
 @jit
 def _mekf_vector(s: np.record, w: np.record, nx: int, R: tuple, vm: tuple, vref: tuple,
-                 Rv: tuple, Qv: tuple, gate: float, tilt_only: bool) -> float:
+                 Rv: tuple, Qv: tuple, gate: float, tilt_only: bool, Sb: tuple,
+                 bias_gain: float) -> float:
     """:func:`~mkf_ros.core.mekf.mekf_vector_update_t` into ``w.dx``."""
-    return mekf_vector_update_t(s.P, nx, w.dx, R, vm, vref, Rv, Qv, gate, tilt_only, w.mekf)
+    return mekf_vector_update_t(s.P, nx, w.dx, R, vm, vref, Rv, Qv, gate, tilt_only, w.mekf,
+                                Sb, bias_gain)
 
 
 @jit
@@ -954,13 +1005,13 @@ def _mekf_update(c: np.record, s: np.record, w: np.record, dt: float,
     mag_nis = 0.0
     if z.has_a:
         acc_nis = _mekf_vector(s, w, nx, R, z.a, UP, iso33(c.acc_var), iso33(z.var_a),
-                               z.acc_gate, c.acc_tilt_only)
+                               z.acc_gate, c.acc_tilt_only, z.a_sens, z.a_bias_gain)
     if z.has_m:
         if c.mag_heading:
             mag_nis = _mekf_heading(s, w, nx, R, z.m, z.h_ref, z.var_h, z.mag_gate)
         else:
             mag_nis = _mekf_vector(s, w, nx, R, z.m, z.m_ref, iso33(c.mag_var),
-                                   iso33(c.mag_disturbance_var), z.mag_gate, False)
+                                   iso33(c.mag_disturbance_var), z.mag_gate, False, Z33, 1.0)
     q, wt, b = _mekf_apply(c, s, w, q, wt, b)
     for i in range(4):
         s.q_c[i] = q[i]
@@ -986,7 +1037,8 @@ def mukf_update(c: np.record, s: np.record, w: np.record, dt: float,
         (iso33(c.acc_var), iso33(c.mag_var)), (iso33(z.var_a), iso33(c.mag_disturbance_var)),
         (z.has_a, use_vm), z.g, False, iso33(c.gyro_var), z.m if z.has_m else ZERO3,
         z.h_ref if z.has_m else ZERO3, heading_m, z.var_h, False, c.rest_rate_var,
-        (z.acc_gate, z.mag_gate, z.mag_gate, np.inf), True, c.acc_tilt_only)
+        (z.acc_gate, z.mag_gate, z.mag_gate, np.inf), True, c.acc_tilt_only,
+        z.a_sens if z.has_a else Z33, z.a_bias_gain if z.has_a else 1.0)
     ok, q, e, wt, b, nis = mukf_step_t(
         c.chart, c.chart_update, c.mukf_noise, c.mukf_w0, x, s.P, nx, dt,
         iso33(c.rate_process_noise), iso33(c.bias_process_var), meas,
@@ -1146,7 +1198,9 @@ def step(c: np.record, s: np.record, k: np.record, w: np.record, u: Units, dt: f
     has_m, dtm = _magnetometer(c, s, k, u, dt, wl, Rw, m, m_norm, has_m)
     _gyro_scale_noise(c, s, dt, wl)
     m_ref, h_ref, var_h, acc_gate, mag_gate = _fusion(c, s, has_m, dtm)
+    a_sens, a_bias_gain = _acc_bias_coupling(c, s)
     z = Fusion(g, has_g, rest and c.algorithm < ALGO_EULER_KF, a_body, var_a, has_a, a_raw,
-               var_a_raw, a_ok, m, has_m, m_ref, h_ref, var_h, acc_gate, mag_gate)
+               var_a_raw, a_ok, m, has_m, m_ref, h_ref, var_h, acc_gate, mag_gate, a_sens,
+               a_bias_gain)
     ok, acc_nis, mag_nis = _update(c, s, k, w, u, dt, z)
     _bookkeeping(c, s, k, z, ok, acc_nis, mag_nis, m_norm)

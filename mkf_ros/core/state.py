@@ -39,7 +39,7 @@ NX_MAX = 9  # states: attitude error e, rate ω, gyro bias b
 #: Parameters the kernels use as they are: a :data:`CONFIG` field of the same name each.
 COPIED_PARAMS = (
     "mukf_w0", "rate_process_noise", "max_dt", "gravity",
-    "acc_norm_tolerance", "acc_gate", "acc_recovery_time", "acc_time_constant",
+    "acc_norm_tolerance", "acc_gate", "acc_recovery_time", "acc_time_constant", "acc_bias_excess",
     "acc_disturbance_time", "acc_alignment_error", "gyro_scale_error", "gyro_gate",
     "mag_time_constant", "mag_consistency_tolerance", "mag_timing_error", "mag_undisturbed_time",
     "mag_disturbance_time", "mag_norm_tolerance", "mag_dip_tolerance", "mag_gate",
@@ -120,6 +120,11 @@ STATE = np.dtype(
         ("acc_excess", np.float64),  # low-passed (|a| − g)² (normalised), over its τ
         ("acc_dev", np.float64),  # low-passed |a − acc_lp|² (m²/s⁴): the samples' spread
         ("acc_rate_lp", np.float64),  # low-passed |ω|, over acc_time_constant
+        # the low-pass's rotation error per unit gyro bias error (rad per rad/s, body axes), per
+        # stage (docs/math.md §9.1): its memory is turned by the bias-corrected gyro
+        ("acc_sens", np.float64, (3, 3)),
+        ("acc_sens2", np.float64, (3, 3)),
+        ("acc_lp_share", np.float64),  # the low-pass's weight in the fused direction
         # --- the field over its learned magnitude, low-passed likewise (body axes)
         ("mag_lp", np.float64, 3),
         ("t_mag_lp", np.float64),  # s since the low-pass started
@@ -180,10 +185,12 @@ WORK = np.dtype(
 #: disturbance variance ``var_a`` per sample, ``has_a``) and the raw sample the baselines fuse
 #: (``a_raw``, ``var_a_raw``, ``a_ok``: it passed the magnitude test); the field's unit
 #: direction ``m`` and ``has_m``, its world reference ``m_ref``, horizontal reference ``h_ref``
-#: and heading variance ``var_h`` per sample; the χ² gates.
+#: and heading variance ``var_h`` per sample; the χ² gates; ``a_sens`` (3×3, rows): how the fused
+#: gravity direction turns with the gyro bias error (``a ≈ v + [v]× a_sens δb``, docs/math.md
+#: §9.1) and ``a_bias_gain``, the share of the Kalman gain the bias takes from it.
 Fusion = namedtuple("Fusion", ("g", "has_g", "rest", "a", "var_a", "has_a", "a_raw", "var_a_raw",
                                "a_ok", "m", "has_m", "m_ref", "h_ref", "var_h", "acc_gate",
-                               "mag_gate"))
+                               "mag_gate", "a_sens", "a_bias_gain"))
 
 # --- the numba types of the records and tuples above (the signatures of compile units) ------
 CONFIG_T, STATE_T, COUNTERS_T, WORK_T = (numba.from_dtype(d) for d in (CONFIG, STATE, COUNTERS,
@@ -192,8 +199,9 @@ F3 = nt.UniTuple(nt.float64, 3)  # a 3-vector
 F4 = nt.UniTuple(nt.float64, 4)  # a quaternion
 F33 = nt.UniTuple(F3, 3)  # a 3×3 matrix (rows)
 _Z3 = (0.0, 0.0, 0.0)
+Z33 = (_Z3, _Z3, _Z3)
 FUSION_T = numba.typeof(Fusion(_Z3, False, False, _Z3, 0.0, False, _Z3, 0.0, False, _Z3, False,
-                               _Z3, _Z3, 0.0, 0.0, 0.0))
+                               _Z3, _Z3, 0.0, 0.0, 0.0, Z33, 1.0))
 
 # algorithm ids (index in ALGORITHMS): the paper's filters, then the baselines
 ALGO_MEKF, ALGO_MUKF = ALGORITHMS.index("mekf"), ALGORITHMS.index("mukf")

@@ -146,7 +146,7 @@ def test_ext_equals_full_augmentation(nx: int, chart: str, cu: bool, mode: int) 
         nis = np.zeros(4)
         meas = MukfMeasurement(vm_a, vr_a, Rv_a, Qv_a, np.array([nvec > 0, nvec > 1]), wm,
                                use_w, Rw, np.zeros(3), np.zeros(3), False, 0.0, use_z, z_var,
-                               gates, True, False)
+                               gates, True, False, np.zeros((3, 3)), 1.0)
         ok = mukf_step_ext(chart_id(chart), cu, mode, 1 / 25, (qc, e, wk, bk), P, nx, dt, Qw,
                            Qb, meas, nis)
         assert ok
@@ -173,7 +173,7 @@ def test_step_equals_ext_without_gates() -> None:
         if ext:
             assert mukf_step_ext(*common, MukfMeasurement(
                 *vectors, *gyro, np.zeros(3), np.zeros(3), False, 0.0, False, 0.0,
-                np.full(4, np.inf), True, False), np.zeros(4))
+                np.full(4, np.inf), True, False, np.zeros((3, 3)), 1.0), np.zeros(4))
         else:
             assert mukf_step(*common, vectors, gyro)
         out.append(np.concatenate([qc, e, wk, bk, P.ravel()]))
@@ -189,7 +189,7 @@ def _ext(chart: str, q, P0, ebar, w, b, vm, vr, Rv, Qv, use_v, heading=None,
     hm, href, var_h = heading if heading is not None else (np.zeros(3), np.zeros(3), 0.0)
     meas = MukfMeasurement(vm, vr, Rv, Qv, use_v, wm if wm is not None else w, wm is not None,
                            1e-4 * np.eye(3), hm, href, heading is not None, var_h, False, 0.0,
-                           np.full(4, np.inf), True, tilt)
+                           np.full(4, np.inf), True, tilt, np.zeros((3, 3)), 1.0)
     assert mukf_step_ext(chart_id(chart), cu, 2, 1 / 25, (qc, e, wk, bk), P, nx, DT, QW, QB,
                          meas, np.zeros(4))
     return qc, e, wk, bk, P[:nx, :nx]
