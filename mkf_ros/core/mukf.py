@@ -756,8 +756,7 @@ def _gain_projection(Kt: np.ndarray, dK: np.ndarray, nx: int, qm: tuple, v0: tup
         bias_gain = 1.0
     Rm = rotmat_t(qm)
     u0, u1, u2 = Rm[2][0], Rm[2][1], Rm[2][2]  # world vertical in the new chart's axes
-    if not tilt_v0:  # no projection: the vertical's share is kept
-        u0 = u1 = u2 = 0.0
+    pv = 1.0 if tilt_v0 else 0.0  # gravity: the vertical's share removed, or kept
     g0 = row_v0k if (tilt_v0 or bias_gain < 1.0) else -1
     ng = 3 if g0 >= 0 else 0
     np_ = ng + (1 if row_hk >= 0 else 0)
@@ -766,7 +765,7 @@ def _gain_projection(Kt: np.ndarray, dK: np.ndarray, nx: int, qm: tuple, v0: tup
         a = pc[t]
         if t < ng:  # gravity: every group's gain (attitude, rate, bias) off the vertical
             for g in range(nx // 3):  # K_g = γ_g (I − u uᵀ) K₀_g, γ = bias_gain for the bias
-                ku = u0 * Kt[a, 3 * g] + u1 * Kt[a, 3 * g + 1] + u2 * Kt[a, 3 * g + 2]
+                ku = pv * (u0 * Kt[a, 3 * g] + u1 * Kt[a, 3 * g + 1] + u2 * Kt[a, 3 * g + 2])
                 gm = bias_gain if g == 2 else 1.0
                 for i in range(3):
                     ui = u0 if i == 0 else (u1 if i == 1 else u2)

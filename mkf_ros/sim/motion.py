@@ -201,6 +201,9 @@ class Chunk:
     t_fine: np.ndarray
     omega_fine: np.ndarray | None = None  #: (j1 - j0, 3) body rate on t_fine (required)
     lin_acc: np.ndarray | None = None  #: (K, 3) ENU linear acceleration at t
+    #: (K, 3) linear acceleration in body axes at t, on top of ``lin_acc`` (a sensor away from
+    #: the point the body turns about: α × r + ω × (ω × r))
+    lin_acc_body: np.ndarray | None = None
     mag_dist: np.ndarray | None = None  #: (K, 3) ENU field disturbance at t
     mag_body: np.ndarray | None = None  #: (K, 3) field added in body axes (a magnet on it)
     bias: np.ndarray | None = None  #: (K, 3) extra gyro bias at t
@@ -546,6 +549,40 @@ def _shaking(c: Context) -> ChunkFn:
     return chunk
 
 
+def _running(c: Context) -> ChunkFn:
+    """Running with the sensor in a trouser pocket: the thigh swings about the hip at the
+    stride frequency ``stride_freq`` Hz by ±``swing`` rad, the sensor ``lever`` m from the hip
+    (its centripetal and tangential acceleration, up to several g, always along the same body
+    axes), the hip bounces up and down at each step (``bounce`` g peak at twice the stride
+    frequency), and the body turns slowly on top. Minutes of it: no quiet phase in which the
+    accelerometer sees gravity alone."""
+    slow = _SlowRates(c.rng, 0.3)
+    axis = c.rng.normal(size=3)
+    axis /= np.linalg.norm(axis)
+    r = c.rng.normal(size=3)
+    r -= axis * (r @ axis)  # the lever across the swing axis
+    r *= c.args["lever"] / np.linalg.norm(r)
+    w0 = 2 * np.pi * c.args["stride_freq"]
+    amp = c.args["swing"]
+    c.intervals["acc_disturbed"] = [(0.0, c.duration)]
+
+    def rates(t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        ph = w0 * t[:, None]
+        w = slow(t) + amp * w0 * np.cos(ph) * axis
+        dw = (slow.a * 2 * np.pi * slow.f * np.cos(2 * np.pi * slow.f * t[:, None] + slow.ph)
+              - amp * w0 * w0 * np.sin(ph) * axis)
+        return w, dw
+
+    def chunk(ch: Chunk) -> None:
+        ch.omega_fine, _ = rates(ch.t_fine)
+        w, dw = rates(ch.t)
+        ch.lin_acc_body = np.cross(dw, r) + np.cross(w, np.cross(w, r))
+        acc = np.zeros((ch.t.size, 3))
+        acc[:, 2] = c.args["bounce"] * GRAVITY * np.cos(2 * w0 * ch.t)
+        ch.lin_acc = acc
+    return chunk
+
+
 def _slow_turn(c: Context) -> ChunkFn:
     """Level, at rest for ``rest`` s, then a steady turn about the vertical at ``turn_rate``
     rad/s (a robot turning slowly: a turn rest detection must not take for a bias) with a linear
@@ -677,6 +714,9 @@ SCENARIOS: dict[str, Scenario] = _register(
              _accel_bursts, {"acc_peak": 3.0, "burst_every": 3.0}),
     Scenario("shaking", "sustained shaking up to shake_acc g with rocking up to shake_rate "
              "rad/s", _shaking, {"shake_acc": 10.0, "shake_freq": 4.0, "shake_rate": 6.0}),
+    Scenario("running", "running with the sensor in a pocket: the thigh's swing (its "
+             "centripetal acceleration along fixed body axes) and the steps' bounce, for minutes",
+             _running, {"stride_freq": 1.4, "swing": 0.6, "lever": 0.35, "bounce": 1.5}),
     Scenario("slow_turn", "level rest, then a steady slow turn about the vertical", _slow_turn,
              {"turn_rate": 0.04, "rest": 5.0, "vib_acc": 0.0}),
     Scenario("mag_attached", "a magnet attached to the body over the middle of the recording",
@@ -886,6 +926,8 @@ class SimStream:
             lin_acc = np.zeros((k, 3)) if ch.lin_acc is None else ch.lin_acc
             mag_dist = np.zeros((k, 3)) if ch.mag_dist is None else ch.mag_dist
             gyr = omega + bias + ng.normal(0, self.gyro_noise, (k, 3))
+            if ch.lin_acc_body is not None:  # into the world frame: one model, lin_acc
+                lin_acc = lin_acc + np.einsum("nij,nj->ni", R, ch.lin_acc_body)
             acc = np.einsum("nji,nj->ni", R, up + lin_acc) + na.normal(0, self.acc_noise, (k, 3))
             mag = np.einsum("nji,nj->ni", R, self.mag_field + mag_dist) + \
                 nm.normal(0, self.mag_noise, (k, 3))

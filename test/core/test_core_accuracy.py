@@ -75,8 +75,11 @@ def test_6d_inclination(case, variant: str, chart: str) -> None:
         ew = 2.0 * d[:, 1:3] * np.sign(d[:, :1])  # about world x, y (tilt)
         C = r.cov[:, :2, :2]
         nees = np.mean(np.einsum("ni,nij,nj->n", ew, np.linalg.inv(C), ew)[SKIP:])
-        # the Wiener motion reaches 8 rad/s: the allowance for the gyro's scale error (issue
-        # 13; the simulated gyro has none, but the allowance also covers the discrete-time
-        # integration of such rates) keeps σ on the safe side there, NEES ≈ 0.4
-        low = 0.3 if name == "wiener" else 0.5
+        # σ on the safe side, within a bound: the Wiener motion reaches 8 rad/s, where the
+        # allowance for the gyro's scale error (the simulated gyro has none, but the allowance
+        # also covers the discrete-time integration of such rates) widens it; and the low-pass
+        # of the accelerometer carries the gyro bias's uncertainty (docs/math.md §9.1: the
+        # simulated gyro has no bias, the filter's prior allows one): measured NEES ≈ 0.48
+        # (0.78 with biases drawn from that prior), ≈ 0.2 for the Wiener motion
+        low = 0.15 if name == "wiener" else 0.3
         assert low < nees < 4.0, f"{name}: tilt NEES {nees:.2f} (2 expected)"
