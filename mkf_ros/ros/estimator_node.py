@@ -191,7 +191,7 @@ class EstimatorNode(Node):
         self._diag = DiagnosticsTracker(f"{self.get_name()}: attitude estimator")
         self._srv_reset = self.create_service(Trigger, "~/reset", self._on_reset)
         # calibrations (docs/math.md §10): served from their own thread (see .calibration)
-        self._gyro_offset = np.array([self._cal[n] for n in calibration.GYRO_OFFSETS])
+        self._set_gyro_offset()
         self._gyro_window: calibration.GyroWindow | None = None
         self._mag_samples: list[np.ndarray] | None = None
         services = self._cal_services = calibration.ServiceThread(self)
@@ -282,7 +282,7 @@ class EstimatorNode(Node):
         if cal:
             with self._lock:
                 self._cal.update(cal)
-                self._gyro_offset = np.array([self._cal[n] for n in calibration.GYRO_OFFSETS])
+                self._set_gyro_offset()
             self.get_logger().info("parameters changed: " + ", ".join(
                 f"{k}={v!r}" for k, v in cal.items()))
         changes = {p.name: p.value for p in params if p.name in BY_NAME}
@@ -337,20 +337,25 @@ class EstimatorNode(Node):
                 return
             if self._ori_checks:
                 self._check_orientation(h.d[rawmsg.Q:rawmsg.Q + 4], h.d[rawmsg.QC])
-            gyr, acc = rawmsg.imu_arrays(h)
+            gyr, acc = rawmsg.imu_views(h)  # copied into the adapter's event record
             p = self._p
+            extras = (self._tf is not None and p["publish_tf"]) or (
+                self._rpy_pub is not None and p["publish_debug_topics"])
             with self._lock:
-                gyr = self._gyro_input(h.stamp, gyr, acc)
-                out = self.stream.on_imu(h.stamp, gyr, acc)
-                if out is None:
+                if self._gyro_window is not None or self._gyro_offset_set:
+                    gyr = self._gyro_input(h.stamp, gyr, acc)
+                # no StreamOutput on this path: the output record straight into the bytes
+                flags = self.stream.step_imu(h.stamp, gyr, acc)
+                if not flags:
                     return
-                payload = self._encoder.encode(h, out, p["angular_velocity_stddev"],
-                                               p["linear_acceleration_stddev"])
+                payload = self._encoder.encode_values(
+                    h, self.stream.output_values, flags, p["angular_velocity_stddev"],
+                    p["linear_acceleration_stddev"])
+                out = self.stream.last_output() if extras else None
             self._frame_id = h.frame_id
             self._pub.publish(payload)
             self._published += 1
-            if (self._tf is not None and p["publish_tf"]) or (
-                    self._rpy_pub is not None and p["publish_debug_topics"]):
+            if out is not None:
                 self._extras(Header(stamp=Time(sec=h.sec, nanosec=h.nanosec),
                                     frame_id=h.frame_id), out, p)
         except Exception as e:
@@ -459,12 +464,17 @@ class EstimatorNode(Node):
         bias_pub.publish(b)
 
     # --- calibrations (docs/math.md §10; served from the ServiceThread) ------------------------
+    def _set_gyro_offset(self) -> None:
+        """``gyro_offset_*`` from the calibration parameters. Call with the lock held."""
+        self._gyro_offset = np.array([self._cal[n] for n in calibration.GYRO_OFFSETS])
+        self._gyro_offset_set = bool(self._gyro_offset.any())  # tested per message
+
     def _gyro_input(self, stamp: float, gyr: Any, acc: Any) -> Any:
         """The gyro sample for the filter: the raw one to a running ``~/calibrate_gyro``, minus
         ``gyro_offset_*`` to the filter. Call with the lock held."""
         if self._gyro_window is not None:
             self._gyro_window.add(stamp, gyr, None if self.stream.split else acc)
-        if self._gyro_offset.any():
+        if self._gyro_offset_set:
             return np.asarray(gyr, dtype=float) - self._gyro_offset
         return gyr
 

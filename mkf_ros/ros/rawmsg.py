@@ -20,6 +20,7 @@ import struct
 import numpy as np
 
 from mkf_ros.bags import cdr
+from mkf_ros.stream import kernel as sk
 from mkf_ros.stream import rep145
 from mkf_ros.stream.adapter import StreamOutput, covariance_out
 
@@ -64,6 +65,22 @@ def imu_arrays(h: RawHeader) -> tuple[np.ndarray | None, np.ndarray | None]:
     return rep145.input_vector(d[W:W + 3], d[WC]), rep145.input_vector(d[A:A + 3], d[AC])
 
 
+# fields of the stream kernel's output record viewed as float64 values (StreamAdapter.step_imu)
+_OQ, _OCOV, _OW, _OWCOV, _OWADD, _OLIN = (sk.float_slice(sk.OUTPUT, name) for name in (
+    "q", "cov", "w", "wcov", "wadd", "lin"))
+#: output quaternion [x, y, z, w] from the record's [w, x, y, z]
+_XYZW = np.arange(_OQ.start, _OQ.stop)[[1, 2, 3, 0]]
+
+
+def imu_views(h: RawHeader) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """``(gyr, acc)`` of a parsed Imu as read-only views of the message (no copies), for
+    :meth:`StreamAdapter.step_imu <mkf_ros.stream.adapter.StreamAdapter.step_imu>`, which
+    copies them into its event record; a field whose covariance[0] is -1 is None."""
+    d = h.d
+    return (None if rep145.not_reported(d[WC]) else d[W:W + 3],
+            None if rep145.not_reported(d[AC]) else d[A:A + 3])
+
+
 class ImuEncoder:
     """Builds the serialized ``imu/data`` message from the input's bytes and an estimate,
     with the same rules as :func:`mkf_ros.ros.convert.fill_imu`."""
@@ -94,6 +111,28 @@ class ImuEncoder:
         o[WC:WC + 9] = rep145.published_covariance(
             w, est.angular_velocity_cov, d[WC:WC + 9], angular_velocity_stddev,
             est.angular_velocity_cov_add, fill=self._cov)
+        o[A:A + 3] = 0.0 if a is None else a
+        o[AC:AC + 9] = rep145.published_covariance(
+            a, None, d[AC:AC + 9], linear_acceleration_stddev, fill=self._cov)
+        return h.prefix + o.tobytes()
+
+    def encode_values(self, h: RawHeader, values: np.ndarray, flags: int,
+                      angular_velocity_stddev: float,
+                      linear_acceleration_stddev: float) -> bytes:
+        """The same bytes as :meth:`encode` from the output record of
+        :meth:`StreamAdapter.step_imu <mkf_ros.stream.adapter.StreamAdapter.step_imu>`
+        (``values``: :attr:`~mkf_ros.stream.adapter.StreamAdapter.output_values`, ``flags``
+        its return), without a :class:`StreamOutput`: the node's per-message path."""
+        d, o = h.d, self._out
+        o[Q:Q + 4] = values[_XYZW]
+        o[QC:QC + 9] = values[_OCOV]
+        w = values[_OW] if flags & sk.OF_W else None
+        o[W:W + 3] = 0.0 if w is None else w
+        o[WC:WC + 9] = rep145.published_covariance(
+            w, values[_OWCOV] if flags & sk.OF_WCOV else None, d[WC:WC + 9],
+            angular_velocity_stddev, np.diag(values[_OWADD]) if flags & sk.OF_WADD else None,
+            fill=self._cov)
+        a = values[_OLIN] if flags & sk.OF_LIN else None
         o[A:A + 3] = 0.0 if a is None else a
         o[AC:AC + 9] = rep145.published_covariance(
             a, None, d[AC:AC + 9], linear_acceleration_stddev, fill=self._cov)

@@ -332,6 +332,9 @@ class StreamAdapter:
             ev["kind"] = kind
         self._out = new_records(sk.OUTPUT)
         self._out_present = self._out["present"]
+        self._out_slot = self._out["slot"]
+        self._ev_imu = self._ev_views[sk.EV_IMU]
+        self._ev_imu_seq = self._ev[sk.EV_IMU]
         # the smoother's recording (record_into): slots, [slots filled, out of room]
         self._rec = new_records(smoother.RECORD, 0)
         self._rn = np.zeros(4, dtype=np.int64)
@@ -524,13 +527,31 @@ class StreamAdapter:
         Returns the estimate at ``stamp``, or None when nothing is to be published (sample
         dropped, filter not initialised yet).
         """
-        stamp_v, v, a = self._ev_views[sk.EV_IMU]
+        return self.last_output() if self.step_imu(stamp, gyr, acc) else None
+
+    def step_imu(self, stamp: float, gyr: Any, acc: Any = None) -> int:
+        """:meth:`on_imu` without building its :class:`StreamOutput` (the node's per-message
+        path): the output's flags (``OF_*`` of :mod:`mkf_ros.stream.kernel`; 0 when nothing
+        is to be published). The estimate is :attr:`output_values` until the next call;
+        :meth:`last_output` makes it a :class:`StreamOutput`."""
+        stamp_v, v, a = self._ev_imu
         v[:] = _vec(gyr, "gyr")
         a[:] = _vec(acc, "acc")
-        stamp_v[0] = stamp = float(stamp)
-        self._run(self._ev[sk.EV_IMU], self._out, 0, 1)
-        if not self._out_present[0]:
-            return None
+        stamp_v[0] = float(stamp)
+        self._run(self._ev_imu_seq, self._out, 0, 1)
+        return int(self._out_present[0])
+
+    @property
+    def output_values(self) -> np.ndarray:
+        """The latest IMU sample's output record viewed as float64 values (fields at
+        :func:`mkf_ros.stream.kernel.float_slice`), updated in place by :meth:`step_imu`:
+        read it before the next sample."""
+        return self._out_flat
+
+    def last_output(self) -> StreamOutput:
+        """The estimate of the latest :meth:`step_imu` that returned non-zero flags, as
+        :meth:`on_imu` returns it (new arrays)."""
+        stamp = float(self._ev_imu[0][0])
         o = self._out_flat.copy()  # the fields below are views of this copy
         flags = int(self._out_present[0])
         return StreamOutput(
@@ -541,7 +562,7 @@ class StreamAdapter:
             linear_acceleration=o[_LIN] if flags & sk.OF_LIN else None,
             omega=o[_OMEGA], bias=o[_BIAS], bias_stddev=o[_BSTD],
             heading_initialized=bool(flags & sk.OF_HEADING),
-            yaw_lost=bool(flags & sk.OF_YAW_LOST), slot=int(self._out["slot"][0]))
+            yaw_lost=bool(flags & sk.OF_YAW_LOST), slot=int(self._out_slot[0]))
 
     def on_gyro(self, stamp: float, gyr: Any) -> StreamOutput | None:
         """Split input: one gyro sample (rad/s); the estimate at ``stamp`` as :meth:`on_imu`."""

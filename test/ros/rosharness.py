@@ -209,17 +209,18 @@ def record_arrival(stream: Any) -> list[str]:
     reference adapter is fed from the messages the test sent (:func:`reference_outputs`),
     so the node's message conversion is under test, not replayed."""
     kinds: list[str] = []
-    on_imu, on_mag = stream.on_imu, stream.on_mag
+    # step_imu: the node's per-message path, and what on_imu (its message-object path) calls
+    step_imu, on_mag = stream.step_imu, stream.on_mag
 
     def imu(*args):
         kinds.append("imu")
-        return on_imu(*args)
+        return step_imu(*args)
 
     def mag(*args):
         kinds.append("mag")
         return on_mag(*args)
 
-    stream.on_imu, stream.on_mag = imu, mag
+    stream.step_imu, stream.on_mag = imu, mag
     return kinds
 
 

@@ -82,3 +82,38 @@ def test_encode_equals_the_message_path(source: str, missing: str | None) -> Non
                   "linear_acceleration_covariance"):
             np.testing.assert_array_equal(getattr(got, f), getattr(want, f), f)
         assert all(math.isfinite(x) for x in got.orientation_covariance)
+
+
+@pytest.mark.parametrize("source", ["input", "bias_corrected", "estimate"])
+@pytest.mark.parametrize("missing", [None, "gyr", "acc", "both"])
+def test_encode_values_equals_encode(source: str, missing: str | None) -> None:
+    """The node's per-message path (step_imu + encode_values, no StreamOutput) builds the
+    same bytes as on_imu + encode, and step_imu leaves the adapter as on_imu does."""
+    rng = np.random.default_rng(5)
+    enc, enc_values = rawmsg.ImuEncoder(), rawmsg.ImuEncoder()
+    kw: dict = dict(angular_velocity_source=source, estimate_gyro_bias=True,
+                    remove_gravity_vector=source == "estimate")
+    s, s_values = StreamAdapter(**kw), StreamAdapter(**kw)
+    for k in range(12):
+        m = random_imu(rng, "imu_link")
+        m.header.stamp = convert.sec_to_stamp(100.0 + 0.01 * k)
+        m.angular_velocity_covariance = [0.0] * 9 if k % 2 else np.diag([1e-4] * 3).reshape(9)
+        m.linear_acceleration_covariance = [0.0] * 9 if k % 3 else np.diag([1e-2] * 3).reshape(9)
+        if missing in ("gyr", "both") and k % 4 == 3:
+            m.angular_velocity_covariance[0] = -1.0
+        if missing in ("acc", "both") and k % 4 == 2:
+            m.linear_acceleration_covariance[0] = -1.0
+        h = rawmsg.parse(serialize_message(m), rawmsg.IMU_DOUBLES)
+        out = s.on_imu(h.stamp, *rawmsg.imu_arrays(h))
+        flags = s_values.step_imu(h.stamp, *rawmsg.imu_views(h))
+        assert (out is None) == (flags == 0)
+        if out is None:
+            continue
+        want = enc.encode(h, out, 0.02, 0.3 * (k % 2))
+        assert enc_values.encode_values(h, s_values.output_values, flags, 0.02,
+                                        0.3 * (k % 2)) == want
+        last = s_values.last_output()
+        for f in ("quat_wxyz", "orientation_cov", "angular_velocity", "angular_velocity_cov",
+                  "angular_velocity_cov_add", "linear_acceleration", "bias", "omega"):
+            np.testing.assert_array_equal(getattr(last, f), getattr(out, f), f)
+        assert (last.stamp, last.yaw_lost, last.slot) == (out.stamp, out.yaw_lost, out.slot)
