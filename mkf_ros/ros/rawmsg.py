@@ -16,6 +16,7 @@ The layout (header, padding, the float64 fields and their order) is the one
 from __future__ import annotations
 
 import struct
+from typing import Any
 
 import numpy as np
 
@@ -102,19 +103,11 @@ class ImuEncoder:
 
     def encode(self, h: RawHeader, est: StreamOutput, angular_velocity_stddev: float,
                linear_acceleration_stddev: float) -> bytes:
-        d, o = h.d, self._out
         q = est.quat_wxyz
-        o[Q], o[Q + 1], o[Q + 2], o[Q + 3] = q[1], q[2], q[3], q[0]
-        o[QC:QC + 9] = est.orientation_cov.reshape(9)
-        w, a = est.angular_velocity, est.linear_acceleration
-        o[W:W + 3] = 0.0 if w is None else w
-        o[WC:WC + 9] = rep145.published_covariance(
-            w, est.angular_velocity_cov, d[WC:WC + 9], angular_velocity_stddev,
-            est.angular_velocity_cov_add, fill=self._cov)
-        o[A:A + 3] = 0.0 if a is None else a
-        o[AC:AC + 9] = rep145.published_covariance(
-            a, None, d[AC:AC + 9], linear_acceleration_stddev, fill=self._cov)
-        return h.prefix + o.tobytes()
+        return self._encode(h, (q[1], q[2], q[3], q[0]), est.orientation_cov.reshape(9),
+                            est.angular_velocity, est.angular_velocity_cov,
+                            est.angular_velocity_cov_add, est.linear_acceleration,
+                            angular_velocity_stddev, linear_acceleration_stddev)
 
     def encode_values(self, h: RawHeader, values: np.ndarray, flags: int,
                       angular_velocity_stddev: float,
@@ -123,16 +116,23 @@ class ImuEncoder:
         :meth:`StreamAdapter.step_imu <mkf_ros.stream.adapter.StreamAdapter.step_imu>`
         (``values``: :attr:`~mkf_ros.stream.adapter.StreamAdapter.output_values`, ``flags``
         its return), without a :class:`StreamOutput`: the node's per-message path."""
+        return self._encode(
+            h, values[_XYZW], values[_OCOV], values[_OW] if flags & sk.OF_W else None,
+            values[_OWCOV] if flags & sk.OF_WCOV else None,
+            np.diag(values[_OWADD]) if flags & sk.OF_WADD else None,
+            values[_OLIN] if flags & sk.OF_LIN else None, angular_velocity_stddev,
+            linear_acceleration_stddev)
+
+    def _encode(self, h: RawHeader, q_xyzw: Any, cov9: Any, w: Any, w_cov: Any, w_add: Any,
+                a: Any, angular_velocity_stddev: float,
+                linear_acceleration_stddev: float) -> bytes:
+        """The message: the input's header, then the estimate with REP-145's covariances."""
         d, o = h.d, self._out
-        o[Q:Q + 4] = values[_XYZW]
-        o[QC:QC + 9] = values[_OCOV]
-        w = values[_OW] if flags & sk.OF_W else None
+        o[Q:Q + 4] = q_xyzw
+        o[QC:QC + 9] = cov9
         o[W:W + 3] = 0.0 if w is None else w
         o[WC:WC + 9] = rep145.published_covariance(
-            w, values[_OWCOV] if flags & sk.OF_WCOV else None, d[WC:WC + 9],
-            angular_velocity_stddev, np.diag(values[_OWADD]) if flags & sk.OF_WADD else None,
-            fill=self._cov)
-        a = values[_OLIN] if flags & sk.OF_LIN else None
+            w, w_cov, d[WC:WC + 9], angular_velocity_stddev, w_add, fill=self._cov)
         o[A:A + 3] = 0.0 if a is None else a
         o[AC:AC + 9] = rep145.published_covariance(
             a, None, d[AC:AC + 9], linear_acceleration_stddev, fill=self._cov)
