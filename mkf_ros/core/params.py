@@ -232,12 +232,15 @@ PARAMS: tuple[Param, ...] = (
        "phones: 0.01 s lowers the 9D error by 0.5 deg; 0 keeps RepoIMU's Xsens-class IMU at "
        "its best)",
        unit="s", range=(0.0, 1.0), group="robustness"),
-    _P("mag_undisturbed_time", float, 0.5, "The field must have passed the magnitude, dip and "
-       "consistency tests for this long without a break before it is fused again", unit="s",
+    _P("mag_undisturbed_time", float, 0.0, "The field must have passed the magnitude, dip and "
+       "consistency tests for this long without a break before it is fused again (0: every "
+       "sample that passes them; a person or robot moving through a building passes them "
+       "only in short stretches)", unit="s",
        range=(0.0, 3600.0), group="robustness"),
-    _P("mag_disturbance_time", float, 1.0, "Correlation time of the magnetometer's heading "
-       "error (calibration, local field): the heading variance per sample is the noise's "
-       "times max(1, time/dt); 0 = independent per sample", unit="s", range=(0.0, 100.0),
+    _P("mag_disturbance_time", float, 5.0, "Correlation time of the magnetometer's heading "
+       "error (calibration, the local field: indoors it changes over metres, seconds at "
+       "walking speed): the heading variance per sample is the noise's times "
+       "max(1, time/dt); 0 = independent per sample", unit="s", range=(0.0, 100.0),
        group="noise"),
     _P("mag_norm_tolerance", float, 0.1, "Magnetometer samples whose magnitude differs from the "
        "learned field by more than this fraction are not fused", unit="1", range=(0.0, 1000.0),
