@@ -237,9 +237,9 @@ PARAMS: tuple[Param, ...] = (
        "sample that passes them; a person or robot moving through a building passes them "
        "only in short stretches)", unit="s",
        range=(0.0, 3600.0), group="robustness"),
-    _P("mag_disturbance_time", float, 5.0, "Correlation time of the magnetometer's heading "
+    _P("mag_disturbance_time", float, 3.0, "Correlation time of the magnetometer's heading "
        "error (calibration, the local field: indoors it changes over metres, seconds at "
-       "walking speed): the heading variance per sample is the noise's times "
+       "walking speed; 3 s chosen on BROAD, RepoIMU and tyrex, docs/real_data.md): the heading variance per sample is the noise's times "
        "max(1, time/dt); 0 = independent per sample", unit="s", range=(0.0, 100.0),
        group="noise"),
     _P("mag_norm_tolerance", float, 0.1, "Magnetometer samples whose magnitude differs from the "

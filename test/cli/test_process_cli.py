@@ -103,7 +103,7 @@ def test_time_jump_resets_and_is_scored_on_the_right_truth(tmp_path: Path) -> No
     # of 0.2 s (the heading waits for the next magnetometer sample) the accuracy is back
     t = sim.t_true[k]
     settled = (t < 5.0) | (t > 5.2)
-    assert rmse_deg(err["total"][settled]) < 1.2  # (1.03 measured: test_accuracy's note)
+    assert rmse_deg(err["total"][settled]) < 1.0
     assert np.degrees(err["total"][t > 5.2]).max() < 2.0
 
 
