@@ -239,8 +239,8 @@ PARAMS: tuple[Param, ...] = (
        range=(0.0, 3600.0), group="robustness"),
     _P("mag_disturbance_time", float, 3.0, "Correlation time of the magnetometer's heading "
        "error (calibration, the local field: indoors it changes over metres, seconds at "
-       "walking speed; 3 s chosen on BROAD, RepoIMU and tyrex, docs/real_data.md): the heading variance per sample is the noise's times "
-       "max(1, time/dt); 0 = independent per sample", unit="s", range=(0.0, 100.0),
+       "walking speed): the heading variance per sample is the noise's times max(1, time/dt); "
+       "0 = independent per sample", unit="s", range=(0.0, 100.0),
        group="noise"),
     _P("mag_norm_tolerance", float, 0.1, "Magnetometer samples whose magnitude differs from the "
        "learned field by more than this fraction are not fused", unit="1", range=(0.0, 1000.0),
