@@ -217,6 +217,18 @@ def cross_t(a: tuple, b: tuple) -> tuple:
     return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
 
 
+#: The 3×3 zero matrix as a tuple of rows.
+ZERO33 = ((0.0, 0.0, 0.0), (0.0, 0.0, 0.0), (0.0, 0.0, 0.0))
+
+
+@jit_inline
+def cross33_t(v: tuple, S: tuple) -> tuple:
+    """``[v]× S`` for a 3-tuple ``v`` and a 3×3 tuple of rows ``S``: column ``j`` is
+    ``v × S[:, j]``."""
+    c = transpose33_t(S)
+    return transpose33_t((cross_t(v, c[0]), cross_t(v, c[1]), cross_t(v, c[2])))
+
+
 @jit_inline
 def orthogonal_unit_t(x: tuple) -> tuple:
     """A unit vector orthogonal to the non-zero 3-tuple ``x``: ``x`` × the axis least aligned

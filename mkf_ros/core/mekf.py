@@ -22,7 +22,7 @@ import numpy as np
 
 from mkf_ros.core._jit import jit, jit_inline
 from mkf_ros.core.charts import from_chart_t, saturate_t, t_matrix_t
-from mkf_ros.core.linalg import symmetrize_leading
+from mkf_ros.core.linalg import ZERO33, cross33_t, symmetrize_leading
 from mkf_ros.core.quaternion import q_omega_t, qmul_t, qnormalize_t, rotmat_t, t3, t4, t33
 
 # Speed (the arithmetic of a 6-state update is a few hundred flops): 3-vectors, quaternions and
@@ -210,19 +210,6 @@ def _joseph(P: np.ndarray, nx: int, work: np.ndarray, hk: int, vb: tuple, Hb: tu
             P[j, i] = p
 
 
-_Z33 = ((0.0, 0.0, 0.0), (0.0, 0.0, 0.0), (0.0, 0.0, 0.0))
-
-
-@jit_inline
-def _cross_rows(v: tuple, S: tuple) -> tuple:
-    """``[v]× S`` (``S`` and the result as rows): column ``j`` is ``v × S[:, j]``."""
-    r0, r1, r2 = S
-    a, b, c = v
-    return ((b * r2[0] - c * r1[0], b * r2[1] - c * r1[1], b * r2[2] - c * r1[2]),
-            (c * r0[0] - a * r2[0], c * r0[1] - a * r2[1], c * r0[2] - a * r2[2]),
-            (a * r1[0] - b * r0[0], a * r1[1] - b * r0[1], a * r1[2] - b * r0[2]))
-
-
 @jit_inline
 def _scale_bias_gain(work: np.ndarray, nx: int, bias_gain: float) -> None:
     """The bias rows of the gain ``K`` (rows ``nx+6 … nx+8`` of ``work``) times ``bias_gain``:
@@ -364,7 +351,7 @@ def mekf_vector_update_t(
     vb = (R[0][0] * vref[0] + R[1][0] * vref[1] + R[2][0] * vref[2],  # v̄ = R(q̄⁻)ᵀ v
           R[0][1] * vref[0] + R[1][1] * vref[1] + R[2][1] * vref[2],
           R[0][2] * vref[0] + R[1][2] * vref[1] + R[2][2] * vref[2])
-    Hb = _cross_rows(vb, Sb) if nx == 9 else _Z33  # H_b = [v̄]× S_b
+    Hb = cross33_t(vb, Sb) if nx == 9 else ZERO33  # H_b = [v̄]× S_b
     # innovation y − ȳ − H Δx, with H Δx = [v̄]× Δe + H_b Δb = v̄ × Δe + H_b Δb
     r = (vm[0] - vb[0] - (vb[1] * dx[2] - vb[2] * dx[1]),
          vm[1] - vb[1] - (vb[2] * dx[0] - vb[0] * dx[2]),
@@ -423,7 +410,7 @@ def mekf_vector_update(
     ``tilt_only`` (extension, for gravity) the gain is kept off the world vertical
     (:func:`_joseph_projected`). Returns the NIS (see :func:`_block_update`)."""
     return mekf_vector_update_t(P, nx, dx, t33(R), t3(vm), t3(vref), t33(Rv), t33(Qv), gate,
-                                tilt_only, mekf_scratch(nx), _Z33, 1.0)
+                                tilt_only, mekf_scratch(nx), ZERO33, 1.0)
 
 
 @jit_inline
@@ -448,7 +435,7 @@ def mekf_rate_update_t(
             work[s0 + i, j] = work[3 + i, j] + (work[6 + i, j] if bias else 0.0) + Rw[i][j]
             work[s0 + 9 + i, j] = Rw[i][j]
     return _block_update(P, nx, dx, work, (r0, r1, r2), gate,
-                         H_RATE_BIAS if bias else H_RATE, (0.0, 0.0, 0.0), frozen, _Z33, 1.0)
+                         H_RATE_BIAS if bias else H_RATE, (0.0, 0.0, 0.0), frozen, ZERO33, 1.0)
 
 
 @jit
@@ -651,7 +638,7 @@ def mekf_update(chart: int, chart_update: bool, x: tuple, P: np.ndarray, nx: int
     for k in range(use_v.shape[0]):
         if use_v[k]:
             ok &= mekf_vector_update_t(P, nx, dx, R, t3(vm[k]), t3(vref[k]), t33(Rv[k]),
-                                       t33(Qv[k]), np.inf, False, work, _Z33, 1.0) >= 0
+                                       t33(Qv[k]), np.inf, False, work, ZERO33, 1.0) >= 0
     if use_w:
         ok &= mekf_rate_update_t(P, nx, dx, wt, bt, t3(wm), t33(Rw), True, np.inf, work) >= 0
     mekf_apply(chart, chart_update, qc, w, b, P, nx, dx)

@@ -24,8 +24,15 @@ import numpy as np
 
 from mkf_ros.core._jit import jit, jit_inline
 from mkf_ros.core.charts import from_chart_at_t, from_chart_t, saturate_t, to_chart_t
-from mkf_ros.core.linalg import cho_solve_into, cholesky_into, congruence33_t, transpose33_t
-from mkf_ros.core.mekf import _Z33, _cross_rows, heading_residual_t
+from mkf_ros.core.linalg import (
+    ZERO33,
+    cho_solve_into,
+    cholesky_into,
+    congruence33_t,
+    cross33_t,
+    transpose33_t,
+)
+from mkf_ros.core.mekf import heading_residual_t
 from mkf_ros.core.quaternion import (
     q_omega_t,
     qconj_mul_t,
@@ -85,8 +92,12 @@ def mukf_step(chart: int, chart_update: bool, noise_mode: int, w0: float, x: tup
     return mukf_step_ext(chart, chart_update, noise_mode, w0, x, P, nx, dt, Qw, Qb,
                          MukfMeasurement(vm, vref, Rv, Qv, use_v, wm, use_w, Rw, none, none,
                                          False, 0.0, False, 0.0, none, False, False,
-                                         np.zeros((3, 3)), 1.0), none)
+                                         _NO_SENSITIVITY, 1.0), none)
 
+
+#: ``sens_v0`` of a vector that does not depend on the bias (a global array: numba compiles it
+#: in as a constant, no allocation per step)
+_NO_SENSITIVITY = np.zeros((3, 3))
 
 # measurement rows at most: two vectors, heading, gyro, zero rate
 _M_MAX = 3 + 3 + 1 + 3 + 3
@@ -283,7 +294,7 @@ def mukf_step_t(chart: int, chart_update: bool, noise_mode: int, w0: float, x: t
     qm = _means(X, ns, w_0, wj, w, b, row_g, row_z, z.use_w, z.use_z)
     _to_chart_of_mean(X, ns, chart, qm, row_g)
     _sigma_covariances(X, Pxx, Pxy, Pyy, ns, w_0, wj, nx, row_g)
-    Hb = _cross_rows(rotate_inv_t(qm, z.vref[0]), z.sens_v0) if nx == 9 else _Z33
+    Hb = cross33_t(rotate_inv_t(qm, z.vref[0]), z.sens_v0) if nx == 9 else ZERO33
     _linear_covariances(P, Pxx, Pxy, Pyy, nx, m, Qw, qa,
                         (first[0] if z.use_v[0] else -1, row_g, row_z), Hb)
     _noise_and_innovation(X, Pyy, ns, first, z, (row_h, row_g, row_z))
@@ -754,8 +765,8 @@ def _gain_projection(Kt: np.ndarray, dK: np.ndarray, nx: int, qm: tuple, v0: tup
     tilt_v0, bias_gain = v0
     if nx < 9:
         bias_gain = 1.0
-    Rm = rotmat_t(qm)
-    u0, u1, u2 = Rm[2][0], Rm[2][1], Rm[2][2]  # world vertical in the new chart's axes
+    u = rotmat_t(qm)[2]  # world vertical in the new chart's axes
+    u0, u1, u2 = u
     pv = 1.0 if tilt_v0 else 0.0  # gravity: the vertical's share removed, or kept
     g0 = row_v0k if (tilt_v0 or bias_gain < 1.0) else -1
     ng = 3 if g0 >= 0 else 0
@@ -768,8 +779,7 @@ def _gain_projection(Kt: np.ndarray, dK: np.ndarray, nx: int, qm: tuple, v0: tup
                 ku = pv * (u0 * Kt[a, 3 * g] + u1 * Kt[a, 3 * g + 1] + u2 * Kt[a, 3 * g + 2])
                 gm = bias_gain if g == 2 else 1.0
                 for i in range(3):
-                    ui = u0 if i == 0 else (u1 if i == 1 else u2)
-                    dK[3 * g + i, t] = (gm - 1.0) * Kt[a, 3 * g + i] - gm * ui * ku
+                    dK[3 * g + i, t] = (gm - 1.0) * Kt[a, 3 * g + i] - gm * u[i] * ku
         else:  # heading: every group's gain (attitude, rate, bias) onto the vertical u
             for g in range(nx // 3):
                 ku = u0 * Kt[a, 3 * g] + u1 * Kt[a, 3 * g + 1] + u2 * Kt[a, 3 * g + 2]

@@ -38,6 +38,7 @@ from mkf_ros.core.baseline_glue import (
 )
 from mkf_ros.core.frames import align_tilt, heading_correction, keep_yaw
 from mkf_ros.core.linalg import (
+    ZERO33,
     copy_block,
     copy_into,
     eye,
@@ -98,7 +99,6 @@ from mkf_ros.core.state import (
     WORK_T,
     YAW0_STDDEV,
     YAW_VAR_UNKNOWN,
-    Z33,
     Fusion,
     classify_reading,
     count_reading,
@@ -476,7 +476,7 @@ def _gyro(c: np.record, s: np.record, k: np.record, g: tuple, has_g: bool) -> tu
 def _acc_blend(c: np.record, s: np.record, kq: float, u_raw: tuple, q_raw: float, ex: float,
                ex2: float) -> tuple:
     """The low-pass view of gravity and its blend with the raw one (:func:`_acc_measurement`);
-    returns ``(u, q, status)``; the low-pass's weight in ``u`` into ``acc_lp_share``."""
+    returns ``(u, q, status, share)``, ``share`` the low-pass's weight in ``u``."""
     g0 = c.gravity
     tol = c.acc_norm_tolerance
     lp = (s.acc_lp2[0], s.acc_lp2[1], s.acc_lp2[2])
@@ -488,17 +488,15 @@ def _acc_blend(c: np.record, s: np.record, kq: float, u_raw: tuple, q_raw: float
     a1 = s.acc_lp
     d2 = ((a1[0] - lp[0]) ** 2 + (a1[1] - lp[1]) ** 2 + (a1[2] - lp[2]) ** 2) / (g0 * g0)
     q_lp = c.acc_disturbance_var + ex_lp * ex_lp + d2 + rot * rot
-    s.acc_lp_share = 1.0
     if abs(ex_lp) > tol:  # refused (the low-pass holds a sustained acceleration)
-        return u_lp, kq * q_lp, 2
+        return u_lp, kq * q_lp, 2, 1.0
     if abs(ex) > tol:  # an implausible raw sample has no say (the low-pass still takes it:
-        return u_lp, kq * q_lp, 1  # shaking is symmetric about gravity)
+        return u_lp, kq * q_lp, 1, 1.0  # shaking is symmetric about gravity)
     q_rw = c.acc_disturbance_var + ex2 + 2.0 * s.acc_excess
     w = q_rw / (q_rw + q_lp)
-    s.acc_lp_share = w
     u = (w * u_lp[0] + (1.0 - w) * u_raw[0], w * u_lp[1] + (1.0 - w) * u_raw[1],
          w * u_lp[2] + (1.0 - w) * u_raw[2])
-    return _unit_t(u), kq * q_lp * q_rw / (q_lp + q_rw), 0
+    return _unit_t(u), kq * q_lp * q_rw / (q_lp + q_rw), 0, w
 
 
 @hot
@@ -531,9 +529,10 @@ def _acc_measurement(c: np.record, s: np.record, dt: float, wl: tuple, Rw: tuple
                      has_a: bool) -> tuple:
     """The accelerometer as the filters fuse it (extension): the unit direction and the
     disturbance variance per sample ``Q_a`` (normalised units), the raw sample's direction and
-    variance (the baselines fuse those, as in the report), and a status: 0 fused, 1 the raw
+    variance (the baselines fuse those, as in the report), a status: 0 fused, 1 the raw
     sample failed the magnitude test (``acc_norm_tolerance``) and only the low-pass is fused,
-    2 nothing is fused (no sample, or the low-pass itself fails the test).
+    2 nothing is fused (no sample, or the low-pass itself fails the test), and the low-pass's
+    weight in the fused direction.
 
     Two views of gravity, each with its own error model, blended by inverse variance:
 
@@ -561,10 +560,9 @@ def _acc_measurement(c: np.record, s: np.record, dt: float, wl: tuple, Rw: tuple
         _turn(s.acc_lp2, Rw)
         _age_sensitivity(s.acc_sens, Rw, dt)
         _age_sensitivity(s.acc_sens2, Rw, dt)
-    s.acc_lp_share = 0.0
     s.dt_acc += dt
     if not has_a:
-        return ZERO3, 0.0, ZERO3, 0.0, 2
+        return ZERO3, 0.0, ZERO3, 0.0, 2, 0.0
     dta = s.dt_acc
     s.dt_acc = 0.0
     n_raw = np.sqrt(a[0] * a[0] + a[1] * a[1] + a[2] * a[2])
@@ -575,7 +573,7 @@ def _acc_measurement(c: np.record, s: np.record, dt: float, wl: tuple, Rw: tuple
     kq = _correlated(c.acc_disturbance_time, dta)
     raw_status = 0 if abs(ex) <= c.acc_norm_tolerance else 2
     if tau <= 0.0:
-        return u_raw, kq * q_raw, u_raw, q_raw, raw_status
+        return u_raw, kq * q_raw, u_raw, q_raw, raw_status, 0.0
     t = s.t_acc_lp
     s.t_acc_lp = t + dta
     al, start = _lowpass_gain(s, LP_ACC, t, dta, tau)  # start: still the first average
@@ -586,19 +584,18 @@ def _acc_measurement(c: np.record, s: np.record, dt: float, wl: tuple, Rw: tuple
     s.acc_excess += al * (ex2_lp - s.acc_excess)
     s.acc_rate_lp += al * (np.sqrt(wl[0] ** 2 + wl[1] ** 2 + wl[2] ** 2) - s.acc_rate_lp)
     if start:  # the low-pass is still forming its first average: the raw sample alone
-        return u_raw, kq * q_raw, u_raw, q_raw, raw_status
-    u, q, status = _acc_blend(c, s, kq, u_raw, q_raw, ex, ex2)
-    return u, q, u_raw, q_raw, status
+        return u_raw, kq * q_raw, u_raw, q_raw, raw_status, 0.0
+    u, q, status, share = _acc_blend(c, s, kq, u_raw, q_raw, ex, ex2)
+    return u, q, u_raw, q_raw, status, share
 
 
 @hot
-def _acc_bias_coupling(c: np.record, s: np.record) -> tuple:
+def _acc_bias_coupling(c: np.record, s: np.record, f: float) -> tuple:
     """How the fused gravity direction depends on the gyro bias, and how much the bias may
     learn from it (docs/math.md §9.1): ``(S_b, γ)``, ``S_b`` the low-pass's rotation per unit
-    bias error times its weight in the fused direction, ``γ = 1/(1 + E/e²)`` the bias's share
-    of the gain, ``E`` the recent excess power of the magnitude (``acc_excess``) and ``e``
-    ``acc_bias_excess``."""
-    f = s.acc_lp_share
+    bias error times ``f``, its weight in the fused direction, ``γ = 1/(1 + E/e²)`` the bias's
+    share of the gain, ``E`` the recent excess power of the magnitude (``acc_excess``) and
+    ``e`` ``acc_bias_excess``."""
     S = s.acc_sens2
     Sb = ((f * S[0, 0], f * S[0, 1], f * S[0, 2]), (f * S[1, 0], f * S[1, 1], f * S[1, 2]),
           (f * S[2, 0], f * S[2, 1], f * S[2, 2]))
@@ -628,9 +625,11 @@ def _accelerometer(c: np.record, s: np.record, k: np.record, u: Units, dt: float
                    Rw: tuple, a: tuple, has_a: bool) -> tuple:
     """The accelerometer's view of gravity (:func:`_acc_measurement`), the recovery of a
     long-refused tilt (:func:`acc_recovery`) and the magnitude test's count. Returns
-    ``(a_body, var_a, a_raw, var_a_raw, a_ok, has_a)``: ``a_ok`` the raw sample passed the
-    magnitude test, ``has_a`` something is fused."""
-    a_body, qa, a_rawu, qa_raw, a_stat = _acc_measurement(c, s, dt, wl, Rw, a, has_a)
+    ``(a_body, var_a, a_raw, var_a_raw, a_ok, has_a, a_sens, a_bias_gain)``: ``a_ok`` the raw
+    sample passed the magnitude test, ``has_a`` something is fused, the last two as
+    :func:`_acc_bias_coupling`'s."""
+    a_body, qa, a_rawu, qa_raw, a_stat, share = _acc_measurement(c, s, dt, wl, Rw, a, has_a)
+    a_sens, a_bias_gain = _acc_bias_coupling(c, s, share)
     if has_a:
         if s.t_acc_refused > c.acc_recovery_time:
             u.acc_recovery(c, s, u.canonical, a, a_body, wl)
@@ -638,7 +637,7 @@ def _accelerometer(c: np.record, s: np.record, k: np.record, u: Units, dt: float
             k.acc_rejected_norm += 1
         if a_stat == 2:
             has_a = False
-    return a_body, qa, a_rawu, qa_raw, a_stat == 0, has_a
+    return a_body, qa, a_rawu, qa_raw, a_stat == 0, has_a, a_sens, a_bias_gain
 
 
 # --- 5. rest ---------------------------------------------------------------------------------
@@ -1011,7 +1010,7 @@ def _mekf_update(c: np.record, s: np.record, w: np.record, dt: float,
             mag_nis = _mekf_heading(s, w, nx, R, z.m, z.h_ref, z.var_h, z.mag_gate)
         else:
             mag_nis = _mekf_vector(s, w, nx, R, z.m, z.m_ref, iso33(c.mag_var),
-                                   iso33(c.mag_disturbance_var), z.mag_gate, False, Z33, 1.0)
+                                   iso33(c.mag_disturbance_var), z.mag_gate, False, ZERO33, 1.0)
     q, wt, b = _mekf_apply(c, s, w, q, wt, b)
     for i in range(4):
         s.q_c[i] = q[i]
@@ -1038,7 +1037,7 @@ def mukf_update(c: np.record, s: np.record, w: np.record, dt: float,
         (z.has_a, use_vm), z.g, False, iso33(c.gyro_var), z.m if z.has_m else ZERO3,
         z.h_ref if z.has_m else ZERO3, heading_m, z.var_h, False, c.rest_rate_var,
         (z.acc_gate, z.mag_gate, z.mag_gate, np.inf), True, c.acc_tilt_only,
-        z.a_sens if z.has_a else Z33, z.a_bias_gain if z.has_a else 1.0)
+        z.a_sens if z.has_a else ZERO33, z.a_bias_gain if z.has_a else 1.0)
     ok, q, e, wt, b, nis = mukf_step_t(
         c.chart, c.chart_update, c.mukf_noise, c.mukf_w0, x, s.P, nx, dt,
         iso33(c.rate_process_noise), iso33(c.bias_process_var), meas,
@@ -1192,13 +1191,12 @@ def step(c: np.record, s: np.record, k: np.record, w: np.record, u: Units, dt: f
         s.t_mag_disagree += dt
     g, has_g, wl = _gyro(c, s, k, gyr if has_g else ZERO3, has_g)
     Rw = rotmat_t(q_omega_t(wl, dt))  # R(Δq): body axes of the previous sample → this one
-    a_body, var_a, a_raw, var_a_raw, a_ok, has_a = _accelerometer(c, s, k, u, dt, wl, Rw, acc,
-                                                                   has_a)
+    a_body, var_a, a_raw, var_a_raw, a_ok, has_a, a_sens, a_bias_gain = _accelerometer(
+        c, s, k, u, dt, wl, Rw, acc, has_a)
     rest = _rest_test(c, s, dt, g, has_g, acc, has_a, gs == MISSING, as_ == MISSING)
     has_m, dtm = _magnetometer(c, s, k, u, dt, wl, Rw, m, m_norm, has_m)
     _gyro_scale_noise(c, s, dt, wl)
     m_ref, h_ref, var_h, acc_gate, mag_gate = _fusion(c, s, has_m, dtm)
-    a_sens, a_bias_gain = _acc_bias_coupling(c, s)
     z = Fusion(g, has_g, rest and c.algorithm < ALGO_EULER_KF, a_body, var_a, has_a, a_raw,
                var_a_raw, a_ok, m, has_m, m_ref, h_ref, var_h, acc_gate, mag_gate, a_sens,
                a_bias_gain)

@@ -28,7 +28,7 @@ from numba import types as nt
 from mkf_ros.core._jit import JIT_DISABLED, jit
 from mkf_ros.core.charts import chart_id, from_chart, from_chart_t, t_matrix, t_matrix_t
 from mkf_ros.core.frames import FROM_ENU
-from mkf_ros.core.linalg import congruence, copy_block, copy_into, mm
+from mkf_ros.core.linalg import ZERO33, congruence, copy_block, copy_into, mm
 from mkf_ros.core.mekf import MEKF_SCRATCH_ROWS, transport_covariance, transport_covariance_t
 from mkf_ros.core.mukf import MUKF_SCRATCH, NOISE_MODES
 from mkf_ros.core.params import ALGORITHMS, FilterParams
@@ -124,7 +124,6 @@ STATE = np.dtype(
         # stage (docs/math.md §9.1): its memory is turned by the bias-corrected gyro
         ("acc_sens", np.float64, (3, 3)),
         ("acc_sens2", np.float64, (3, 3)),
-        ("acc_lp_share", np.float64),  # the low-pass's weight in the fused direction
         # --- the field over its learned magnitude, low-passed likewise (body axes)
         ("mag_lp", np.float64, 3),
         ("t_mag_lp", np.float64),  # s since the low-pass started
@@ -199,9 +198,8 @@ F3 = nt.UniTuple(nt.float64, 3)  # a 3-vector
 F4 = nt.UniTuple(nt.float64, 4)  # a quaternion
 F33 = nt.UniTuple(F3, 3)  # a 3×3 matrix (rows)
 _Z3 = (0.0, 0.0, 0.0)
-Z33 = (_Z3, _Z3, _Z3)
 FUSION_T = numba.typeof(Fusion(_Z3, False, False, _Z3, 0.0, False, _Z3, 0.0, False, _Z3, False,
-                               _Z3, _Z3, 0.0, 0.0, 0.0, Z33, 1.0))
+                               _Z3, _Z3, 0.0, 0.0, 0.0, ZERO33, 1.0))
 
 # algorithm ids (index in ALGORITHMS): the paper's filters, then the baselines
 ALGO_MEKF, ALGO_MUKF = ALGORITHMS.index("mekf"), ALGORITHMS.index("mukf")

@@ -342,8 +342,7 @@ class EstimatorNode(Node):
             extras = (self._tf is not None and p["publish_tf"]) or (
                 self._rpy_pub is not None and p["publish_debug_topics"])
             with self._lock:
-                if self._gyro_window is not None or self._gyro_offset_set:
-                    gyr = self._gyro_input(h.stamp, gyr, acc)
+                gyr = self._gyro_input(h.stamp, gyr, acc)
                 # no StreamOutput on this path: the output record straight into the bytes
                 flags = self.stream.step_imu(h.stamp, gyr, acc)
                 if not flags:

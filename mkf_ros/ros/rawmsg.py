@@ -78,8 +78,8 @@ def imu_views(h: RawHeader) -> tuple[np.ndarray | None, np.ndarray | None]:
     :meth:`StreamAdapter.step_imu <mkf_ros.stream.adapter.StreamAdapter.step_imu>`, which
     copies them into its event record; a field whose covariance[0] is -1 is None."""
     d = h.d
-    return (None if rep145.not_reported(d[WC]) else d[W:W + 3],
-            None if rep145.not_reported(d[AC]) else d[A:A + 3])
+    return (rep145.input_vector(d[W:W + 3], d[WC], copy=False),
+            rep145.input_vector(d[A:A + 3], d[AC], copy=False))
 
 
 class ImuEncoder:

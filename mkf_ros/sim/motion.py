@@ -291,6 +291,10 @@ class _SlowRates:
     def __call__(self, t: np.ndarray) -> np.ndarray:
         return self.a * np.sin(2 * np.pi * self.f * t[:, None] + self.ph)
 
+    def derivative(self, t: np.ndarray) -> np.ndarray:
+        """The angular acceleration of these rates at ``t``."""
+        return self.a * 2 * np.pi * self.f * np.cos(2 * np.pi * self.f * t[:, None] + self.ph)
+
 
 def _bursts(rng: np.random.Generator, duration: float, start: float, every: float,
             length: tuple[float, float]) -> list[tuple[float, float]]:
@@ -569,8 +573,7 @@ def _running(c: Context) -> ChunkFn:
     def rates(t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         ph = w0 * t[:, None]
         w = slow(t) + amp * w0 * np.cos(ph) * axis
-        dw = (slow.a * 2 * np.pi * slow.f * np.cos(2 * np.pi * slow.f * t[:, None] + slow.ph)
-              - amp * w0 * w0 * np.sin(ph) * axis)
+        dw = slow.derivative(t) - amp * w0 * w0 * np.sin(ph) * axis
         return w, dw
 
     def chunk(ch: Chunk) -> None:

@@ -32,10 +32,13 @@ def not_reported(cov0: Any) -> Any:
     return cov0 == -1.0
 
 
-def input_vector(value: Any, cov0: float) -> np.ndarray | None:
+def input_vector(value: Any, cov0: float, copy: bool = True) -> Any:
     """One input field as 3 floats (a copy: a read-only view of a message would make numba
-    compile a read-only variant), None when it is not reported."""
-    return None if not_reported(cov0) else np.array(value, dtype=float)
+    compile a read-only variant; ``copy=False`` for a caller that copies it itself), None when
+    it is not reported."""
+    if not_reported(cov0):
+        return None
+    return np.array(value, dtype=float) if copy else value
 
 
 def input_rows(values: Any, cov0: np.ndarray) -> np.ndarray:
