@@ -43,8 +43,10 @@ from mkf_ros.core.mekf import mekf_predict_t, transport_covariance_t
 from mkf_ros.core.quaternion import (
     q_omega_t,
     qconj_mul_t,
+    qmul_np,
     qmul_t,
     qnormalize_t,
+    rotmat_np,
     rotmat_t,
     t3,
     t4,
@@ -500,3 +502,83 @@ def smooth_run(f: AttitudeFilter, dts: np.ndarray, gyr: np.ndarray, acc: np.ndar
     sm.bias[bad] = filt.bias[bad]
     sm.bias_var[bad] = filt.bias_var[bad]
     return filt, sm
+
+
+# --- both directions (docs/math.md §11.5) ----------------------------------------------------
+#: The values of ``estimate(smooth=...)``: the forward RTS smoother, or it fused with the same
+#: smoother run over the reversed recording (docs/math.md §11.5).
+SMOOTH_MODES = ("rts", "two-way")
+
+
+def reversed_inputs(dts: np.ndarray, gyr: np.ndarray, acc: np.ndarray, mag: np.ndarray
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The recording backwards in time (docs/math.md §11.5): sample ``j`` of the result is
+    sample ``k = N − 1 − j``. A step's gyro reading and ``Δt`` describe the interval that
+    *ends* at its sample, so backwards sample ``j`` takes those of sample ``k + 1`` (the
+    interval from ``t_k`` to ``t_{k+1}``, turned the other way: ``−ω``); the first keeps its
+    own. Accelerometer and magnetometer readings are instantaneous: reversed as they are."""
+    def shifted(x: np.ndarray) -> np.ndarray:
+        r = x[::-1]
+        return np.concatenate([r[:1], r[:-1]])
+    return shifted(dts), -shifted(gyr), acc[::-1].copy(), mag[::-1].copy()
+
+
+def _exp_left(d: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """``exp(d) ⊗ q`` for (N, 3) rotation vectors ``d`` about world axes, ``w ≥ 0``."""
+    th = np.linalg.norm(d, axis=1)
+    s = np.where(th > 1e-12, np.sin(0.5 * th) / np.where(th > 1e-12, th, 1.0), 0.5)
+    out = qmul_np(np.column_stack([np.cos(0.5 * th), d * s[:, None]]), q)
+    out /= np.linalg.norm(out, axis=1)[:, None]
+    out[out[:, 0] < 0] *= -1.0
+    return out
+
+
+#: ``d dᵀ`` for ``D = diag(d) = diag(√2, √2, 1)``, the congruence ``D P D = P ∘ d dᵀ`` that
+#: widens the fused tilt to covariance intersection's bound (ω = ½; docs/math.md §11.5).
+_CI_TILT = np.outer([np.sqrt(2.0), np.sqrt(2.0), 1.0], [np.sqrt(2.0), np.sqrt(2.0), 1.0])
+
+
+def fuse_tilt(q_f: np.ndarray, P_f: np.ndarray, q_b: np.ndarray, P_b: np.ndarray
+              ) -> tuple[np.ndarray, np.ndarray]:
+    """The forward estimate ``(q_f, P_f)`` updated with the tilt of a second estimate
+    ``(q_b, P_b)`` of the same samples (docs/math.md §11.5, eq. 11.12–11.14); covariances about
+    each estimate's world axes, (N, 3, 3). The second estimate's world frame may differ from
+    the first's by a heading (a reversed 6D pass starts its own): only its vertical is used,
+    the body's up ``R_bᵀ z`` seen in the first's world, ``v = R_f R_bᵀ z``; the tilt
+    difference is the world rotation ``d`` (horizontal) that takes ``v`` to ``z``, a
+    measurement of the first's world error ``δ`` with ``H = [I₂ 0]`` and noise ``P_b`` turned
+    into the first's world by the heading ``ψ`` between the two worlds (both are vertical):
+    ``K = P_f Hᵀ (H P_f Hᵀ + H P_b' Hᵀ)⁻¹``, ``q = exp(K d) ⊗ q_f``.
+    The two estimates share their samples, so their errors are correlated by an unknown
+    amount: the covariance is the Joseph form's ``(I − KH) P_f (I − KH)ᵀ + K H P_b' Hᵀ Kᵀ``
+    (right for independent errors) with its tilt widened to covariance intersection's bound
+    for any correlation (ω = ½: twice), ``D P D``, ``D = diag(√2, √2, 1)``; equal estimates
+    then keep their covariance. Symmetric PSD by construction (a congruence of a sum of
+    congruences). Samples where either is not finite keep the first."""
+    Rf, Rb = rotmat_np(q_f), rotmat_np(q_b)
+    M = Rf @ Rb.transpose(0, 2, 1)  # the second's world axes → the first's
+    v = M[:, :, 2]
+    d = np.cross(v, np.array([0.0, 0.0, 1.0]))  # axis · sin(angle), horizontal
+    s = np.linalg.norm(d, axis=1)
+    ang = np.arctan2(s, v[:, 2])
+    d *= np.where(s > 1e-15, ang / np.where(s > 1e-15, s, 1.0), 1.0)[:, None]
+    # both worlds are vertical: they differ by a heading ψ, about which P_b turns
+    psi = np.arctan2(M[:, 1, 0] - M[:, 0, 1], M[:, 0, 0] + M[:, 1, 1])
+    c, sn = np.cos(psi), np.sin(psi)
+    Mz = np.zeros_like(M)
+    Mz[:, 0, 0], Mz[:, 0, 1], Mz[:, 1, 0], Mz[:, 1, 1], Mz[:, 2, 2] = c, -sn, sn, c, 1.0
+    Pb = Mz @ P_b @ Mz.transpose(0, 2, 1)
+    S = P_f[:, :2, :2] + Pb[:, :2, :2]
+    ok = (np.isfinite(q_f).all(1) & np.isfinite(q_b).all(1) & np.isfinite(P_f).all((1, 2))
+          & np.isfinite(Pb).all((1, 2)))
+    S[~ok] = np.eye(2)
+    ok &= np.linalg.det(S) > 0.0
+    K = np.zeros((len(q_f), 3, 2))
+    K[ok] = P_f[ok, :, :2] @ np.linalg.inv(S[ok])
+    q = _exp_left(np.einsum("nij,nj->ni", K, d[:, :2]), q_f)
+    IKH = np.broadcast_to(np.eye(3), P_f.shape).copy()
+    IKH[:, :, :2] -= K
+    P = IKH @ P_f @ IKH.transpose(0, 2, 1) + K @ Pb[:, :2, :2] @ K.transpose(0, 2, 1)
+    P = 0.5 * (P + P.transpose(0, 2, 1)) * _CI_TILT
+    q[~ok], P[~ok] = q_f[~ok], P_f[~ok]
+    return q, P
