@@ -715,7 +715,7 @@ def target_checks(data: dict[str, DatasetResult]) -> list[Check]:
                            vals["mukf"]))
     out += smoother_checks(data)
     for fmt, ds in data.items():
-        for o in (*OURS, *(f"{o}-smooth" for o in OURS)):
+        for o in (*OURS, *(f"{o}-{m}" for o in OURS for m in ("smooth", "twoway"))):
             for dim in ("6D", "9D"):
                 col = f"{o} {dim}"
                 if col not in ds.cols:

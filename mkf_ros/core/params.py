@@ -153,8 +153,9 @@ PARAMS: tuple[Param, ...] = (
        "(sqrt of Q_v, external disturbance)", unit="m/s^2", range=(0.0, 100.0), group="noise"),
     _P("mag_noise", float, 0.02, "Magnetometer white noise per sample, relative to the field "
        "magnitude", unit="1", range=(1e-6, 10.0), group="noise"),
-    _P("mag_disturbance", float, 0.05, "Magnetic disturbance expected, relative to the field "
-       "magnitude", unit="1", range=(0.0, 10.0), group="noise"),
+    _P("mag_disturbance", float, 0.1, "Magnetic disturbance expected, relative to the field "
+       "magnitude (indoors the undisturbed field differs by 10-25 % from place to place)",
+       unit="1", range=(0.0, 10.0), group="noise"),
     _P("rate_process_noise", float, 20.0, "Power spectral density Q_w of the angular "
        "acceleration driving the constant-rate model (§4.2)", unit="rad^2/s^3",
        range=(1e-9, 1e9), group="noise"),
