@@ -541,7 +541,7 @@ _CI_TILT = np.outer([np.sqrt(2.0), np.sqrt(2.0), 1.0], [np.sqrt(2.0), np.sqrt(2.
 def fuse_tilt(q_f: np.ndarray, P_f: np.ndarray, q_b: np.ndarray, P_b: np.ndarray
               ) -> tuple[np.ndarray, np.ndarray]:
     """The forward estimate ``(q_f, P_f)`` updated with the tilt of a second estimate
-    ``(q_b, P_b)`` of the same samples (docs/math.md §11.5, eq. 11.12–11.14); covariances about
+    ``(q_b, P_b)`` of the same samples (docs/math.md §11.5, eq. 11.5a–c); covariances about
     each estimate's world axes, (N, 3, 3). The second estimate's world frame may differ from
     the first's by a heading (a reversed 6D pass starts its own): only its vertical is used,
     the body's up ``R_bᵀ z`` seen in the first's world, ``v = R_f R_bᵀ z``; the tilt
