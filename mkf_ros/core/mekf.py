@@ -468,7 +468,7 @@ def heading_residual(R: np.ndarray, m_body: np.ndarray, ref: np.ndarray) -> tupl
 @jit_inline
 def mekf_heading_update_t(
     P: np.ndarray, nx: int, dx: np.ndarray, R: tuple, m_body: tuple, ref: tuple, var: float,
-    gate: float,
+    gate: float, bias_gain: float,
 ) -> float:
     """:func:`mekf_heading_update` on tuples (``R`` a tuple of rows)."""
     psi, _ = heading_residual_t(R, m_body, ref)
@@ -492,6 +492,8 @@ def mekf_heading_update_t(
         k[i] = v[i] / S
     for o in range(0, nx, 3):  # every group's gain (attitude, rate, bias) onto the vertical
         ku = u[0] * k[o] + u[1] * k[o + 1] + u[2] * k[o + 2]
+        if o == 6:  # the bias's share (mag_bias_gain, docs/math.md §9.2)
+            ku *= bias_gain
         k[o], k[o + 1], k[o + 2] = u[0] * ku, u[1] * ku, u[2] * ku
     for i in range(nx):
         dx[i] += k[i] * r
@@ -550,7 +552,7 @@ NX_MAX_HEADING = 9
 @jit
 def mekf_heading_update(
     P: np.ndarray, nx: int, dx: np.ndarray, R: np.ndarray, m_body: np.ndarray, ref: np.ndarray,
-    var: float, gate: float,
+    var: float, gate: float, bias_gain: float = 1.0,
 ) -> float:
     """Magnetometer for heading only (extension). Measurement ``0 = ψ(q) + n``: ``ψ`` is the
     rotation about the world vertical that brings the horizontal part of ``R(q) m`` onto the
@@ -561,10 +563,11 @@ def mekf_heading_update(
     tilt error moves the apparent heading, so that ``S = H P Hᵀ + var`` counts it. The gain of
     each group (attitude, rate, bias) is projected onto ``u``: the magnetometer turns the
     estimate about the vertical only and can never tilt it, not even later through the rate
-    or the bias (a wrong dip, a disturbed field); the covariance uses
+    or the bias (a wrong dip, a disturbed field); the bias's times ``bias_gain``
+    (``mag_bias_gain``, docs/math.md §9.2); the covariance uses
     the Joseph form, valid for any gain: ``P ← (I − K H) P (I − K H)ᵀ + K var Kᵀ``. Returns
     the NIS (−1 if ``S ≤ 0``)."""
-    return mekf_heading_update_t(P, nx, dx, t33(R), t3(m_body), t3(ref), var, gate)
+    return mekf_heading_update_t(P, nx, dx, t33(R), t3(m_body), t3(ref), var, gate, bias_gain)
 
 
 @jit_inline

@@ -54,13 +54,16 @@ NOISE_MODES = ("consistent", "published", "integrated")
 #: disturbance ``Qv``, which are present ``use_v``), the gyro (eq. 23: ``wm``, ``use_w``,
 #: ``Rw``), the field for heading only (``hm`` body, ``href`` horizontal world reference,
 #: ``use_h``, variance ``var_h``), rest's zero rate (``use_z``, ``var_z``), a χ² gate per block
-#: (``gates``, vector 0, vector 1, heading, gyro; only with ``gated``) and gravity's tilt-only
-#: gain (``tilt_v0``). Tuples for :func:`mukf_step_t` (a pair of 3-tuples, of rows, of flags
-#: for the vectors), arrays for :func:`mukf_step_ext` (``(k, 3)``, ``(k, 3, 3)``, ``(k,)``;
-#: ``gated`` there: ``gates`` not empty).
+#: (``gates``, vector 0, vector 1, heading, gyro; only with ``gated``), gravity's tilt-only
+#: gain (``tilt_v0``), its dependence on the bias and the bias's share of its gain
+#: (``sens_v0``, ``bias_gain_v0``, docs/math.md §9.1) and the heading's bias share
+#: (``bias_gain_h``, §9.2; default 1). Tuples for :func:`mukf_step_t` (a pair of 3-tuples, of
+#: rows, of flags for the vectors), arrays for :func:`mukf_step_ext` (``(k, 3)``,
+#: ``(k, 3, 3)``, ``(k,)``; ``gated`` there: ``gates`` not empty).
 MukfMeasurement = namedtuple("MukfMeasurement", (
     "vm", "vref", "Rv", "Qv", "use_v", "wm", "use_w", "Rw", "hm", "href", "use_h", "var_h",
-    "use_z", "var_z", "gates", "gated", "tilt_v0", "sens_v0", "bias_gain_v0"))
+    "use_z", "var_z", "gates", "gated", "tilt_v0", "sens_v0", "bias_gain_v0", "bias_gain_h"),
+    defaults=(1.0,))
 
 
 @jit_inline
@@ -92,7 +95,7 @@ def mukf_step(chart: int, chart_update: bool, noise_mode: int, w0: float, x: tup
     return mukf_step_ext(chart, chart_update, noise_mode, w0, x, P, nx, dt, Qw, Qb,
                          MukfMeasurement(vm, vref, Rv, Qv, use_v, wm, use_w, Rw, none, none,
                                          False, 0.0, False, 0.0, none, False, False,
-                                         _NO_SENSITIVITY, 1.0), none)
+                                         _NO_SENSITIVITY, 1.0, 1.0), none)
 
 
 #: ``sens_v0`` of a vector that does not depend on the bias (a global array: numba compiles it
@@ -240,7 +243,7 @@ def mukf_step_ext(chart: int, chart_update: bool, noise_mode: int, w0: float, x:
         t3(z.wm) if z.use_w else z3, z.use_w, t33(z.Rw) if z.use_w else z33,
         t3(z.hm) if z.use_h else z3, t3(z.href) if z.use_h else z3, z.use_h, z.var_h,
         z.use_z, z.var_z, (z.gates[0], z.gates[1], z.gates[2], z.gates[3]) if gated else inf4,
-        gated, z.tilt_v0, t33(z.sens_v0), z.bias_gain_v0)
+        gated, z.tilt_v0, t33(z.sens_v0), z.bias_gain_v0, z.bias_gain_h)
     ok, q, e, w_, b_, nis_ = mukf_step_t(
         chart, chart_update, noise_mode, w0, (t4(qc), t3(ebar), t3(w), t3(b)), P, nx, dt,
         t33(Qw), t33(Qb), zt, mukf_scratch(nx))
@@ -302,7 +305,8 @@ def mukf_step_t(chart: int, chart_update: bool, noise_mode: int, w0: float, x: t
     if not ok:
         return False, qc, ebar, w, b, nis
     ma, row_v0k, row_hk = _keep_rows(X, Pxy, Pyy, ns, nx, m, first, rejected)
-    if not _update(X, scratch, ns, nx, ma, qm, (z.tilt_v0, z.bias_gain_v0), row_v0k, row_hk):
+    if not _update(X, scratch, ns, nx, ma, qm, (z.tilt_v0, z.bias_gain_v0, z.bias_gain_h),
+                   row_v0k, row_hk):
         return False, qc, ebar, w, b, nis
     e, w, b = _new_state(X, P, Pxx, ns, nx, chart, w, b)
     return True, qm, e, w, b, nis
@@ -720,7 +724,7 @@ def _keep_rows(X: np.ndarray, Pxy: np.ndarray, Pyy: np.ndarray, ns: int, nx: int
 def _update(X: np.ndarray, scratch: tuple, ns: int, nx: int, ma: int, qm: tuple,
             v0: tuple, row_v0k: int, row_hk: int) -> bool:
     """Step 7 with the ``ma`` kept rows: ``K = P_xy P_yy⁻¹`` (:func:`_gain`), projected for the
-    gravity rows (``v0 = (tilt_v0, bias_gain_v0)``) and the heading row
+    gravity rows and the heading row (``v0 = (tilt_v0, bias_gain_v0, bias_gain_h)``)
     (:func:`_gain_projection`), ``Δx = K (y − ȳ)`` into
     row ``ns + 1`` of ``X`` (:func:`_correction`), ``P ← P_xx − K P_yy Kᵀ`` in ``Pxx``
     (:func:`_covariance_update`); ``scratch`` as in :func:`mukf_step_t`. False if ``P_yy`` is
@@ -758,11 +762,12 @@ def _gain_projection(Kt: np.ndarray, dK: np.ndarray, nx: int, qm: tuple, v0: tup
                      row_v0k: int, row_hk: int) -> tuple:
     """Gain projections (extensions): ``K = K₀ + ΔK`` with ``K₀ = P_xy P_yy⁻¹``. ``ΔK`` has
     ``np_`` non-zero columns, kept dense in ``dK``; column ``t`` belongs to row ``pc[t]`` of the
-    stacked measurement: the gravity rows (``v0 = (tilt_v0, bias_gain_v0)``: with ``tilt_v0``
-    every group's gain — attitude, rate, bias — kept off the world vertical; the bias's times
-    ``bias_gain_v0``, the partial update of docs/math.md §9.1), then the heading row (every
-    group's gain onto the vertical). Returns ``(np_, pc)``."""
-    tilt_v0, bias_gain = v0
+    stacked measurement: the gravity rows (``v0 = (tilt_v0, bias_gain_v0, bias_gain_h)``: with
+    ``tilt_v0`` every group's gain — attitude, rate, bias — kept off the world vertical; the
+    bias's times ``bias_gain_v0``, the partial update of docs/math.md §9.1), then the heading
+    row (every group's gain onto the vertical, the bias's times ``bias_gain_h``, §9.2).
+    Returns ``(np_, pc)``."""
+    tilt_v0, bias_gain, bias_gain_h = v0
     if nx < 9:
         bias_gain = 1.0
     u = rotmat_t(qm)[2]  # world vertical in the new chart's axes
@@ -780,9 +785,11 @@ def _gain_projection(Kt: np.ndarray, dK: np.ndarray, nx: int, qm: tuple, v0: tup
                 gm = bias_gain if g == 2 else 1.0
                 for i in range(3):
                     dK[3 * g + i, t] = (gm - 1.0) * Kt[a, 3 * g + i] - gm * u[i] * ku
-        else:  # heading: every group's gain (attitude, rate, bias) onto the vertical u
-            for g in range(nx // 3):
+        else:  # heading: every group's gain (attitude, rate, bias) onto the vertical u, the
+            for g in range(nx // 3):  # bias's times bias_gain_h (mag_bias_gain, docs/math.md §9.2)
                 ku = u0 * Kt[a, 3 * g] + u1 * Kt[a, 3 * g + 1] + u2 * Kt[a, 3 * g + 2]
+                if g == 2:
+                    ku *= bias_gain_h
                 dK[3 * g, t], dK[3 * g + 1, t], dK[3 * g + 2, t] = (
                     u0 * ku - Kt[a, 3 * g], u1 * ku - Kt[a, 3 * g + 1],
                     u2 * ku - Kt[a, 3 * g + 2])

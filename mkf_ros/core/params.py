@@ -195,6 +195,12 @@ PARAMS: tuple[Param, ...] = (
        "Schmidt-Kalman filter: only the bias's gain is scaled, its covariance follows by the "
        "Joseph form); 0 = the full gain always", unit="1", range=(0.0, 100.0),
        group="robustness"),
+    _P("mag_bias_gain", float, 0.3, "The magnetometer's heading update moves the gyro bias "
+       "at this share of its Kalman gain (a partial-update Schmidt-Kalman filter, as "
+       "acc_bias_excess; its covariance follows by the Joseph form): a magnetic disturbance "
+       "correlated over mag_disturbance_time turns the heading like a gyro bias would, and a "
+       "full gain on the bias follows it and then turns the heading for as long as the field "
+       "is refused; 1 = the full gain", unit="1", range=(0.0, 1.0), group="robustness"),
     _P("acc_disturbance_time", float, 0.1, "Correlation time of the non-gravitational "
        "acceleration left in the fused accelerometer: its per-sample variance is "
        "acc_disturbance^2 * max(1, time/dt), so that its information per second does not grow "

@@ -931,9 +931,9 @@ def _mekf_vector(s: np.record, w: np.record, nx: int, R: tuple, vm: tuple, vref:
 
 @jit
 def _mekf_heading(s: np.record, w: np.record, nx: int, R: tuple, m: tuple, ref: tuple,
-                  var: float, gate: float) -> float:
+                  var: float, gate: float, bias_gain: float) -> float:
     """:func:`~mkf_ros.core.mekf.mekf_heading_update_t` into ``w.dx``."""
-    return mekf_heading_update_t(s.P, nx, w.dx, R, m, ref, var, gate)
+    return mekf_heading_update_t(s.P, nx, w.dx, R, m, ref, var, gate, bias_gain)
 
 
 @jit
@@ -1007,7 +1007,8 @@ def _mekf_update(c: np.record, s: np.record, w: np.record, dt: float,
                                z.acc_gate, c.acc_tilt_only, z.a_sens, z.a_bias_gain)
     if z.has_m:
         if c.mag_heading:
-            mag_nis = _mekf_heading(s, w, nx, R, z.m, z.h_ref, z.var_h, z.mag_gate)
+            mag_nis = _mekf_heading(s, w, nx, R, z.m, z.h_ref, z.var_h, z.mag_gate,
+                                         c.mag_bias_gain)
         else:
             mag_nis = _mekf_vector(s, w, nx, R, z.m, z.m_ref, iso33(c.mag_var),
                                    iso33(c.mag_disturbance_var), z.mag_gate, False, ZERO33, 1.0)
@@ -1037,7 +1038,8 @@ def mukf_update(c: np.record, s: np.record, w: np.record, dt: float,
         (z.has_a, use_vm), z.g, False, iso33(c.gyro_var), z.m if z.has_m else ZERO3,
         z.h_ref if z.has_m else ZERO3, heading_m, z.var_h, False, c.rest_rate_var,
         (z.acc_gate, z.mag_gate, z.mag_gate, np.inf), True, c.acc_tilt_only,
-        z.a_sens if z.has_a else ZERO33, z.a_bias_gain if z.has_a else 1.0)
+        z.a_sens if z.has_a else ZERO33, z.a_bias_gain if z.has_a else 1.0,
+        c.mag_bias_gain if heading_m else 1.0)
     ok, q, e, wt, b, nis = mukf_step_t(
         c.chart, c.chart_update, c.mukf_noise, c.mukf_w0, x, s.P, nx, dt,
         iso33(c.rate_process_noise), iso33(c.bias_process_var), meas,

@@ -40,6 +40,7 @@ NX_MAX = 9  # states: attitude error e, rate ω, gyro bias b
 COPIED_PARAMS = (
     "mukf_w0", "rate_process_noise", "max_dt", "gravity",
     "acc_norm_tolerance", "acc_gate", "acc_recovery_time", "acc_time_constant", "acc_bias_excess",
+    "mag_bias_gain",
     "acc_disturbance_time", "acc_alignment_error", "gyro_scale_error", "gyro_gate",
     "mag_time_constant", "mag_consistency_tolerance", "mag_timing_error", "mag_undisturbed_time",
     "mag_disturbance_time", "mag_norm_tolerance", "mag_dip_tolerance", "mag_gate",

@@ -109,13 +109,14 @@ def mekf_vector_update_ref(P, nx, dx, q, vm, vref, Rv, Qv, tilt_only):
     return A @ P @ A.T + K @ Rn @ K.T, dx + K @ r, float(r @ np.linalg.solve(S, r))
 
 
-def mekf_heading_update_ref(P, nx, dx, q, m_body, ref, var):
+def mekf_heading_update_ref(P, nx, dx, q, m_body, ref, var, bias_gain=1.0):
     """The magnetometer for heading only (extension), literally: measurement ``0 = ψ(q) + n``
     linearised at ``q = q̄ * δ(e)`` with ``R(q̄ δ) m ≈ R(q̄)(m + e × m)``:
     ``H = [−(d × m), 0]``, ``d = R(q̄)ᵀ (m_y, −m_x, 0)/(m_x² + m_y²)`` with ``(m_x, m_y)`` the
     horizontal part of ``R(q̄) m``; ``S = H P Hᵀ + var``, ``K₀ = P Hᵀ/S``, the gain of each
     group projected onto the vertical, ``K = blockdiag(u uᵀ) K₀``, ``u = R(q̄)ᵀ ẑ``; the
-    innovation ``−ψ(q̄) − H Δx``; P in Joseph form. Returns ``(P, Δx, NIS)``."""
+    innovation ``−ψ(q̄) − H Δx``; the bias rows of ``K`` times ``bias_gain`` (docs/math.md
+    §9.2, ``mag_bias_gain``); P in Joseph form. Returns ``(P, Δx, NIS)``."""
     R = rotmat(q)
     mw = R @ m_body
     d = R.T @ np.array([mw[1], -mw[0], 0.0]) / (mw[0] ** 2 + mw[1] ** 2)
@@ -124,6 +125,7 @@ def mekf_heading_update_ref(P, nx, dx, q, m_body, ref, var):
     S = float((H @ P @ H.T)[0, 0]) + var
     K = P @ H.T / S
     K = group_projector(R.T @ np.array([0.0, 0.0, 1.0]), nx, onto=True) @ K
+    K[6:nx] *= bias_gain
     r = -heading_psi_ref(q, m_body, ref) - float((H @ dx)[0])
     A = np.eye(nx) - K @ H
     return A @ P @ A.T + var * K @ K.T, dx + K[:, 0] * r, r * r / S
@@ -131,7 +133,7 @@ def mekf_heading_update_ref(P, nx, dx, q, m_body, ref, var):
 
 def mukf_step_ref(chart, cu, published, w0, qc, ebar, w, b, P, nx, dt, Qw, Qb, vms, vrefs,
                   Rvs, Qvs, wm, Rw, z_var=None, drop=(), nis_out=None, heading=None,
-                  tilt_v0=False, internals=None):
+                  tilt_v0=False, internals=None, heading_bias_gain=1.0):
     """§6 steps 0–7 literally: full augmentation, 2N+1 sigma points, columns of L.
 
     ``published`` is the noise mode: 0 (False) consistent, 1 (True) published, 2 integrated
@@ -141,7 +143,8 @@ def mukf_step_ref(chart, cu, published, w0, qc, ebar, w, b, P, nx, dt, Qw, Qb, v
     point's), its gain, for each group, projected onto the world vertical u = R(q̄⁻)ᵀ ẑ of the
     new mean; ``tilt_v0`` projects the first vector's gain off u; with either, P is the Joseph
     form ``P_xx − K P_xyᵀ − P_xy Kᵀ + K P_yy Kᵀ`` for the projected gain K. ``z_var`` adds the
-    zero-rate pseudo-measurement ``0 = ω + n``; ``drop`` leaves out measurement blocks
+    zero-rate pseudo-measurement ``0 = ω + n``; ``heading_bias_gain`` scales the bias rows of
+    the heading's projected gain (docs/math.md §9.2); ``drop`` leaves out measurement blocks
     (indices in row order: the vectors, the heading, the gyro, the zero rate) after the sums,
     as the χ² gate does; ``nis_out`` (a list) receives ``rᵀ P_yy⁻¹ r`` of every block, alone;
     ``internals`` (a dict) receives the optimal gain ``K0``, ``Pyy``, ``Pxy``, ``Pxx`` and the
@@ -245,6 +248,7 @@ def mukf_step_ref(chart, cu, published, w0, qc, ebar, w, b, P, nx, dt, Qw, Qb, v
             proj[i] = group_projector(u, nx, onto=False)
     if heading is not None:
         proj[3 * nv] = group_projector(u, nx, onto=True)
+        proj[3 * nv][6:nx] *= heading_bias_gain
     Pxy, Pyy, r = Pxy[:, keep], Pyy[np.ix_(keep, keep)], r[keep]
     proj = [p for p, k in zip(proj, keep, strict=True) if k]
     K0 = Pxy @ np.linalg.inv(Pyy) if keep.any() else np.zeros((nx, 0))

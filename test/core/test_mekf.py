@@ -294,10 +294,12 @@ def test_vector_update_equals_transcription(nx: int, tilt_only: bool) -> None:
                 assert abs(u @ (dxk - dx0)[3 * g:3 * g + 3]) < 1e-14
 
 
+@pytest.mark.parametrize("bias_gain", [1.0, 0.3])
 @pytest.mark.parametrize("nx", [6, 9])
-def test_heading_update_equals_transcription(nx: int) -> None:
+def test_heading_update_equals_transcription(nx: int, bias_gain: float) -> None:
     """mekf_heading_update equals the literal heading-only Kalman update: ``H = [−(d × m), 0]``,
-    the gain of each group projected onto the vertical, Joseph form, innovation ``−ψ − HΔx``."""
+    the gain of each group projected onto the vertical, the bias's times ``bias_gain``
+    (``mag_bias_gain``, docs/math.md §9.2), Joseph form, innovation ``−ψ − HΔx``."""
     for seed in range(8):
         q, m_body, ref, _ = _heading_case(100 + seed)
         rng = np.random.default_rng(seed)
@@ -305,11 +307,11 @@ def test_heading_update_equals_transcription(nx: int) -> None:
         P0 = A @ A.T + 1e-4 * np.eye(nx)
         dx0 = rng.normal(size=nx) * 0.01
         var = 1e-3
-        Pr, dxr, nisr = mekf_heading_update_ref(P0, nx, dx0, q, m_body, ref, var)
+        Pr, dxr, nisr = mekf_heading_update_ref(P0, nx, dx0, q, m_body, ref, var, bias_gain)
         Pk = np.zeros((9, 9))
         Pk[:nx, :nx] = P0
         dxk = dx0.copy()
-        nis = mekf_heading_update(Pk, nx, dxk, rotmat(q), m_body, ref, var, np.inf)
+        nis = mekf_heading_update(Pk, nx, dxk, rotmat(q), m_body, ref, var, np.inf, bias_gain)
         np.testing.assert_allclose(Pk[:nx, :nx], Pr, atol=1e-12)
         np.testing.assert_allclose(dxk, dxr, atol=1e-12)
         assert nis == pytest.approx(nisr, rel=1e-10)

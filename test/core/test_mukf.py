@@ -181,7 +181,7 @@ def test_step_equals_ext_without_gates() -> None:
 
 
 def _ext(chart: str, q, P0, ebar, w, b, vm, vr, Rv, Qv, use_v, heading=None,
-         tilt: bool = False, nx: int = 9, cu: bool = True, wm=None):
+         tilt: bool = False, nx: int = 9, cu: bool = True, wm=None, bias_gain_h: float = 1.0):
     """mukf_step_ext on copies (integrated noise); returns (q̄, ē, ω̄, b̄, P)."""
     qc, e, wk, bk = q.copy(), ebar.copy(), w.copy(), b.copy()
     P = np.zeros((9, 9))
@@ -189,7 +189,7 @@ def _ext(chart: str, q, P0, ebar, w, b, vm, vr, Rv, Qv, use_v, heading=None,
     hm, href, var_h = heading if heading is not None else (np.zeros(3), np.zeros(3), 0.0)
     meas = MukfMeasurement(vm, vr, Rv, Qv, use_v, wm if wm is not None else w, wm is not None,
                            1e-4 * np.eye(3), hm, href, heading is not None, var_h, False, 0.0,
-                           np.full(4, np.inf), True, tilt, np.zeros((3, 3)), 1.0)
+                           np.full(4, np.inf), True, tilt, np.zeros((3, 3)), 1.0, bias_gain_h)
     assert mukf_step_ext(chart_id(chart), cu, 2, 1 / 25, (qc, e, wk, bk), P, nx, DT, QW, QB,
                          meas, np.zeros(4))
     return qc, e, wk, bk, P[:nx, :nx]
@@ -237,14 +237,17 @@ def _heading_inputs(rng: np.random.Generator, q: np.ndarray) -> tuple:
     return rotmat_np(q_seen).T @ field, np.array([0.0, 1.0, 0.0]), 1e-3
 
 
+@pytest.mark.parametrize("bias_gain_h", [1.0, 0.3])
 @pytest.mark.parametrize("nx", [6, 9])
 @pytest.mark.parametrize("chart", CHART_NAMES)
 @pytest.mark.parametrize("tilt", [False, True], ids=["vector", "tilt_only"])
-def test_heading_row_equals_transcription(nx: int, chart: str, tilt: bool) -> None:
+def test_heading_row_equals_transcription(nx: int, chart: str, tilt: bool,
+                                          bias_gain_h: float) -> None:
     """The MUKF's heading row (ψ carried through every sigma point, unwrapped around the
     central one; the gain of each group projected onto the world vertical; Joseph form), alone
     and with a tilt-only gravity row and the gyro, against the full 2N+1-point transcription
-    with the gain K written column by column and P = P_xx − K P_xyᵀ − P_xy Kᵀ + K P_yy Kᵀ."""
+    with the gain K written column by column and P = P_xx − K P_xyᵀ − P_xy Kᵀ + K P_yy Kᵀ; the
+    heading's bias rows times ``bias_gain_h`` (``mag_bias_gain``, docs/math.md §9.2)."""
     rng = np.random.default_rng(3 + nx + 10 * chart_id(chart) + 100 * tilt)
     for nvec in (0, 1):
         for with_gyro in (False, True):
@@ -255,11 +258,11 @@ def test_heading_row_equals_transcription(nx: int, chart: str, tilt: bool) -> No
             Rv, Qv = np.array([1e-3 * np.eye(3)] * 2), np.array([1e-2 * np.eye(3)] * 2)
             wm = w + rng.normal(size=3) * 0.1 if with_gyro else None
             got = _ext(chart, q, P0, ebar, w, b, vm, vr, Rv, Qv, np.array([nvec > 0, False]),
-                       heading=heading, tilt=tilt, nx=nx, wm=wm)
+                       heading=heading, tilt=tilt, nx=nx, wm=wm, bias_gain_h=bias_gain_h)
             want = mukf_step_ref(chart_id(chart), True, 2, 1 / 25, q, ebar, w, b, P0, nx, DT,
                                  QW, QB, [vm[0]][:nvec], [vr[0]][:nvec], [Rv[0]][:nvec],
                                  [Qv[0]][:nvec], wm, 1e-4 * np.eye(3), heading=heading,
-                                 tilt_v0=tilt)
+                                 tilt_v0=tilt, heading_bias_gain=bias_gain_h)
             qk, ek, wk, bk, Pk = got
             qm, er, wr, br, Pr = want
             assert min(np.abs(qk - qm).max(), np.abs(qk + qm).max()) < 1e-10
