@@ -135,6 +135,10 @@ def estimate(
         if params.get("use_mag"):
             raise ValueError("use_mag=True needs mag, an (N, 3) array")
         m = np.full((n, 3), np.nan)
+    if smooth:
+        from mkf_ros.core.smoother import forward_params
+
+        params = forward_params(params)
     p = FilterParams(params)
     dts = _time_steps(n, dt, timestamps)
     f = AttitudeFilter(p)

@@ -521,6 +521,8 @@ def process_bag(bag: str | Path, out: str | Path, params: Mapping[str, Any] | No
         params["input_mode"] = "split"
     elif params.get("input_mode") == "split":
         raise BagError("input_mode split needs --accel-topic and --gyro-topic")
+    if smooth:
+        params = sm_core.forward_params(params)
     adapter = StreamAdapter(params)
     p = adapter.params
     smoothing = None
