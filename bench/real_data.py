@@ -640,6 +640,9 @@ def _mean_checks(ds: DatasetResult, fmt: str, dim: str, kind: str,
     return out
 
 
+#: The smoothed columns' suffixes (``mekf-smooth``, ``mekf-twoway``, …): docs/math.md §11.
+SMOOTHED = ("smooth", "twoway")
+
 #: The smoother's targets (docs/math.md §11): below offline VQF, measured in the same run.
 SMOOTH_TARGETS = (("broad", "9D", "total"), ("broad", "6D", "inclination"),
                   ("repoimu", "9D", "total"), ("repoimu", "6D", "inclination"),
@@ -655,7 +658,7 @@ def smoother_checks(data: dict[str, DatasetResult]) -> list[Check]:
         off = f"vqf-offline {dim}"
         if ds is None or off not in ds.cols:
             continue
-        for o in (f"{a}-{m}" for a in OURS for m in ("smooth", "twoway")):
+        for o in (f"{a}-{m}" for a in OURS for m in SMOOTHED):
             col = f"{o} {dim}"
             if col in ds.cols:
                 out.append(_le_check(f"{fmt} {dim} mean {kind} (smoothed)", o,
@@ -715,7 +718,7 @@ def target_checks(data: dict[str, DatasetResult]) -> list[Check]:
                            vals["mukf"]))
     out += smoother_checks(data)
     for fmt, ds in data.items():
-        for o in (*OURS, *(f"{o}-{m}" for o in OURS for m in ("smooth", "twoway"))):
+        for o in (*OURS, *(f"{o}-{m}" for o in OURS for m in SMOOTHED)):
             for dim in ("6D", "9D"):
                 col = f"{o} {dim}"
                 if col not in ds.cols:
@@ -846,7 +849,7 @@ def main(argv: list[str] | None = None) -> int:
     print("CPU s per column (summed over recordings): "
           + ", ".join(f"{k} {v:.1f}" for k, v in sorted(cpu.items(), key=lambda kv: -kv[1])))
     ratios = [f"{o}-{m} {d} / {o} {d} = {cpu[f'{o}-{m} {d}'] / cpu[f'{o} {d}']:.2f}"
-              for o in OURS for m in ("smooth", "twoway") for d in ("6D", "9D")
+              for o in OURS for m in SMOOTHED for d in ("6D", "9D")
               if cpu.get(f"{o} {d}") and f"{o}-{m} {d}" in cpu]
     if ratios:
         print("smoothing cost (forward with records + backward, over the causal filter): "

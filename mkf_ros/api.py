@@ -135,33 +135,21 @@ def estimate(
         if params.get("use_mag"):
             raise ValueError("use_mag=True needs mag, an (N, 3) array")
         m = np.full((n, 3), np.nan)
-    if smooth:
-        from mkf_ros.core.smoother import forward_params
+    from mkf_ros.core import smoother as sm
 
-        params = forward_params(params)
+    mode = sm.smooth_mode(smooth)
+    if mode:
+        params = sm.forward_params(params)
     p = FilterParams(params)
     dts = _time_steps(n, dt, timestamps)
     f = AttitudeFilter(p)
-    if smooth is True:
-        smooth = "rts"
-    if smooth:
-        from mkf_ros.core import smoother as sm
-
-        if smooth not in sm.SMOOTH_MODES:
-            raise ValueError(f"smooth must be False, True or one of {sm.SMOOTH_MODES}, "
-                             f"got {smooth!r}")
-        win = sm.DEFAULT_WINDOW if smooth_window is None else int(smooth_window)
-        ovl = sm.DEFAULT_OVERLAP if smooth_overlap is None else int(smooth_overlap)
-        filt, s = sm.smooth_run(f, dts, g, a, m, win, ovl)
-        quat, cov = s.quat, s.cov
-        if smooth == "two-way":
-            fb = AttitudeFilter(p)
-            back, sb = sm.smooth_run(fb, *sm.reversed_inputs(dts, g, a, m), win, ovl)
-            ok = filt.initialized & back.initialized[::-1]
-            qb = np.where(ok[:, None], sb.quat[::-1], np.nan)
-            quat, cov = sm.fuse_tilt(quat, cov, qb, sb.cov[::-1])
+    if mode:
+        run = sm.smooth_both_ways if mode == "two-way" else sm.smooth_run
+        filt, s = run(f, dts, g, a, m,
+                      sm.DEFAULT_WINDOW if smooth_window is None else int(smooth_window),
+                      sm.DEFAULT_OVERLAP if smooth_overlap is None else int(smooth_overlap))
         return EstimateResult(
-            quat=quat, cov=cov, omega=s.omega, bias=s.bias,
+            quat=s.quat, cov=s.cov, omega=s.omega, bias=s.bias,
             bias_std=np.sqrt(s.bias_var), initialized=filt.initialized,
             counters=f.counter_dict(), params=p, filtered_quat=filt.quat,
             filtered_cov=filt.cov, smoothed=True)

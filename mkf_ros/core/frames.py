@@ -100,6 +100,37 @@ def yaw_twist(q: np.ndarray) -> np.ndarray:
     return np.array((q[0] / n, 0.0, 0.0, q[3] / n))
 
 
+def swing_rotvec(e: np.ndarray) -> np.ndarray:
+    """Horizontal rotation vector (..., 2) [rad] of the swing of error quaternions ``e``
+    (..., 4) [w, x, y, z] in the swing–twist decomposition about the world z axis,
+    ``e = swing ⊗ twist_z``.
+
+    With ``n = √(e_w² + e_z²)`` the twist is ``[e_w, 0, 0, e_z] / n`` and the swing
+    ``e ⊗ twist⁻¹ = [n, (e_w e_x − e_y e_z)/n, (e_w e_y + e_x e_z)/n, 0]``: a rotation about a
+    horizontal axis by ``2·atan2(√(e_x² + e_y²), n) = 2·acos n``, BROAD's inclination error.
+    The result does not depend on the sign of ``e``. At ``n = 0`` (a half turn about a
+    horizontal axis, where the decomposition is not unique) the axis ``(e_x, e_y)`` is used."""
+    e = np.asarray(e, dtype=float)
+    w, x, y, z = e[..., 0], e[..., 1], e[..., 2], e[..., 3]
+    n = np.hypot(w, z)
+    r = np.hypot(x, y)
+    ang = 2.0 * np.arctan2(r, n)
+    sx = w * x - y * z  # n · (swing vector part)
+    sy = w * y + x * z
+    rn = r * n
+    with np.errstate(divide="ignore", invalid="ignore"):
+        # |(sx, sy)| = r·n; as r → 0 the scale ang/(r·n) tends to 2/n²
+        scale = np.where(rn > 0, ang / np.where(rn > 0, rn, 1.0),
+                         2.0 / np.where(n > 0, n * n, 1.0))
+        half_turn = np.pi / np.where(r > 0, r, 1.0)
+    out = np.stack([sx * scale, sy * scale], axis=-1)
+    deg = n == 0
+    if np.any(deg):
+        alt = np.stack([x * half_turn, y * half_turn], axis=-1)
+        out = np.where(deg[..., None], alt, out)
+    return out
+
+
 @jit
 def heading_correction(q: np.ndarray, mag_body: np.ndarray, ref: np.ndarray) -> np.ndarray:
     """Rotation about world z that turns the horizontal part of ``R(q) mag_body`` onto the

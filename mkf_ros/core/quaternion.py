@@ -236,6 +236,20 @@ def qmul_np(p: np.ndarray, q: np.ndarray) -> np.ndarray:
     )
 
 
+def q_exp_np(rotvec: np.ndarray) -> np.ndarray:
+    """Quaternions of rotation vectors (..., 3) → (..., 4): ``[cos(θ/2), sin(θ/2) u]``."""
+    rotvec = np.asarray(rotvec, dtype=float)
+    th = np.atleast_1d(np.sqrt(np.einsum("...i,...i->...", rotvec, rotvec)))
+    out = np.empty((*th.shape, 4))
+    out[..., 0] = np.cos(0.5 * th)
+    # sin(θ/2)/θ, with its series near 0
+    small = th < 1e-6
+    k = np.sin(0.5 * th) / np.where(small, 1.0, th)
+    k[small] = 0.5 - th[small] ** 2 / 48.0
+    out[..., 1:] = k[..., None] * rotvec
+    return out.reshape((*rotvec.shape[:-1], 4))
+
+
 def qconj_np(q: np.ndarray) -> np.ndarray:
     """Vectorised conjugate."""
     q = np.array(q, dtype=float)

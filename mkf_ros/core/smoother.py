@@ -38,15 +38,17 @@ from mkf_ros.core.filter import (
     kernels_at,
     run_step,
 )
+from mkf_ros.core.frames import swing_rotvec
 from mkf_ros.core.linalg import cap_eigenvalues33_t, cho_solve_into, cholesky_into, congruence33_t
 from mkf_ros.core.mekf import mekf_predict_t, transport_covariance_t
 from mkf_ros.core.quaternion import (
+    q_exp_np,
     q_omega_t,
     qconj_mul_t,
+    qconj_np,
     qmul_np,
     qmul_t,
     qnormalize_t,
-    rotmat_np,
     rotmat_t,
     t3,
     t4,
@@ -524,6 +526,17 @@ def smooth_run(f: AttitudeFilter, dts: np.ndarray, gyr: np.ndarray, acc: np.ndar
 SMOOTH_MODES = ("rts", "two-way")
 
 
+def smooth_mode(smooth: bool | str) -> str | None:
+    """``estimate``'s ``smooth`` as one of :data:`SMOOTH_MODES` (``True``: ``"rts"``), or None
+    (``False``: the causal filter). ValueError for anything else."""
+    if smooth is False:
+        return None
+    mode = "rts" if smooth is True else smooth
+    if mode not in SMOOTH_MODES:
+        raise ValueError(f"smooth must be False, True or one of {SMOOTH_MODES}, got {smooth!r}")
+    return mode
+
+
 def reversed_inputs(dts: np.ndarray, gyr: np.ndarray, acc: np.ndarray, mag: np.ndarray
                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The recording backwards in time (docs/math.md §11.5): sample ``j`` of the result is
@@ -537,16 +550,6 @@ def reversed_inputs(dts: np.ndarray, gyr: np.ndarray, acc: np.ndarray, mag: np.n
     return shifted(dts), -shifted(gyr), acc[::-1].copy(), mag[::-1].copy()
 
 
-def _exp_left(d: np.ndarray, q: np.ndarray) -> np.ndarray:
-    """``exp(d) ⊗ q`` for (N, 3) rotation vectors ``d`` about world axes, ``w ≥ 0``."""
-    th = np.linalg.norm(d, axis=1)
-    s = np.where(th > 1e-12, np.sin(0.5 * th) / np.where(th > 1e-12, th, 1.0), 0.5)
-    out = qmul_np(np.column_stack([np.cos(0.5 * th), d * s[:, None]]), q)
-    out /= np.linalg.norm(out, axis=1)[:, None]
-    out[out[:, 0] < 0] *= -1.0
-    return out
-
-
 #: ``d dᵀ`` for ``D = diag(d) = diag(√2, √2, 1)``, the congruence ``D P D = P ∘ d dᵀ`` that
 #: widens the fused tilt to covariance intersection's bound (ω = ½; docs/math.md §11.5).
 _CI_TILT = np.outer([np.sqrt(2.0), np.sqrt(2.0), 1.0], [np.sqrt(2.0), np.sqrt(2.0), 1.0])
@@ -557,11 +560,12 @@ def fuse_tilt(q_f: np.ndarray, P_f: np.ndarray, q_b: np.ndarray, P_b: np.ndarray
     """The forward estimate ``(q_f, P_f)`` updated with the tilt of a second estimate
     ``(q_b, P_b)`` of the same samples (docs/math.md §11.5, eq. 11.5a–c); covariances about
     each estimate's world axes, (N, 3, 3). The second estimate's world frame may differ from
-    the first's by a heading (a reversed 6D pass starts its own): only its vertical is used,
-    the body's up ``R_bᵀ z`` seen in the first's world, ``v = R_f R_bᵀ z``; the tilt
-    difference is the world rotation ``d`` (horizontal) that takes ``v`` to ``z``, a
-    measurement of the first's world error ``δ`` with ``H = [I₂ 0]`` and noise ``P_b`` turned
-    into the first's world by the heading ``ψ`` between the two worlds (both are vertical):
+    the first's by a heading (a reversed 6D pass starts its own): only its vertical is used.
+    The world rotation between the two, ``e = q_f ⊗ q_b⁻¹``, is a swing about a horizontal
+    axis after a twist ``ψ`` about the vertical (:func:`~mkf_ros.core.frames.swing_rotvec`);
+    the swing's inverse ``d`` (it takes the body's up seen by the second, ``R(e) z``, back to
+    ``z``) is a measurement of the first's world error ``δ`` with ``H = [I₂ 0]`` and noise
+    ``P_b`` turned by ``ψ`` into the first's world (both are vertical):
     ``K = P_f Hᵀ (H P_f Hᵀ + H P_b' Hᵀ)⁻¹``, ``q = exp(K d) ⊗ q_f``.
     The two estimates share their samples, so their errors are correlated by an unknown
     amount: the covariance is the Joseph form's ``(I − KH) P_f (I − KH)ᵀ + K H P_b' Hᵀ Kᵀ``
@@ -569,17 +573,11 @@ def fuse_tilt(q_f: np.ndarray, P_f: np.ndarray, q_b: np.ndarray, P_b: np.ndarray
     for any correlation (ω = ½: twice), ``D P D``, ``D = diag(√2, √2, 1)``; equal estimates
     then keep their covariance. Symmetric PSD by construction (a congruence of a sum of
     congruences). Samples where either is not finite keep the first."""
-    Rf, Rb = rotmat_np(q_f), rotmat_np(q_b)
-    M = Rf @ Rb.transpose(0, 2, 1)  # the second's world axes → the first's
-    v = M[:, :, 2]
-    d = np.cross(v, np.array([0.0, 0.0, 1.0]))  # axis · sin(angle), horizontal
-    s = np.linalg.norm(d, axis=1)
-    ang = np.arctan2(s, v[:, 2])
-    d *= np.where(s > 1e-15, ang / np.where(s > 1e-15, s, 1.0), 1.0)[:, None]
-    # both worlds are vertical: they differ by a heading ψ, about which P_b turns
-    psi = np.arctan2(M[:, 1, 0] - M[:, 0, 1], M[:, 0, 0] + M[:, 1, 1])
+    e = qmul_np(q_f, qconj_np(q_b))  # the second's world → the first's: swing ⊗ twist about z
+    d = -swing_rotvec(e)  # the horizontal rotation that takes v = R(e) z back to z
+    psi = 2.0 * np.arctan2(e[:, 3], e[:, 0])  # the heading between the two worlds
     c, sn = np.cos(psi), np.sin(psi)
-    Mz = np.zeros_like(M)
+    Mz = np.zeros((len(q_f), 3, 3))
     Mz[:, 0, 0], Mz[:, 0, 1], Mz[:, 1, 0], Mz[:, 1, 1], Mz[:, 2, 2] = c, -sn, sn, c, 1.0
     Pb = Mz @ P_b @ Mz.transpose(0, 2, 1)
     S = P_f[:, :2, :2] + Pb[:, :2, :2]
@@ -589,10 +587,29 @@ def fuse_tilt(q_f: np.ndarray, P_f: np.ndarray, q_b: np.ndarray, P_b: np.ndarray
     ok &= np.linalg.det(S) > 0.0
     K = np.zeros((len(q_f), 3, 2))
     K[ok] = P_f[ok, :, :2] @ np.linalg.inv(S[ok])
-    q = _exp_left(np.einsum("nij,nj->ni", K, d[:, :2]), q_f)
+    q = qmul_np(q_exp_np(np.einsum("nij,nj->ni", K, d)), q_f)  # exp(K d) ⊗ q_f
+    q /= np.linalg.norm(q, axis=1)[:, None]
+    q[q[:, 0] < 0] *= -1.0
     IKH = np.broadcast_to(np.eye(3), P_f.shape).copy()
     IKH[:, :, :2] -= K
     P = IKH @ P_f @ IKH.transpose(0, 2, 1) + K @ Pb[:, :2, :2] @ K.transpose(0, 2, 1)
     P = 0.5 * (P + P.transpose(0, 2, 1)) * _CI_TILT
     q[~ok], P[~ok] = q_f[~ok], P_f[~ok]
     return q, P
+
+
+def smooth_both_ways(f: AttitudeFilter, dts: np.ndarray, gyr: np.ndarray, acc: np.ndarray,
+                     mag: np.ndarray, window: int = DEFAULT_WINDOW,
+                     overlap: int = DEFAULT_OVERLAP) -> tuple[BatchOutputs, SmoothOutputs]:
+    """:func:`smooth_run` with ``f``, and a fresh filter of ``f``'s parameters smoothed over the
+    recording reversed (:func:`reversed_inputs`); the forward smoother's tilt fused with the
+    reversed one's where both have an estimate (:func:`fuse_tilt`, docs/math.md §11.5).
+    Returns the filtered outputs and the smoothed ones with ``quat`` and ``cov`` fused (rate
+    and bias the forward smoother's)."""
+    filt, sm = smooth_run(f, dts, gyr, acc, mag, window, overlap)
+    back, sb = smooth_run(AttitudeFilter(f.params), *reversed_inputs(dts, gyr, acc, mag),
+                          window, overlap)
+    ok = filt.initialized & back.initialized[::-1]
+    q_b = np.where(ok[:, None], sb.quat[::-1], np.nan)  # no second estimate: keep the first
+    sm.quat[:], sm.cov[:] = fuse_tilt(sm.quat, sm.cov, q_b, sb.cov[::-1])
+    return filt, sm

@@ -36,7 +36,7 @@ from typing import Any
 
 import numpy as np
 
-from mkf_ros.core.quaternion import rotmat_np
+from mkf_ros.core.quaternion import q_exp_np, rotmat_np
 
 GRAVITY = 9.80665
 #: Earth field used by default: 50 µT with a 60° dip (north and down), ENU, tesla.
@@ -81,20 +81,6 @@ class SimData:
 # ------------------------------------------------------------------ attitude integration
 
 
-def q_exp(rotvec: np.ndarray) -> np.ndarray:
-    """Quaternions of rotation vectors (..., 3) → (..., 4): ``[cos(θ/2), sin(θ/2) u]``."""
-    rotvec = np.asarray(rotvec, dtype=float)
-    th = np.atleast_1d(np.sqrt(np.einsum("...i,...i->...", rotvec, rotvec)))
-    out = np.empty((*th.shape, 4))
-    out[..., 0] = np.cos(0.5 * th)
-    # sin(θ/2)/θ, with its series near 0
-    small = th < 1e-6
-    k = np.sin(0.5 * th) / np.where(small, 1.0, th)
-    k[small] = 0.5 - th[small] ** 2 / 48.0
-    out[..., 1:] = k[..., None] * rotvec
-    return out.reshape((*rotvec.shape[:-1], 4))
-
-
 class Integrator:
     """``q_{k+1} = q_k ⊗ q_ω(ω_k, dt)`` (exact for piecewise-constant ω) over a recording of
     ``m`` rates fed in consecutive chunks (:meth:`advance`), keeping the attitude after every
@@ -121,7 +107,7 @@ class Integrator:
         if self.done + f > self.m:
             raise ValueError(f"{self.done + f} rates for a recording of {self.m}")
         out = np.empty(((self.done + f) // self.every - self.done // self.every, 4))
-        dq = q_exp(omega * self.dt) if f else np.empty((0, 4))
+        dq = q_exp_np(omega * self.dt) if f else np.empty((0, 4))
         k = integrate_chunk(np.ascontiguousarray(dq), self.done, self.block, self.every,
                             self.head, self.prefix, out)
         assert k == out.shape[0]

@@ -5,9 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from mkf_ros.core.quaternion import q_exp_np as q_exp
 from mkf_ros.core.quaternion import q_omega, qmul, qnormalize, rotmat_np
 from mkf_ros.sim import MAG_FIELD_ENU, SCENARIOS, simulate
-from mkf_ros.sim.motion import GRAVITY, integrate, pitch_deg, q_exp
+from mkf_ros.sim.motion import GRAVITY, integrate, pitch_deg
 
 QUIET = dict(gyro_noise=0.0, acc_noise=0.0, mag_noise=0.0)
 
