@@ -42,7 +42,6 @@ from mkf_ros.core.frames import swing_rotvec
 from mkf_ros.core.linalg import cap_eigenvalues33_t, cho_solve_into, cholesky_into, congruence33_t
 from mkf_ros.core.mekf import mekf_predict_t, transport_covariance_t
 from mkf_ros.core.quaternion import (
-    q_exp_np,
     q_omega_t,
     qconj_mul_t,
     qconj_np,
@@ -300,13 +299,12 @@ def _inv33_t(A: tuple) -> tuple:
 
 @jit_inline
 def rts_manifold(c: np.record, r: np.record, qs: np.ndarray, ws: np.ndarray, bs: np.ndarray,
-                 Ps: np.ndarray, S: np.ndarray) -> bool:
+                 Ps: np.ndarray, S: np.ndarray, nx: int) -> bool:
     """One backward step on the manifold (docs/math.md §11.3), in place: the smoothed estimate
     ``(qs, ws, bs, Ps)`` at ``t_{k+1}`` (``Ps`` in the chart at ``qs``) becomes that at ``t_k``
     from the :data:`TRANS` slot ``r`` (the posterior at ``t_k``). ``S``: scratch
     ``(10, 9, 9)``. False (nothing changed) if the prediction's covariance is not positive
     definite."""
-    nx = c.nx
     Pa, Pp, Qp, Pn, C, G, X, Po = S[0], S[1], S[2], S[4], S[5], S[6], S[7], S[8]
     _load_cov(r, nx, Pa)
     qa, wa, ba = t4(r.q), t3(r.w), t3(r.b)
@@ -419,7 +417,10 @@ def backward(cfg: np.ndarray, rec: np.ndarray, n: int, out: SmoothOutputs) -> in
             have = False
             continue
         if r.kind == TRANS and have:
-            if not rts_manifold(c, r, qs, ws, bs, Ps, S):
+            # nx as a literal: the compiler unrolls the 9×9 (6×6) loops
+            ok = (rts_manifold(c, r, qs, ws, bs, Ps, S, 9) if nx == 9
+                  else rts_manifold(c, r, qs, ws, bs, Ps, S, 6))
+            if not ok:
                 failed += 1
                 _load(r, nx, qs, ws, bs, Ps)
         else:
@@ -550,9 +551,65 @@ def reversed_inputs(dts: np.ndarray, gyr: np.ndarray, acc: np.ndarray, mag: np.n
     return shifted(dts), -shifted(gyr), acc[::-1].copy(), mag[::-1].copy()
 
 
-#: ``d dᵀ`` for ``D = diag(d) = diag(√2, √2, 1)``, the congruence ``D P D = P ∘ d dᵀ`` that
-#: widens the fused tilt to covariance intersection's bound (ω = ½; docs/math.md §11.5).
-_CI_TILT = np.outer([np.sqrt(2.0), np.sqrt(2.0), 1.0], [np.sqrt(2.0), np.sqrt(2.0), 1.0])
+#: ``D = diag(√2, √2, 1)``: the congruence ``D P D`` widens the fused tilt to covariance
+#: intersection's bound (ω = ½; docs/math.md §11.5).
+_CI_SCALE = (np.sqrt(2.0), np.sqrt(2.0), 1.0)
+
+
+@jit
+def _fuse_tilt_rows(e: np.ndarray, d: np.ndarray, q_f: np.ndarray, P_f: np.ndarray,
+                    P_b: np.ndarray, q: np.ndarray, P: np.ndarray) -> None:
+    """The per-sample arithmetic of :func:`fuse_tilt` (eq. 11.5b–c) into ``q``, ``P``: ``e``
+    the world rotation between the estimates, ``d`` its swing's inverse (N, 2)."""
+    ci = _CI_SCALE
+    for n in range(q_f.shape[0]):
+        psi = 2.0 * np.arctan2(e[n, 3], e[n, 0])  # the heading between the two worlds
+        c, sn = np.cos(psi), np.sin(psi)
+        # H P_b' Hᵀ = R₂ P_b[:2, :2] R₂ᵀ, R₂ = [[c, −s], [s, c]]: (a, b; b, dd)
+        a0, b0, d0 = P_b[n, 0, 0], 0.5 * (P_b[n, 0, 1] + P_b[n, 1, 0]), P_b[n, 1, 1]
+        a = c * c * a0 - 2.0 * c * sn * b0 + sn * sn * d0
+        b = c * sn * (a0 - d0) + (c * c - sn * sn) * b0
+        dd = sn * sn * a0 + 2.0 * c * sn * b0 + c * c * d0
+        s00, s01, s11 = P_f[n, 0, 0] + a, P_f[n, 0, 1] + b, P_f[n, 1, 1] + dd
+        det = s00 * s11 - s01 * (P_f[n, 1, 0] + b)
+        finite = np.isfinite(a + b + dd + d[n, 0] + d[n, 1])
+        for i in range(4):
+            finite &= np.isfinite(q_f[n, i]) and np.isfinite(e[n, i])
+        for i in range(3):
+            for j in range(3):
+                finite &= np.isfinite(P_f[n, i, j]) and np.isfinite(P_b[n, i, j])
+        if not (finite and det > 0.0):  # no usable second estimate: keep the first
+            for i in range(4):
+                q[n, i] = q_f[n, i]
+            for i in range(3):
+                for j in range(3):
+                    P[n, i, j] = P_f[n, i, j]
+            continue
+        i00, i01, i11 = s11 / det, -s01 / det, s00 / det  # S⁻¹ (S symmetric)
+        K = ((P_f[n, 0, 0] * i00 + P_f[n, 0, 1] * i01, P_f[n, 0, 0] * i01 + P_f[n, 0, 1] * i11),
+             (P_f[n, 1, 0] * i00 + P_f[n, 1, 1] * i01, P_f[n, 1, 0] * i01 + P_f[n, 1, 1] * i11),
+             (P_f[n, 2, 0] * i00 + P_f[n, 2, 1] * i01, P_f[n, 2, 0] * i01 + P_f[n, 2, 1] * i11))
+        dx = (K[0][0] * d[n, 0] + K[0][1] * d[n, 1], K[1][0] * d[n, 0] + K[1][1] * d[n, 1],
+              K[2][0] * d[n, 0] + K[2][1] * d[n, 1])
+        qn = qnormalize_t(qmul_t(q_omega_t(dx, 1.0), t4(q_f[n])))  # exp(K d) ⊗ q_f
+        sg = -1.0 if qn[0] < 0.0 else 1.0
+        for i in range(4):
+            q[n, i] = sg * qn[i]
+        # (I − KH) P_f (I − KH)ᵀ + K (H P_b' Hᵀ) Kᵀ, then D · D
+        G = ((1.0 - K[0][0], -K[0][1], 0.0), (-K[1][0], 1.0 - K[1][1], 0.0),
+             (-K[2][0], -K[2][1], 1.0))
+        X = congruence33_t(G, ((P_f[n, 0, 0], P_f[n, 0, 1], P_f[n, 0, 2]),
+                               (P_f[n, 1, 0], P_f[n, 1, 1], P_f[n, 1, 2]),
+                               (P_f[n, 2, 0], P_f[n, 2, 1], P_f[n, 2, 2])))
+        for i in range(3):
+            for j in range(i, 3):
+                kij = (K[i][0] * (a * K[j][0] + b * K[j][1])
+                       + K[i][1] * (b * K[j][0] + dd * K[j][1]))
+                kji = (K[j][0] * (a * K[i][0] + b * K[i][1])
+                       + K[j][1] * (b * K[i][0] + dd * K[i][1]))
+                pij = 0.5 * ((X[i][j] + kij) + (X[j][i] + kji)) * ci[i] * ci[j]
+                P[n, i, j] = pij
+                P[n, j, i] = pij
 
 
 def fuse_tilt(q_f: np.ndarray, P_f: np.ndarray, q_b: np.ndarray, P_b: np.ndarray
@@ -573,28 +630,13 @@ def fuse_tilt(q_f: np.ndarray, P_f: np.ndarray, q_b: np.ndarray, P_b: np.ndarray
     for any correlation (ω = ½: twice), ``D P D``, ``D = diag(√2, √2, 1)``; equal estimates
     then keep their covariance. Symmetric PSD by construction (a congruence of a sum of
     congruences). Samples where either is not finite keep the first."""
+    q_f, P_f = np.ascontiguousarray(q_f, float), np.ascontiguousarray(P_f, float)
     e = qmul_np(q_f, qconj_np(q_b))  # the second's world → the first's: swing ⊗ twist about z
-    d = -swing_rotvec(e)  # the horizontal rotation that takes v = R(e) z back to z
-    psi = 2.0 * np.arctan2(e[:, 3], e[:, 0])  # the heading between the two worlds
-    c, sn = np.cos(psi), np.sin(psi)
-    Mz = np.zeros((len(q_f), 3, 3))
-    Mz[:, 0, 0], Mz[:, 0, 1], Mz[:, 1, 0], Mz[:, 1, 1], Mz[:, 2, 2] = c, -sn, sn, c, 1.0
-    Pb = Mz @ P_b @ Mz.transpose(0, 2, 1)
-    S = P_f[:, :2, :2] + Pb[:, :2, :2]
-    ok = (np.isfinite(q_f).all(1) & np.isfinite(q_b).all(1) & np.isfinite(P_f).all((1, 2))
-          & np.isfinite(Pb).all((1, 2)))
-    S[~ok] = np.eye(2)
-    ok &= np.linalg.det(S) > 0.0
-    K = np.zeros((len(q_f), 3, 2))
-    K[ok] = P_f[ok, :, :2] @ np.linalg.inv(S[ok])
-    q = qmul_np(q_exp_np(np.einsum("nij,nj->ni", K, d)), q_f)  # exp(K d) ⊗ q_f
-    q /= np.linalg.norm(q, axis=1)[:, None]
-    q[q[:, 0] < 0] *= -1.0
-    IKH = np.broadcast_to(np.eye(3), P_f.shape).copy()
-    IKH[:, :, :2] -= K
-    P = IKH @ P_f @ IKH.transpose(0, 2, 1) + K @ Pb[:, :2, :2] @ K.transpose(0, 2, 1)
-    P = 0.5 * (P + P.transpose(0, 2, 1)) * _CI_TILT
-    q[~ok], P[~ok] = q_f[~ok], P_f[~ok]
+    with np.errstate(invalid="ignore"):
+        d = -swing_rotvec(e)  # the horizontal rotation that takes v = R(e) z back to z
+    q, P = np.empty_like(q_f), np.empty_like(P_f)
+    _fuse_tilt_rows(np.ascontiguousarray(e), np.ascontiguousarray(d), q_f, P_f,
+                    np.ascontiguousarray(P_b, float), q, P)
     return q, P
 
 
@@ -602,13 +644,18 @@ def smooth_both_ways(f: AttitudeFilter, dts: np.ndarray, gyr: np.ndarray, acc: n
                      mag: np.ndarray, window: int = DEFAULT_WINDOW,
                      overlap: int = DEFAULT_OVERLAP) -> tuple[BatchOutputs, SmoothOutputs]:
     """:func:`smooth_run` with ``f``, and a fresh filter of ``f``'s parameters smoothed over the
-    recording reversed (:func:`reversed_inputs`); the forward smoother's tilt fused with the
-    reversed one's where both have an estimate (:func:`fuse_tilt`, docs/math.md §11.5).
+    recording reversed (:func:`reversed_inputs`), the two in parallel threads (the kernels
+    release the GIL: on two cores the wall time of one); the forward smoother's tilt fused with
+    the reversed one's where both have an estimate (:func:`fuse_tilt`, docs/math.md §11.5).
     Returns the filtered outputs and the smoothed ones with ``quat`` and ``cov`` fused (rate
     and bias the forward smoother's)."""
-    filt, sm = smooth_run(f, dts, gyr, acc, mag, window, overlap)
-    back, sb = smooth_run(AttitudeFilter(f.params), *reversed_inputs(dts, gyr, acc, mag),
-                          window, overlap)
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(max_workers=2) as pool:  # the kernels release the GIL
+        fwd = pool.submit(smooth_run, f, dts, gyr, acc, mag, window, overlap)
+        rev = pool.submit(smooth_run, AttitudeFilter(f.params),
+                          *reversed_inputs(dts, gyr, acc, mag), window, overlap)
+        (filt, sm), (back, sb) = fwd.result(), rev.result()
     ok = filt.initialized & back.initialized[::-1]
     q_b = np.where(ok[:, None], sb.quat[::-1], np.nan)  # no second estimate: keep the first
     sm.quat[:], sm.cov[:] = fuse_tilt(sm.quat, sm.cov, q_b, sb.cov[::-1])
