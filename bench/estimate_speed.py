@@ -1,17 +1,23 @@
 """Single-stream throughput of ``mkf_ros.estimate()`` against peer libraries, same data, same run.
 
-    ./run bench estimate_speed [--samples N] [--repeat K]
+    ./run bench estimate_speed [--samples N] [--repeat K] [--tables filters smoother]
 
 Prints samples/s (best of K runs) for every algorithm × chart × chart update, 6D (gyro + acc)
 and 9D (+ magnetometer), and in the same run the per-sample loop of ``imufusion`` (x-io Fusion,
 C: ``update`` and read the quaternion every sample) and ``vqf.VQF.updateBatch`` (C++). Ratios
 are against the imufusion loop (targets: MEKF 9D ≥ 1.0, a compiled peer's speed; MUKF ≥ ¼ of the
 MEKF rate). Our figures include the per-sample 3×3 world covariance, rate and bias outputs.
+
+The smoother's table: ``estimate(smooth=True)`` (RTS) and ``smooth="two-way"`` against the
+causal ``estimate`` of the same algorithm, wall time and CPU time (all threads: the two-way
+smoother runs its two passes in parallel), best of K; offline VQF (``vqf.offlineVQF``) in the
+same run. Target: smoothing ≤ 3× the causal filter's time.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import time
 from collections.abc import Callable
 
@@ -19,6 +25,43 @@ import numpy as np
 
 import mkf_ros
 from mkf_ros.sim import simulate
+
+
+def best_times(fn: Callable[[], object], repeat: int) -> tuple[float, float]:
+    """Best wall and best CPU time (this process, every thread) of ``repeat`` runs [s]."""
+    wall = cpu = float("inf")
+    for _ in range(repeat):
+        t0, c0 = time.perf_counter(), time.process_time()
+        fn()
+        wall, cpu = min(wall, time.perf_counter() - t0), min(cpu, time.process_time() - c0)
+    return wall, cpu
+
+
+def smoother_table(gyr: np.ndarray, acc: np.ndarray, mag: np.ndarray, rate: float,
+                   repeat: int) -> None:
+    """Print the smoother's cost against the causal filter (see the module docstring)."""
+    print(f"\nsmoothing {len(gyr):,} samples at {rate:g} Hz, best of {repeat} runs, "
+          f"{len(os.sched_getaffinity(0))} cores\n")
+    print("| algorithm | dim | mode | wall s | × causal | CPU s | × causal |")
+    print("|---|---|---|---:|---:|---:|---:|")
+    for algo in ("mekf", "mukf"):
+        for dim, m in (("6D", None), ("9D", mag)):
+            base = None
+            for mode in (False, True, "two-way"):
+                wall, cpu = best_times(lambda m=m, a=algo, s=mode: mkf_ros.estimate(
+                    gyr, acc, m, dt=1.0 / rate, algorithm=a, smooth=s), repeat)
+                base = base or (wall, cpu)
+                name = {False: "causal", True: "RTS (smooth=True)"}.get(mode, mode)
+                print(f"| {algo} | {dim} | {name} | {wall:.3f} | {wall / base[0]:.2f} | "
+                      f"{cpu:.3f} | {cpu / base[1]:.2f} |")
+    try:
+        import vqf
+
+        for dim, m in (("6D", None), ("9D", mag)):
+            wall, cpu = best_times(lambda m=m: vqf.offlineVQF(gyr, acc, m, 1.0 / rate), repeat)
+            print(f"| vqf offlineVQF (C++) | {dim} | offline | {wall:.3f} | | {cpu:.3f} | |")
+    except ImportError:
+        print("vqf not installed (./run bench installs requirements/bench.txt)")
 
 
 def best_rate(fn: Callable[[], object], n: int, repeat: int) -> float:
@@ -34,12 +77,18 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--samples", type=int, default=200_000)
     ap.add_argument("--repeat", type=int, default=5)
+    ap.add_argument("--tables", nargs="+", choices=("filters", "smoother"),
+                    default=["filters", "smoother"], help="which tables to print")
     args = ap.parse_args()
     rate = 200.0
     sim = simulate("wiener", duration=(args.samples - 1) / rate, rate=rate, seed=1, substeps=4)
     n = sim.t.size
     gyr, acc, mag = (np.ascontiguousarray(a) for a in (sim.gyr, sim.acc, sim.mag))
     mkf_ros.warmup()
+    if "smoother" in args.tables:
+        smoother_table(gyr, acc, mag, rate, args.repeat)
+    if "filters" not in args.tables:
+        return
 
     rows: list[tuple[str, str, float]] = []
     try:
