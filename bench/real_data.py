@@ -744,6 +744,13 @@ def print_targets(checks: list[Check]) -> None:
 
 
 # ----------------------------------------------------------------------------------- main
+def _delayed(t: np.ndarray, gyr: np.ndarray, samples: float) -> np.ndarray:
+    """``gyr`` read ``samples`` median periods later at every stamp (linear interpolation; the
+    ends held): the correction for a gyro that runs that far behind the other sensors."""
+    ts = t + samples * float(np.median(np.diff(t)))
+    return np.stack([np.interp(ts, t, gyr[:, i]) for i in range(3)], axis=1)
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0].replace("\n", " "),
                                  epilog="targets:\n" + TARGETS_DOC,
@@ -768,6 +775,10 @@ def main(argv: list[str] | None = None) -> int:
                     help="'true' (default): ours gets the timestamps, peers the mean period; "
                          "'median': every algorithm gets a regular grid at the median period "
                          "(reproduces the README's ESE650 peer figures, see the module doc)")
+    ap.add_argument("--gyro-delay", type=float, default=0.0, metavar="SAMPLES",
+                    help="treat the gyro as running SAMPLES (fractional) behind the other "
+                         "sensors: each stamp gets the gyro reading interpolated SAMPLES median "
+                         "periods later, for every algorithm (default 0: as recorded)")
     ap.add_argument("--jobs", type=int, default=min(2, os.cpu_count() or 1),
                     help="worker processes over recordings (default: 2)")
     ap.add_argument("--json", type=Path, default=None, metavar="FILE",
@@ -785,6 +796,8 @@ def main(argv: list[str] | None = None) -> int:
         if args.time_base == "median":
             recs = [replace(r, t=r.t[0] + np.arange(len(r)) * float(np.median(np.diff(r.t))))
                     for r in recs]
+        if args.gyro_delay:
+            recs = [replace(r, gyr=_delayed(r.t, r.gyr, args.gyro_delay)) for r in recs]
         if recs:
             datasets.append((fmt, folder, recs))
     if not datasets:
@@ -794,7 +807,8 @@ def main(argv: list[str] | None = None) -> int:
 
     print("# Real-data benchmark (bench/real_data.py)")
     print(f"code: {_git_state()}; our filter overrides: {overrides or 'none (defaults)'}; "
-          f"skip_start: {args.skip_start:g} s; time base: {args.time_base}")
+          f"skip_start: {args.skip_start:g} s; time base: {args.time_base}"
+          + (f"; gyro delay: {args.gyro_delay:g} samples" if args.gyro_delay else ""))
     tasks: list[Task] = [(i, r, args.algorithms, overrides, args.skip_start, baselines)
                          for i, (_f_, _d, recs) in enumerate(datasets) for r in recs]
     tasks.sort(key=lambda t: -len(t[1]))  # longest first, for load balance
