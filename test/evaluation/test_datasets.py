@@ -384,6 +384,18 @@ def test_bench_overrides_and_columns() -> None:
     assert {"madgwick 6D", "mahony 6D"} <= set(cols6) and all(c.startswith("m") for c in cols6)
 
 
+def test_bench_gyro_delay_reads_the_gyro_later() -> None:
+    """``--gyro-delay S``: each stamp gets the gyro reading S median periods later (a ramp is
+    interpolated exactly; the last stamp holds the last reading)."""
+    rd = _bench()
+    t = np.arange(6) * 0.01
+    gyr = np.stack([t, 2.0 * t, -t], axis=1)
+    out = rd._delayed(t, gyr, 0.5)
+    np.testing.assert_allclose(out[:-1], np.stack([t + 0.005, 2 * (t + 0.005), -(t + 0.005)],
+                                                  axis=1)[:-1], atol=1e-15)
+    np.testing.assert_array_equal(out[-1], gyr[-1])
+
+
 def test_bench_help(capsys: pytest.CaptureFixture[str]) -> None:
     with pytest.raises(SystemExit) as e:
         _bench().main(["--help"])
