@@ -163,9 +163,10 @@ PARAMS: tuple[Param, ...] = (
        group="noise"),
     _P("gyro_bias_noise", float, 1e-4, "Random walk of the gyro bias (sqrt of its PSD)",
        unit="rad/s/sqrt(s)", range=(0.0, 1.0), group="noise"),
-    _P("gyro_bias_stddev", float, 0.05, "Initial uncertainty of the gyro bias (a MEMS gyro's "
-       "turn-on bias: up to a few deg/s)", unit="rad/s",
-       range=(1e-9, 1.0), group="noise"),
+    _P("gyro_bias_stddev", float, 0.02, "Initial uncertainty of the gyro bias, the Kalman "
+       "prior (a calibrated MEMS gyro: about 1 deg/s; evidence in motion moves the bias "
+       "against it, a rest learns a larger one in seconds: rest_bias_range)",
+       unit="rad/s", range=(1e-9, 1.0), group="noise"),
     # --- disturbances and calibration (extensions for real sensors) --------------------------
     _P("acc_norm_tolerance", float, 0.5, "Accelerometer samples (after the low-pass) whose "
        "magnitude differs from gravity by more than this fraction are not fused (the excess "
@@ -278,6 +279,12 @@ PARAMS: tuple[Param, ...] = (
        unit="m/s^2", range=(0.0, 100.0), group="robustness"),
     _P("rest_time", float, 1.0, "Rest: the conditions held for this long", unit="s",
        range=(0.0, 3600.0), group="robustness"),
+    _P("rest_bias_range", float, 0.05, "Rest: until the bias has been fused at rest for "
+       "rest_time, a steady rate this large (per axis, added to the bias variance of the rest "
+       "test) is taken for a gyro bias, and the first rest raises the bias variance to it: a "
+       "MEMS gyro's turn-on bias, up to a few deg/s; afterwards the bias changes only by its "
+       "random walk",
+       unit="rad/s", range=(0.0, 1.0), group="robustness"),
     _P("rest_rate_stddev", float, 0.005, "Standard deviation of the zero-rate measurement at "
        "rest", unit="rad/s", range=(1e-6, 1.0), group="robustness"),
     _P("mag_bias_x", float, 0.0, "Hard-iron offset subtracted from the magnetometer x reading "

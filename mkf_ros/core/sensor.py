@@ -648,10 +648,13 @@ def _rest_steady(c: np.record, s: np.record, dtg: float) -> bool:
     bias: χ² (3 degrees of freedom) per axis against the bias's current variance ``P_bb``
     (which grows by ``gyro_bias_noise²`` per second without rest; ``gyro_bias_stddev²`` until
     a bias is learned) plus the low-pass's own noise, ``(gyro_noise² + rest_rate_stddev²)
-    Δt/2τ``. A bias does not change faster than its random walk; a rate that would need it
-    to is a slow turn, however steady (measured on a PhidgetSpatial: a 0.013 rad/s turn
-    15 s after a rest, taken for rest, moved the vertical bias from −0.0002 to +0.0076 rad/s).
-    Without a bias estimate, against ``rest_rate_stddev²``."""
+    Δt/2τ``, plus ``rest_bias_range²`` until the bias has been fused at rest for
+    ``rest_time`` (the Kalman prior is a calibrated gyro's; a still gyro may show a turn-on
+    bias several times larger, and only a rest learns it quickly). A bias does not change
+    faster than its random walk; a rate that would need it to is a slow turn, however steady
+    (measured on a PhidgetSpatial: a 0.013 rad/s turn 15 s after a rest, taken for rest,
+    moved the vertical bias from −0.0002 to +0.0076 rad/s). Without a bias estimate, against
+    ``rest_rate_stddev²``."""
     steady = (s.rest_gyr_dev < c.rest_gyro_threshold ** 2
               and s.rest_acc_dev < c.rest_acc_threshold ** 2)
     if steady:
@@ -659,9 +662,10 @@ def _rest_steady(c: np.record, s: np.record, dtg: float) -> bool:
         lp = s.rest_gyr_lp
         if c.nx == 9:
             P = s.P
+            vb = v + (c.rest_bias_var if s.t_rest_fused < c.rest_time else 0.0)
             chi2 = 0.0
             for i in range(3):
-                chi2 += (lp[i] - s.b[i]) ** 2 / (v + P[6 + i, 6 + i])
+                chi2 += (lp[i] - s.b[i]) ** 2 / (vb + P[6 + i, 6 + i])
         else:
             chi2 = (lp[0] ** 2 + lp[1] ** 2 + lp[2] ** 2) / (v + c.rest_rate_var)
         steady = chi2 < REST_CHI2
@@ -944,7 +948,8 @@ def _mekf_apply(c: np.record, s: np.record, w: np.record, q: tuple, wt: tuple,
 
 
 @hot
-def _rate_updates(c: np.record, s: np.record, k: np.record, w: np.record, z: Fusion) -> bool:
+def _rate_updates(c: np.record, s: np.record, k: np.record, w: np.record, dt: float,
+                  z: Fusion) -> bool:
     """The rate measurements first: a gyro sample is the rate over the interval that ends at
     its stamp (what a MEMS gyro reports), so it observes ω̄ at the start of the step and drives
     the prediction over it; then rest's zero-rate pseudo-measurement, whose gain on the
@@ -957,7 +962,11 @@ def _rate_updates(c: np.record, s: np.record, k: np.record, w: np.record, z: Fus
     low-passes see only later (the start of a slow turn). That sample's zero-rate update is
     skipped, and not counted in ``rest_updates``; the bias it would have pulled towards the
     turn's rate stays (measured on a PhidgetSpatial turning from rest: the vertical bias went
-    from −0.0010 to −0.0073 rad/s in the turn's first 40 ms, the still gyro's mean −0.0014)."""
+    from −0.0010 to −0.0073 rad/s in the turn's first 40 ms, the still gyro's mean −0.0014).
+    At the first rest the bias's variance is raised to ``rest_bias_range²`` (on the diagonal:
+    the added matrix is PSD): the prior is a calibrated gyro's, a still gyro may show a turn-on
+    bias several times larger, and the gate then takes it; a few zero-rate updates learn it and
+    the gate is as tight as before when the turn starts."""
     nx = c.nx
     P, dx = s.P, w.dx
     wt, b = t3(s.w), t3(s.b)
@@ -967,10 +976,14 @@ def _rate_updates(c: np.record, s: np.record, k: np.record, w: np.record, z: Fus
     if z.has_g:
         ok &= _mekf_rate(s, w, nx, wt, b, z.g, iso33(c.gyro_var), True, 0, np.inf) >= 0
     if z.rest:
+        if s.t_rest_fused == 0.0 and nx == 9:  # the first rest: a turn-on bias, not the prior
+            for i in range(6, 9):
+                P[i, i] = max(P[i, i], c.rest_bias_var)
         nis = _mekf_rate(s, w, nx, wt, b, ZERO3, iso33(c.rest_rate_var), False, 3, REST_CHI2)
         ok &= nis >= 0
         if 0 <= nis <= REST_CHI2:
             k.rest_updates += 1
+            s.t_rest_fused += dt
     if c.algorithm == ALGO_MEKF:
         q, wt, b = _mekf_apply(c, s, w, t4(s.q_c), wt, b)
         for i in range(4):
@@ -1098,7 +1111,7 @@ def _update(c: np.record, s: np.record, k: np.record, w: np.record, u: Units, dt
     (:func:`mukf_update`) prediction and update. Returns ``(ok, acc NIS, mag NIS)``."""
     if c.algorithm >= ALGO_EULER_KF:
         return u.baseline_update(c, s, k, dt, z)
-    ok = _rate_updates(c, s, k, w, z)
+    ok = _rate_updates(c, s, k, w, dt, z)
     if c.record_posterior:  # the smoother's forward pass (docs/math.md §11.1)
         record_posterior(c, s, w)
     if c.algorithm == ALGO_MEKF:

@@ -75,6 +75,7 @@ CONFIG = np.dtype(
         ("bias_process_var", np.float64),  # Q_b = gyro_bias_noise² (rad²/s³)
         ("bias_var0", np.float64),  # gyro_bias_stddev²: the bias prior
         ("rest_rate_var", np.float64),  # rest_rate_stddev²: the zero-rate measurement
+        ("rest_bias_var", np.float64),  # rest_bias_range²: a turn-on bias, until rest fused
         ("madgwick_var", np.float64),  # madgwick_stddev²: Madgwick's published variance
         ("gimbal_cos", np.float64),  # cos(gimbal_lock_pitch)
         ("mag_ref", np.float64, 3),  # given reference: ENU, unit
@@ -136,6 +137,7 @@ STATE = np.dtype(
         ("rest_acc_dev", np.float64),  # ... of the accelerometer
         ("rest_dt_gyr", np.float64),  # split input: s since the gyro entered the test
         ("rest_dt_acc", np.float64),  # ... the accelerometer
+        ("t_rest_fused", np.float64),  # s of zero-rate updates fused (rest_bias_range)
         # --- the gyro gate
         ("gyr_rejected", np.bool_),  # the previous gyro sample was refused by its gate
         # --- low-pass gains 1 − exp(−Δt/τ) kept for the last (Δt, τ) (LP_* rows)
@@ -343,6 +345,7 @@ def build_config(p: FilterParams, split_input: bool = False) -> np.ndarray:
     c.bias_process_var = p.gyro_bias_noise**2
     c.bias_var0 = p.gyro_bias_stddev**2
     c.rest_rate_var = p.rest_rate_stddev**2
+    c.rest_bias_var = p.rest_bias_range**2
     c.madgwick_var = p.madgwick_stddev**2
     c.gimbal_cos = np.cos(p.gimbal_lock_pitch)
     for name in COPIED_PARAMS:

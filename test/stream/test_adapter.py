@@ -676,8 +676,12 @@ def test_split_input_detects_rest_as_the_combined_stream(offset: float) -> None:
     assert len(common) >= len(t) - 1  # every gyro message answered (but one before any acc)
     e = orientation_errors(rs.quat_wxyz[np.searchsorted(rs.index, common)],
                            rc.quat_wxyz[np.searchsorted(rc.index, common)])
-    # the first tilt corrections differ (a quarter of the accelerometer samples), then agree
-    assert rmse_deg(e["total"]) < 0.05 and np.degrees(e["total"][-2000:]).max() < 0.05
+    # the first tilt corrections differ (a quarter of the accelerometer samples), then agree;
+    # the unobservable yaw drifts with a bias learned from a first rest that starts a few
+    # samples apart (the first rest raises the bias variance, rest_bias_range): measured
+    # 0.052° at most over the last 10 s with the accelerometer half a gyro period late
+    assert rmse_deg(e["total"]) < 0.05 and np.degrees(e["total"][-2000:]).max() < 0.1
+    assert np.degrees(e["inclination"][-2000:]).max() < 0.05
 
 
 def test_split_samples_ahead_held_or_untimed_follow_their_own_sensor() -> None:
