@@ -65,12 +65,8 @@ def smoother_table(gyr: np.ndarray, acc: np.ndarray, mag: np.ndarray, rate: floa
 
 
 def best_rate(fn: Callable[[], object], n: int, repeat: int) -> float:
-    best = float("inf")
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        fn()
-        best = min(best, time.perf_counter() - t0)
-    return n / best
+    """Samples per second of the best wall time of ``repeat`` runs (:func:`best_times`)."""
+    return n / best_times(fn, repeat)[0]
 
 
 def main() -> None:

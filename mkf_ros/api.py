@@ -6,6 +6,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from mkf_ros.core import smoother as sm
 from mkf_ros.core.filter import AttitudeFilter
 from mkf_ros.core.params import FilterParams
 
@@ -135,8 +136,6 @@ def estimate(
         if params.get("use_mag"):
             raise ValueError("use_mag=True needs mag, an (N, 3) array")
         m = np.full((n, 3), np.nan)
-    from mkf_ros.core import smoother as sm
-
     mode = sm.smooth_mode(smooth)
     if mode:
         params = sm.forward_params(params)
@@ -195,13 +194,13 @@ def compile_entries(part: str) -> None:
     if part == "estimate":
         out = kf.BatchOutputs(np.zeros((1, 4)), np.zeros((1, 3, 3)), rows, rows, rows,
                               np.zeros(1, dtype=np.bool_))
-        from mkf_ros.core import smoother as sm
-
         rec = kf.new_records(sm.RECORD, 1)
+        q4, m133 = np.zeros((1, 4)), np.zeros((1, 3, 3))
         calls = [(kf.run_batch, (table, *arrays, np.zeros(1), rows, rows, rows, out)),
                  (sm.forward_recorded, (table, *arrays, np.zeros(1), rows, rows, rows, out,
                                         rec, 0)),
-                 (sm.backward, (arrays.cfg, rec, 0, sm.new_smooth_outputs(1)))]
+                 (sm.backward, (arrays.cfg, rec, 0, sm.new_smooth_outputs(1))),
+                 (sm.fuse_tilt_rows, (q4, np.zeros((1, 2)), q4, m133, m133, q4, m133))]
     elif part == "filter":
         calls = [(kf.sensor_step, (table, *arrays, 0.0, v3, v3, v3)),
                  (kf.world_output, (table, arrays.cfg, arrays.st, np.zeros(4), m33)),
@@ -235,7 +234,7 @@ def warmup(parts: tuple[str, ...] | list[str] = WARMUP_PARTS) -> None:
     for algo in ("mekf", "mukf"):
         if "estimate" in parts:
             estimate(gyr, acc, mag, dt=0.01, algorithm=algo, estimate_gyro_bias=True)
-            estimate(gyr, acc, mag, dt=0.01, algorithm=algo, smooth=True)
+            estimate(gyr, acc, mag, dt=0.01, algorithm=algo, smooth="two-way")  # RTS too
         if "filter" in parts:
             f = AttitudeFilter(algorithm=algo, use_mag=True)
             for k in range(n):

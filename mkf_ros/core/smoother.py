@@ -23,6 +23,7 @@ later. Memory: :data:`RECORD` (449 bytes) per kept sample.
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from typing import NamedTuple
 
 import numpy as np
@@ -51,6 +52,7 @@ from mkf_ros.core.quaternion import (
     rotmat_t,
     t3,
     t4,
+    t33,
 )
 from mkf_ros.core.state import (
     ALGO_MUKF,
@@ -557,27 +559,24 @@ _CI_SCALE = (np.sqrt(2.0), np.sqrt(2.0), 1.0)
 
 
 @jit
-def _fuse_tilt_rows(e: np.ndarray, d: np.ndarray, q_f: np.ndarray, P_f: np.ndarray,
-                    P_b: np.ndarray, q: np.ndarray, P: np.ndarray) -> None:
-    """The per-sample arithmetic of :func:`fuse_tilt` (eq. 11.5b–c) into ``q``, ``P``: ``e``
-    the world rotation between the estimates, ``d`` its swing's inverse (N, 2)."""
-    ci = _CI_SCALE
+def fuse_tilt_rows(e: np.ndarray, d: np.ndarray, q_f: np.ndarray, P_f: np.ndarray,
+                   P_b: np.ndarray, q: np.ndarray, P: np.ndarray) -> None:
+    """The per-sample arithmetic of :func:`fuse_tilt` (eq. 11.5a–c) into ``q``, ``P``: ``e``
+    the world rotation between the estimates (N, 4), ``d`` its swing's inverse (N, 2)."""
     for n in range(q_f.shape[0]):
-        psi = 2.0 * np.arctan2(e[n, 3], e[n, 0])  # the heading between the two worlds
-        c, sn = np.cos(psi), np.sin(psi)
-        # H P_b' Hᵀ = R₂ P_b[:2, :2] R₂ᵀ, R₂ = [[c, −s], [s, c]]: (a, b; b, dd)
-        a0, b0, d0 = P_b[n, 0, 0], 0.5 * (P_b[n, 0, 1] + P_b[n, 1, 0]), P_b[n, 1, 1]
-        a = c * c * a0 - 2.0 * c * sn * b0 + sn * sn * d0
-        b = c * sn * (a0 - d0) + (c * c - sn * sn) * b0
-        dd = sn * sn * a0 + 2.0 * c * sn * b0 + c * c * d0
-        s00, s01, s11 = P_f[n, 0, 0] + a, P_f[n, 0, 1] + b, P_f[n, 1, 1] + dd
-        det = s00 * s11 - s01 * (P_f[n, 1, 0] + b)
-        finite = np.isfinite(a + b + dd + d[n, 0] + d[n, 1])
+        finite = np.isfinite(d[n, 0]) and np.isfinite(d[n, 1])
         for i in range(4):
             finite &= np.isfinite(q_f[n, i]) and np.isfinite(e[n, i])
         for i in range(3):
             for j in range(3):
                 finite &= np.isfinite(P_f[n, i, j]) and np.isfinite(P_b[n, i, j])
+        Pf = t33(P_f[n])
+        psi = 2.0 * np.arctan2(e[n, 3], e[n, 0])  # the heading between the two worlds
+        c, sn = np.cos(psi), np.sin(psi)
+        Pb = congruence33_t(((c, -sn, 0.0), (sn, c, 0.0), (0.0, 0.0, 1.0)), t33(P_b[n]))
+        s00, s11 = Pf[0][0] + Pb[0][0], Pf[1][1] + Pb[1][1]  # S = H (P_f + P_b') Hᵀ
+        s01 = 0.5 * (Pf[0][1] + Pf[1][0] + Pb[0][1] + Pb[1][0])
+        det = s00 * s11 - s01 * s01
         if not (finite and det > 0.0):  # no usable second estimate: keep the first
             for i in range(4):
                 q[n, i] = q_f[n, i]
@@ -585,29 +584,26 @@ def _fuse_tilt_rows(e: np.ndarray, d: np.ndarray, q_f: np.ndarray, P_f: np.ndarr
                 for j in range(3):
                     P[n, i, j] = P_f[n, i, j]
             continue
-        i00, i01, i11 = s11 / det, -s01 / det, s00 / det  # S⁻¹ (S symmetric)
-        K = ((P_f[n, 0, 0] * i00 + P_f[n, 0, 1] * i01, P_f[n, 0, 0] * i01 + P_f[n, 0, 1] * i11),
-             (P_f[n, 1, 0] * i00 + P_f[n, 1, 1] * i01, P_f[n, 1, 0] * i01 + P_f[n, 1, 1] * i11),
-             (P_f[n, 2, 0] * i00 + P_f[n, 2, 1] * i01, P_f[n, 2, 0] * i01 + P_f[n, 2, 1] * i11))
+        i00, i01, i11 = s11 / det, -s01 / det, s00 / det  # S⁻¹
+        K = ((Pf[0][0] * i00 + Pf[0][1] * i01, Pf[0][0] * i01 + Pf[0][1] * i11, 0.0),
+             (Pf[1][0] * i00 + Pf[1][1] * i01, Pf[1][0] * i01 + Pf[1][1] * i11, 0.0),
+             (Pf[2][0] * i00 + Pf[2][1] * i01, Pf[2][0] * i01 + Pf[2][1] * i11, 0.0))  # K Hᵀ
         dx = (K[0][0] * d[n, 0] + K[0][1] * d[n, 1], K[1][0] * d[n, 0] + K[1][1] * d[n, 1],
               K[2][0] * d[n, 0] + K[2][1] * d[n, 1])
         qn = qnormalize_t(qmul_t(q_omega_t(dx, 1.0), t4(q_f[n])))  # exp(K d) ⊗ q_f
         sg = -1.0 if qn[0] < 0.0 else 1.0
         for i in range(4):
             q[n, i] = sg * qn[i]
-        # (I − KH) P_f (I − KH)ᵀ + K (H P_b' Hᵀ) Kᵀ, then D · D
+        # (I − KH) P_f (I − KH)ᵀ + K (H P_b' Hᵀ) Kᵀ (eq. 11.5b), then D · D (eq. 11.5c)
         G = ((1.0 - K[0][0], -K[0][1], 0.0), (-K[1][0], 1.0 - K[1][1], 0.0),
              (-K[2][0], -K[2][1], 1.0))
-        X = congruence33_t(G, ((P_f[n, 0, 0], P_f[n, 0, 1], P_f[n, 0, 2]),
-                               (P_f[n, 1, 0], P_f[n, 1, 1], P_f[n, 1, 2]),
-                               (P_f[n, 2, 0], P_f[n, 2, 1], P_f[n, 2, 2])))
+        X = congruence33_t(G, Pf)
+        B = congruence33_t(K, ((Pb[0][0], Pb[0][1], 0.0), (Pb[1][0], Pb[1][1], 0.0),
+                               (0.0, 0.0, 0.0)))
         for i in range(3):
             for j in range(i, 3):
-                kij = (K[i][0] * (a * K[j][0] + b * K[j][1])
-                       + K[i][1] * (b * K[j][0] + dd * K[j][1]))
-                kji = (K[j][0] * (a * K[i][0] + b * K[i][1])
-                       + K[j][1] * (b * K[i][0] + dd * K[i][1]))
-                pij = 0.5 * ((X[i][j] + kij) + (X[j][i] + kji)) * ci[i] * ci[j]
+                pij = 0.5 * ((X[i][j] + B[i][j]) + (X[j][i] + B[j][i])) * _CI_SCALE[i] * \
+                    _CI_SCALE[j]
                 P[n, i, j] = pij
                 P[n, j, i] = pij
 
@@ -635,7 +631,7 @@ def fuse_tilt(q_f: np.ndarray, P_f: np.ndarray, q_b: np.ndarray, P_b: np.ndarray
     with np.errstate(invalid="ignore"):
         d = -swing_rotvec(e)  # the horizontal rotation that takes v = R(e) z back to z
     q, P = np.empty_like(q_f), np.empty_like(P_f)
-    _fuse_tilt_rows(np.ascontiguousarray(e), np.ascontiguousarray(d), q_f, P_f,
+    fuse_tilt_rows(np.ascontiguousarray(e), np.ascontiguousarray(d), q_f, P_f,
                     np.ascontiguousarray(P_b, float), q, P)
     return q, P
 
@@ -649,8 +645,6 @@ def smooth_both_ways(f: AttitudeFilter, dts: np.ndarray, gyr: np.ndarray, acc: n
     the reversed one's where both have an estimate (:func:`fuse_tilt`, docs/math.md §11.5).
     Returns the filtered outputs and the smoothed ones with ``quat`` and ``cov`` fused (rate
     and bias the forward smoother's)."""
-    from concurrent.futures import ThreadPoolExecutor
-
     with ThreadPoolExecutor(max_workers=2) as pool:  # the kernels release the GIL
         fwd = pool.submit(smooth_run, f, dts, gyr, acc, mag, window, overlap)
         rev = pool.submit(smooth_run, AttitudeFilter(f.params),
