@@ -15,6 +15,7 @@ for the progress bar), with the results of the node's message-by-message calls.
 from __future__ import annotations
 
 import math
+import tempfile
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
@@ -26,6 +27,7 @@ import numpy as np
 from mkf_ros.bags import cdr
 from mkf_ros.bags.reader import BagError, BagReader, normalize_topic
 from mkf_ros.bags.writer import BagWriter
+from mkf_ros.core.state import new_records
 from mkf_ros.stream import rep145
 
 
@@ -364,11 +366,13 @@ class _Smoothing:
     slots of one smoothing window + overlap, the smoothed rows and the bag windows they span
     (docs/bags.md)."""
 
-    def __init__(self, adapter: Any, window: int, overlap: int) -> None:
+    def __init__(self, adapter: Any, window: int, overlap: int,
+                 two_way: _TwoWay | None = None) -> None:
         from mkf_ros.core.smoother import Windows
         from mkf_ros.stream.kernel import MAX_STEPS_PER_EVENT
 
         self.adapter = adapter
+        self.two_way = two_way  #: the reversed smoother's rows to fuse with (two-way)
         self.wins = Windows(adapter.filter.kernel_arrays().cfg, window, overlap,
                             window + overlap + MAX_STEPS_PER_EVENT)
         adapter.record_into(self.wins.rec, self._full)
@@ -387,7 +391,11 @@ class _Smoothing:
 
     def _smooth(self, final: bool) -> None:
         t0 = time.perf_counter()
+        first = self.wins.done
         got = self.wins.smooth(final)
+        if self.two_way is not None:
+            for g in got:
+                first = self.two_way.fuse(g, first)
         if got:
             self.quat = np.concatenate([self.quat, *(g.quat for g in got)])
             self.cov = np.concatenate([self.cov, *(g.cov for g in got)])
@@ -448,6 +456,110 @@ class _Smoothing:
         c.encoded = res
 
 
+@dataclass
+class _TwoWay:
+    """``--smooth two-way``'s files (docs/bags.md): ``steps``, every filter step's readings
+    ``(Δt, ω_g, a, m)`` as the first pass spilled them (:class:`_Capture`, ``n`` steps, the
+    filter started anew at ``starts``, its parameters ``params``); after :meth:`reverse`,
+    ``q``, ``P``, ``ok``: the reversed smoother's rows of the same steps (memory maps), which
+    the last pass fuses with its own (:meth:`fuse`)."""
+
+    steps: Path
+    n: int = 0
+    starts: list[int] = field(default_factory=list)
+    params: Any = None
+    q: np.ndarray | None = None
+    P: np.ndarray | None = None
+    ok: np.ndarray | None = None
+    fused: int = 0  #: steps of the last pass fused so far
+
+    def reverse(self, tmp: Path, window: int, overlap: int, progress: Any) -> None:
+        """The reversed smoother over the spilled steps (streamed: one smoothing window and
+        overlap in memory) into memory maps in ``tmp``."""
+        from mkf_ros.core.smoother import smooth_reversed_into
+
+        n = self.n
+        self.q = np.lib.format.open_memmap(tmp / "q.npy", "w+", np.float64, (n, 4))
+        self.P = np.lib.format.open_memmap(tmp / "P.npy", "w+", np.float64, (n, 3, 3))
+        self.ok = np.lib.format.open_memmap(tmp / "ok.npy", "w+", np.bool_, (n,))
+        if n == 0:
+            return
+        u = np.memmap(self.steps, np.float64, "r", shape=(n, 10))
+        tick = progress("reversed pass", n) if progress else None
+        smooth_reversed_into(self.params, u, self.starts, window, overlap, self.q, self.P,
+                             self.ok, tick)
+
+    def fuse(self, rows: Any, first: int) -> int:
+        """Fuse the smoothed rows of the steps ``first …`` (a
+        :class:`~mkf_ros.core.smoother.SmoothOutputs`, in place) with the reversed ones; the
+        step after them."""
+        from mkf_ros.core.smoother import fuse_two_way
+
+        assert self.q is not None and self.P is not None and self.ok is not None
+        end = first + len(rows.valid)
+        if end > self.n:
+            raise RuntimeError(f"two-way smoothing: step {end - 1} of the last pass, but the "
+                               f"first captured {self.n} (the two passes over the bag differ)")
+        sl = slice(first, end)
+        rows.quat[:], rows.cov[:] = fuse_two_way(rows.quat, rows.cov, rows.valid, self.q[sl],
+                                                 self.P[sl], self.ok[sl])
+        self.fused = end
+        return end
+
+
+class _Capture:
+    """``--smooth two-way``'s first pass: the adapter records every filter step into a few
+    slots (:meth:`StreamAdapter.record_into`), whose readings ``u`` go to
+    ``two_way.steps`` whenever they fill (the last slot kept: the next step links to it)."""
+
+    SLOTS = 1 << 15
+
+    def __init__(self, adapter: Any, two_way: _TwoWay) -> None:
+        from mkf_ros.core.smoother import RECORD
+        from mkf_ros.stream.kernel import MAX_STEPS_PER_EVENT
+
+        self.adapter = adapter
+        self.two_way = two_way
+        self.file = open(two_way.steps, "wb")  # noqa: SIM115 (closed by finish)
+        self.n = 0
+        self.rec = new_records(RECORD, self.SLOTS + MAX_STEPS_PER_EVENT)
+        adapter.record_into(self.rec, self._full)
+
+    def _spill(self, k: int) -> None:
+        self.file.write(np.ascontiguousarray(self.rec["u"][:k]).tobytes())
+        self.n += k
+
+    def _full(self, filled: int) -> tuple[np.ndarray, int, int]:
+        self._spill(filled - 1)
+        self.rec[0] = self.rec[filled - 1]
+        return self.rec, 1, self.n
+
+    def finish(self) -> None:
+        """Every step spilled; the file closed, the count, resets and parameters noted."""
+        self._spill(self.adapter.recorded)
+        self.file.close()
+        tw = self.two_way
+        tw.n, tw.starts = self.n, list(self.adapter.reset_slots)
+        tw.params = self.adapter.filter.params
+        self.adapter.record_into(None)
+
+
+class _NullWriter:
+    """The first pass of ``--smooth two-way`` writes nothing."""
+
+    def __enter__(self) -> _NullWriter:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        return None
+
+    def add_topic(self, topic: str, msgtype: str) -> None:
+        return None
+
+    def write_batch(self, conn: Any, log_ns: np.ndarray, data: Any) -> None:
+        return None
+
+
 def stream_param_names() -> list[str]:
     """Parameters that matter offline: the filter's and the node's input/time/output ones."""
     from mkf_ros.core.params import PARAMS
@@ -464,7 +576,7 @@ def process_bag(bag: str | Path, out: str | Path, params: Mapping[str, Any] | No
                 storage: str = "mcap", overwrite: bool = False, copy_input: bool = False,
                 skip: float = 0.0, progress: Any = None,
                 window: int | None = WINDOW_MESSAGES, keep_outputs: bool = False,
-                smooth: bool = False, smooth_window: int | None = None,
+                smooth: bool | str = False, smooth_window: int | None = None,
                 smooth_overlap: int | None = None) -> ProcessResult:
     """Run the estimator over ``bag`` and write ``out`` (see the module docstring).
 
@@ -492,8 +604,59 @@ def process_bag(bag: str | Path, out: str | Path, params: Mapping[str, Any] | No
     :data:`~mkf_ros.core.smoother.DEFAULT_OVERLAP`, as :func:`~mkf_ros.core.smoother.smooth_run`)
     and the messages are written once smoothed: memory and the output's delay are bounded by
     one smoothing window + overlap plus the bag windows they span. The other fields are the
-    filter's as without it.
+    filter's as without it. ``smooth="two-way"``: that smoother's tilt fused with the same
+    smoother's over the recording reversed (docs/math.md §11.5, as ``mkf_ros.estimate(...,
+    smooth="two-way")``), in three passes: the bag read once to spill every filter step's
+    readings to a file beside ``out`` (80 bytes per step), the reversed smoother over that
+    file (its rows to a second file, 113 bytes per step), the bag read again and smoothed as
+    above with each window's rows fused with the reversed ones; the files are removed at the
+    end. Memory as above; disk about 0.2 KB per step.
     """
+    from mkf_ros.core import smoother as sm_core
+
+    try:
+        mode = sm_core.smooth_mode(smooth)
+    except ValueError as e:
+        raise BagError(str(e)) from None
+    kw = dict(imu_topic=imu_topic, mag_topic=mag_topic, accel_topic=accel_topic,
+              gyro_topic=gyro_topic, truth_topic=truth_topic, output_topic=output_topic,
+              storage=storage, overwrite=overwrite, copy_input=copy_input, skip=skip,
+              progress=progress, window=window, keep_outputs=keep_outputs,
+              smooth=mode is not None, smooth_window=smooth_window,
+              smooth_overlap=smooth_overlap)
+    if mode != "two-way":
+        return _run_bag(bag, out, params, **kw)  # type: ignore[arg-type]
+    out = Path(out)
+    BagWriter.check(out, storage, overwrite)
+    with tempfile.TemporaryDirectory(prefix=f".{out.name}.two-way-", dir=out.parent) as tmp:
+        two = _TwoWay(Path(tmp) / "steps")
+        t0 = time.perf_counter()
+        _run_bag(bag, out, params, **{**kw, "truth_topic": None, "copy_input": False,
+                                      "keep_outputs": False},  # type: ignore[arg-type]
+                 two_way=two)
+        two.reverse(Path(tmp), sm_core.DEFAULT_WINDOW if smooth_window is None
+                    else int(smooth_window),
+                    sm_core.DEFAULT_OVERLAP if smooth_overlap is None else int(smooth_overlap),
+                    progress)
+        seconds = time.perf_counter() - t0
+        res = _run_bag(bag, out, params, **kw, two_way=two)  # type: ignore[arg-type]
+        if two.fused != two.n:
+            raise RuntimeError(f"two-way smoothing: {two.fused} steps fused of {two.n} "
+                               "captured (the two passes over the bag differ)")
+    res.timings["two-way"] = seconds
+    return res
+
+
+def _run_bag(bag: str | Path, out: str | Path, params: Mapping[str, Any] | None, *,
+             imu_topic: str | None, mag_topic: str | None, accel_topic: str | None,
+             gyro_topic: str | None, truth_topic: str | None, output_topic: str, storage: str,
+             overwrite: bool, copy_input: bool, skip: float, progress: Any,
+             window: int | None, keep_outputs: bool, smooth: bool, smooth_window: int | None,
+             smooth_overlap: int | None, two_way: _TwoWay | None = None) -> ProcessResult:
+    """:func:`process_bag`'s pass over the bag; ``two_way`` (with ``smooth``): the first pass
+    of ``--smooth two-way`` (nothing written: every filter step's readings spilled,
+    :class:`_Capture`) while it has no reversed rows, else the last (smoothed rows fused)."""
+    capture = two_way is not None and two_way.q is None
     from mkf_ros.bags.synth import read_description
     from mkf_ros.core import smoother as sm_core
     from mkf_ros.stream.adapter import (
@@ -525,7 +688,7 @@ def process_bag(bag: str | Path, out: str | Path, params: Mapping[str, Any] | No
         params = sm_core.forward_params(params)
     adapter = StreamAdapter(params)
     p = adapter.params
-    smoothing = None
+    smoothing = capturing = None
     if smooth:
         if p["algorithm"] not in ("mekf", "mukf"):
             raise BagError(f"--smooth needs algorithm mekf or mukf (the smoother is the MKFs'), "
@@ -534,7 +697,10 @@ def process_bag(bag: str | Path, out: str | Path, params: Mapping[str, Any] | No
         so = sm_core.DEFAULT_OVERLAP if smooth_overlap is None else int(smooth_overlap)
         if sw < 1 or so < 0:
             raise BagError(f"smoother window must be >= 1 and overlap >= 0, got {sw}, {so}")
-        smoothing = _Smoothing(adapter, sw, so)
+        if capture and two_way is not None:
+            capturing = _Capture(adapter, two_way)
+        else:
+            smoothing = _Smoothing(adapter, sw, so, two_way)
     use_mag = bool(p["use_mag"])
     t0 = time.perf_counter()
     acc_name = None
@@ -575,12 +741,13 @@ def process_bag(bag: str | Path, out: str | Path, params: Mapping[str, Any] | No
         desc = (read_description(bag) or {}) if truth_name else {}
         scorer = (_Scorer(p["world_frame"], use_mag, skip, desc.get("intervals"),
                           br.topics[imu_name].count) if truth_name else None)
-        tick = progress("process", br.work_total(read)) if progress else None
+        tick = (progress("forward pass" if capture else "process", br.work_total(read))
+                if progress else None)
         n_imu = n_acc = n_mag = n_out = 0
         orientation = False
         kept: list[tuple[Outputs, np.ndarray, np.ndarray]] = []
         tm["read"] += time.perf_counter() - t0
-        with BagWriter(out, storage, overwrite=overwrite) as w:
+        with _NullWriter() if capture else BagWriter(out, storage, overwrite=overwrite) as w:
             conn = w.add_topic(out_name, cdr.IMU.msgtype)
             copies = {t: w.add_topic(t, in_types[t]) for t in extra}
             windows = br.read_windows(read, window, tick)
@@ -628,7 +795,7 @@ def process_bag(bag: str | Path, out: str | Path, params: Mapping[str, Any] | No
                 out_log = imu_b.log_ns[outs.index]
                 if scorer is not None and truth is not None and len(imu_b):
                     scorer.shift((int(imu_b.log_ns[0]) - bag_start) * 1e-9)
-                chunk = _Chunk(outs, encode_outputs(imu, imu_b, outs), out_log,
+                chunk = _Chunk(outs, [] if capture else encode_outputs(imu, imu_b, outs), out_log,
                                imu.stamp_ns[outs.index], (out_log - bag_start) * 1e-9, truth,
                                win[truth_name].log_ns if truth_name else None,
                                [(c, win[t].log_ns, win[t].data) for t, c in copies.items()])
@@ -644,6 +811,8 @@ def process_bag(bag: str | Path, out: str | Path, params: Mapping[str, Any] | No
                     continue
                 for c in smoothing.ready(chunk, False):
                     emit(c)
+            if capturing is not None:
+                capturing.finish()
             if smoothing is not None:
                 for c in smoothing.ready(None, True):
                     emit(c)

@@ -82,15 +82,8 @@ class BagWriter:
         from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin
 
         self.path = Path(path)
-        if storage not in STORAGES:
-            raise BagError(f"unknown storage {storage!r} (choose from {', '.join(STORAGES)})")
-        if self.path.exists() and not overwrite:
-            raise BagError(f"{self.path} already exists (use --overwrite to replace it)")
-        if self.path.exists() and not _is_bag_dir(self.path):
-            raise BagError(f"{self.path} exists and is not a bag; not replacing it")
+        self.check(self.path, storage, overwrite)
         parent = self.path.parent
-        if not parent.is_dir():
-            raise BagError(f"cannot write {self.path}: directory {parent} does not exist")
         self.storage = storage
         try:
             self._tmp = Path(tempfile.mkdtemp(prefix=f".{self.path.name}.partial-", dir=parent))
@@ -105,6 +98,18 @@ class BagWriter:
         self._w.open()
         self._ts: Any = None
         self.connections: dict[str, Any] = {}
+
+    @staticmethod
+    def check(path: Path, storage: str, overwrite: bool) -> None:
+        """BagError (one line) unless a bag of ``storage`` can be written at ``path``."""
+        if storage not in STORAGES:
+            raise BagError(f"unknown storage {storage!r} (choose from {', '.join(STORAGES)})")
+        if path.exists() and not overwrite:
+            raise BagError(f"{path} already exists (use --overwrite to replace it)")
+        if path.exists() and not _is_bag_dir(path):
+            raise BagError(f"{path} exists and is not a bag; not replacing it")
+        if not path.parent.is_dir():
+            raise BagError(f"cannot write {path}: directory {path.parent} does not exist")
 
     def add_topic(self, topic: str, msgtype: str, typestore: Any = None) -> Any:
         """Register a topic (absolute name) and return its connection."""

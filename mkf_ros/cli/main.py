@@ -12,6 +12,7 @@ import argparse
 import importlib
 import sys
 from collections.abc import Sequence
+from typing import NoReturn
 
 #: subcommand name → module (add new subcommands here)
 COMMANDS: dict[str, str] = {
@@ -26,6 +27,14 @@ COMMANDS: dict[str, str] = {
 
 class CliError(Exception):
     """A user error: reported as one line, exit code 2."""
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse's own errors (an unknown flag, an invalid choice) as one line too, not after
+    the usage of every flag."""
+
+    def error(self, message: str) -> NoReturn:
+        raise CliError(f"{message} (see {self.prog} --help)")
 
 
 def _overview() -> str:
@@ -53,11 +62,10 @@ def main(argv: Sequence[str] | None = None) -> int:
               file=sys.stderr)
         return 2
     mod = importlib.import_module(COMMANDS[name])
-    parser = argparse.ArgumentParser(prog=f"mkf {name}", description=mod.HELP)
+    parser = _Parser(prog=f"mkf {name}", description=mod.HELP)
     mod.add_arguments(parser)
-    args = parser.parse_args(rest)
     try:
-        return int(mod.run(args) or 0)
+        return int(mod.run(parser.parse_args(rest)) or 0)
     except CliError as e:
         print(f"mkf {name}: error: {e}", file=sys.stderr)
         return 2

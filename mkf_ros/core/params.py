@@ -117,6 +117,10 @@ def _fmt(x: float) -> str:
 #: docs/baselines.md).
 ALGORITHMS = ("mekf", "mukf", "euler_kf", "euler_ukf", "madgwick")
 WORLD_FRAMES = ("enu", "ned", "nwu")
+#: The smoother's forms (``estimate(smooth=...)``, ``mkf process --smooth``, docs/math.md §11):
+#: the forward RTS smoother, or it fused with the same smoother run over the reversed recording
+#: (§11.5).
+SMOOTH_MODES = ("rts", "two-way")
 
 _P = Param
 PARAMS: tuple[Param, ...] = (

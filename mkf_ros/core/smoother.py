@@ -18,13 +18,15 @@ combined with the smoothed estimate of the next sample through the prediction it
 Windows (:func:`smooth_run`): the forward pass is continuous; the records of ``window +
 overlap`` samples are kept; each backward pass starts at the last of them with the filtered
 estimate there and publishes the first ``window``; the next window starts ``window`` samples
-later. Memory: :data:`RECORD` (449 bytes) per kept sample.
+later. Memory: :data:`RECORD` (529 bytes) per kept sample.
 """
 
 from __future__ import annotations
 
+import itertools
+from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -42,6 +44,7 @@ from mkf_ros.core.filter import (
 from mkf_ros.core.frames import swing_rotvec
 from mkf_ros.core.linalg import cap_eigenvalues33_t, cho_solve_into, cholesky_into, congruence33_t
 from mkf_ros.core.mekf import mekf_predict_t, transport_covariance_t
+from mkf_ros.core.params import SMOOTH_MODES
 from mkf_ros.core.quaternion import (
     q_omega_t,
     qconj_mul_t,
@@ -73,9 +76,12 @@ NP_PACKED = NX_MAX * (NX_MAX + 1) // 2
 
 #: One sample of the forward pass as the backward pass needs it (docs/math.md §11.1): the
 #: estimate ``(q̂, ω̄, b̄)`` (chart centre at ``q̂``), the packed upper triangle of ``P`` of
-#: ``(e, ω[, b])``, the kind, and for :data:`TRANS` the step ``Δt`` to the next sample.
+#: ``(e, ω[, b])``, the kind, and for :data:`TRANS` the step ``Δt`` to the next sample; and
+#: the step's own readings ``u = (Δt, ω_g, a, m)`` as the filter took them (what a pass over
+#: the recording reversed needs: ``mkf process --smooth two-way``, docs/math.md §11.5).
 RECORD = np.dtype([("kind", np.int8), ("dt", np.float64), ("q", np.float64, 4),
-                   ("w", np.float64, 3), ("b", np.float64, 3), ("P", np.float64, NP_PACKED)])
+                   ("w", np.float64, 3), ("b", np.float64, 3), ("P", np.float64, NP_PACKED),
+                   ("u", np.float64, 10)])
 
 #: Parameters whose default differs in the smoother's forward pass (docs/math.md §11.1): the
 #: heading's partial update of the gyro bias (``mag_bias_gain``, §9.2) protects a causal
@@ -161,6 +167,12 @@ def recorded_step(kern: Kernels, c: np.record, s: np.record, k: np.record, w: np
     nx = c.nx
     w.rec_set = False
     gaps = k.gaps
+    u = rec[m].u
+    u[0] = dt
+    for i in range(3):
+        u[1 + i] = gyr[i]
+        u[4 + i] = acc[i]
+        u[7 + i] = mag[i]
     run_step(kern, c, s, k, w, dt, gyr, acc, mag)
     if w.rec_set and k.gaps == gaps and m >= 1 and rec[m - 1].kind != NONE:
         _store(rec[m - 1], nx, w.rec_q, w.rec_w, w.rec_b, w.rec_P, TRANS, dt)
@@ -473,60 +485,82 @@ class Windows:
         return res
 
 
-def smooth_run(f: AttitudeFilter, dts: np.ndarray, gyr: np.ndarray, acc: np.ndarray,
-               mag: np.ndarray, window: int = DEFAULT_WINDOW,
-               overlap: int = DEFAULT_OVERLAP) -> tuple[BatchOutputs, SmoothOutputs]:
-    """The filter ``f`` (an MEKF or MUKF) forward over a recording (as :meth:`AttitudeFilter.run`,
-    from its current state, which advances) and the backward pass in windows of ``window``
-    samples started ``overlap`` samples later (docs/math.md §11.4, :class:`Windows`);
-    ``window ≥ len(dts)`` is the full-interval smoother. Returns the filtered and the smoothed
-    outputs, one row per sample (rows without an estimate keep the filter's). Readings as for
-    :meth:`AttitudeFilter.run`."""
+#: ``read(a, b)``: the readings ``(Δt, ω_g, a, m)`` of samples ``a … b − 1`` as C-contiguous
+#: float64 arrays ((k,), (k, 3) × 3), as :meth:`AttitudeFilter.run` takes them.
+Reader = Callable[[int, int], tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]
+
+
+def array_reader(dts: np.ndarray, gyr: np.ndarray, acc: np.ndarray, mag: np.ndarray) -> Reader:
+    """A :data:`Reader` of readings held in arrays."""
+    arrays = tuple(np.ascontiguousarray(x, dtype=np.float64) for x in (dts, gyr, acc, mag))
+    return lambda a, b: tuple(x[a:b] for x in arrays)  # type: ignore[return-value]
+
+
+def smooth_stream(f: AttitudeFilter, n: int, read: Reader, window: int = DEFAULT_WINDOW,
+                  overlap: int = DEFAULT_OVERLAP
+                  ) -> Iterator[tuple[int, BatchOutputs, SmoothOutputs]]:
+    """The filter ``f`` (an MEKF or MUKF) forward over ``n`` samples read in pieces by ``read``
+    (as :meth:`AttitudeFilter.run`, from its current state, which advances) and the backward
+    pass in windows of ``window`` samples started ``overlap`` samples later (docs/math.md
+    §11.4, :class:`Windows`); ``window ≥ n`` is the full-interval smoother. Yields, in order,
+    ``(first sample, filtered rows, smoothed rows)`` (rows without an estimate keep the
+    filter's): memory is that of ``window + overlap`` samples whatever ``n``."""
     if window < 1 or overlap < 0:
         raise ValueError(f"smoother window must be >= 1 and overlap >= 0, got {window}, {overlap}")
     arrays = f.kernel_arrays()
     c = record(arrays.cfg)
     if c.algorithm > ALGO_MUKF:
         raise ValueError(f"the smoother needs algorithm mekf or mukf, not {f.params.algorithm!r}")
-    n = len(dts)
-    filt = BatchOutputs(np.empty((n, 4)), np.empty((n, 3, 3)), np.empty((n, 3)),
-                        np.empty((n, 3)), np.empty((n, 3)), np.empty(n, dtype=np.bool_))
-    sm = new_smooth_outputs(n)
     cap = min(window + overlap, max(n, 1))
     wins = Windows(arrays.cfg, window, overlap, cap)
+    held = BatchOutputs(np.empty((cap, 4)), np.empty((cap, 3, 3)), np.empty((cap, 3)),
+                        np.empty((cap, 3)), np.empty((cap, 3)), np.empty(cap, dtype=np.bool_))
     table = kernel_table()
     c.record_posterior = True
     try:
         fwd = 0  # first sample not yet filtered
         while fwd < n or wins.held:
             end = min(fwd + cap - wins.held, n)
-            sl = slice(fwd, end)
-            part = BatchOutputs(*(a[sl] for a in filt))
+            part = BatchOutputs(*(a[wins.held:wins.held + end - fwd] for a in held))
             forward_recorded(table, arrays.cfg, arrays.st, arrays.counters, arrays.work,
-                             dts[sl], gyr[sl], acc[sl], mag[sl], part, wins.rec, wins.held)
+                             *read(fwd, end), part, wins.rec, wins.held)
             wins.held += end - fwd
             fwd = end
             pos = wins.done
             for rows in wins.smooth(fwd == n):
                 k = len(rows.valid)
-                for a, b in zip(sm, rows, strict=True):
-                    a[pos:pos + k] = b
+                filt = BatchOutputs(*(a[:k].copy() for a in held))
+                for a in held:  # the held slots' filtered rows move with them (Windows)
+                    a[:cap - k] = a[k:].copy()
+                bad = ~rows.valid
+                rows.quat[bad] = filt.quat[bad]
+                rows.cov[bad] = filt.cov[bad]
+                rows.omega[bad] = filt.omega[bad]
+                rows.bias[bad] = filt.bias[bad]
+                rows.bias_var[bad] = filt.bias_var[bad]
+                yield pos, filt, rows
                 pos += k
     finally:
         c.record_posterior = False
-    bad = ~sm.valid
-    sm.quat[bad] = filt.quat[bad]
-    sm.cov[bad] = filt.cov[bad]
-    sm.omega[bad] = filt.omega[bad]
-    sm.bias[bad] = filt.bias[bad]
-    sm.bias_var[bad] = filt.bias_var[bad]
+
+
+def smooth_run(f: AttitudeFilter, dts: np.ndarray, gyr: np.ndarray, acc: np.ndarray,
+               mag: np.ndarray, window: int = DEFAULT_WINDOW,
+               overlap: int = DEFAULT_OVERLAP) -> tuple[BatchOutputs, SmoothOutputs]:
+    """:func:`smooth_stream` over readings in arrays (readings as for
+    :meth:`AttitudeFilter.run`): the filtered and the smoothed outputs, one row per sample."""
+    n = len(dts)
+    filt = BatchOutputs(np.empty((n, 4)), np.empty((n, 3, 3)), np.empty((n, 3)),
+                        np.empty((n, 3)), np.empty((n, 3)), np.empty(n, dtype=np.bool_))
+    sm = new_smooth_outputs(n)
+    for pos, fr, sr in smooth_stream(f, n, array_reader(dts, gyr, acc, mag), window, overlap):
+        k = len(sr.valid)
+        for a, b in zip((*filt, *sm), (*fr, *sr), strict=True):
+            a[pos:pos + k] = b
     return filt, sm
 
 
 # --- both directions (docs/math.md §11.5) ----------------------------------------------------
-#: The values of ``estimate(smooth=...)``: the forward RTS smoother, or it fused with the same
-#: smoother run over the reversed recording (docs/math.md §11.5).
-SMOOTH_MODES = ("rts", "two-way")
 
 
 def smooth_mode(smooth: bool | str) -> str | None:
@@ -540,17 +574,30 @@ def smooth_mode(smooth: bool | str) -> str | None:
     return mode
 
 
+def reversed_reader(dts: np.ndarray, gyr: np.ndarray, acc: np.ndarray, mag: np.ndarray
+                    ) -> Reader:
+    """A :data:`Reader` of the recording backwards in time (docs/math.md §11.5), from arrays
+    (or memory maps) of its ``N`` samples: sample ``j`` of the result is sample
+    ``k = N − 1 − j``. A step's gyro reading and ``Δt`` describe the interval that *ends* at
+    its sample, so backwards sample ``j`` takes those of sample ``k + 1`` (the interval from
+    ``t_k`` to ``t_{k+1}``, turned the other way: ``−ω``); the first keeps its own.
+    Accelerometer and magnetometer readings are instantaneous: reversed as they are."""
+    n = len(dts)
+
+    def read(a: int, b: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        k = n - 1 - np.arange(a, b)  # the samples read, backwards
+        k1 = np.minimum(k + 1, n - 1)  # the interval that ends at the next one
+        return (np.ascontiguousarray(dts[k1], dtype=np.float64),
+                -np.ascontiguousarray(gyr[k1], dtype=np.float64),
+                np.ascontiguousarray(acc[k], dtype=np.float64),
+                np.ascontiguousarray(mag[k], dtype=np.float64))
+    return read
+
+
 def reversed_inputs(dts: np.ndarray, gyr: np.ndarray, acc: np.ndarray, mag: np.ndarray
                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """The recording backwards in time (docs/math.md §11.5): sample ``j`` of the result is
-    sample ``k = N − 1 − j``. A step's gyro reading and ``Δt`` describe the interval that
-    *ends* at its sample, so backwards sample ``j`` takes those of sample ``k + 1`` (the
-    interval from ``t_k`` to ``t_{k+1}``, turned the other way: ``−ω``); the first keeps its
-    own. Accelerometer and magnetometer readings are instantaneous: reversed as they are."""
-    def shifted(x: np.ndarray) -> np.ndarray:
-        r = x[::-1]
-        return np.concatenate([r[:1], r[:-1]])
-    return shifted(dts), -shifted(gyr), acc[::-1].copy(), mag[::-1].copy()
+    """The whole recording backwards in time (:func:`reversed_reader`)."""
+    return reversed_reader(dts, gyr, acc, mag)(0, len(dts))
 
 
 #: ``D = diag(√2, √2, 1)``: the congruence ``D P D`` widens the fused tilt to covariance
@@ -650,7 +697,40 @@ def smooth_both_ways(f: AttitudeFilter, dts: np.ndarray, gyr: np.ndarray, acc: n
         rev = pool.submit(smooth_run, AttitudeFilter(f.params),
                           *reversed_inputs(dts, gyr, acc, mag), window, overlap)
         (filt, sm), (back, sb) = fwd.result(), rev.result()
-    ok = filt.initialized & back.initialized[::-1]
-    q_b = np.where(ok[:, None], sb.quat[::-1], np.nan)  # no second estimate: keep the first
-    sm.quat[:], sm.cov[:] = fuse_tilt(sm.quat, sm.cov, q_b, sb.cov[::-1])
+    sm.quat[:], sm.cov[:] = fuse_two_way(sm.quat, sm.cov, filt.initialized, sb.quat[::-1],
+                                         sb.cov[::-1], back.initialized[::-1])
     return filt, sm
+
+
+def fuse_two_way(q_f: np.ndarray, P_f: np.ndarray, ok_f: np.ndarray, q_b: np.ndarray,
+                 P_b: np.ndarray, ok_b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The forward smoother's rows fused with the reversed one's of the same samples
+    (:func:`fuse_tilt`) where both have an estimate (``ok_f``, ``ok_b``); elsewhere the
+    forward rows."""
+    q_b = np.where((ok_f & ok_b)[:, None], q_b, np.nan)  # no second estimate: keep the first
+    return fuse_tilt(q_f, P_f, q_b, P_b)
+
+
+def smooth_reversed_into(params: Any, u: np.ndarray, starts: Sequence[int], window: int,
+                         overlap: int, q: np.ndarray, P: np.ndarray, ok: np.ndarray,
+                         progress: Callable[[int], object] | None = None) -> None:
+    """The smoother over a recording reversed, streamed (``mkf process --smooth two-way``):
+    ``u`` (N, 10) the readings ``(Δt, ω_g, a, m)`` of the forward pass's steps (a
+    :data:`RECORD`'s ``u``; a memory map: read in windows), ``starts`` the steps where the
+    forward pass started anew (a reset: each segment between two is reversed with a fresh
+    filter of ``params``, as a forward pass over it would start); step ``n``'s reversed
+    smoothed orientation, covariance and whether it has an estimate into ``q[n]``, ``P[n]``,
+    ``ok[n]`` (memory maps too); ``progress(k)`` after each ``k`` rows. Memory: one smoothing
+    window + overlap."""
+    bounds = sorted({0, *(int(s) for s in starts if 0 < s < len(u)), len(u)})
+    for s0, s1 in itertools.pairwise(bounds):
+        seg = u[s0:s1]
+        read = reversed_reader(seg[:, 0], seg[:, 1:4], seg[:, 4:7], seg[:, 7:10])
+        for pos, fr, sr in smooth_stream(AttitudeFilter(params), s1 - s0, read, window,
+                                         overlap):
+            rows = s1 - 1 - np.arange(pos, pos + len(sr.valid))  # forward steps, backwards
+            q[rows] = sr.quat
+            P[rows] = sr.cov
+            ok[rows] = fr.initialized
+            if progress is not None:
+                progress(len(rows))

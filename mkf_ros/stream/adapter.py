@@ -340,6 +340,9 @@ class StreamAdapter:
         self._rn = np.zeros(4, dtype=np.int64)
         self._recording = False
         self._on_full: Callable[[int], tuple[np.ndarray, int, int]] | None = None
+        #: while recording: the number of the first slot after each reset (the filter's chain
+        #: starts anew there: a pass over the recording reversed starts anew too)
+        self.reset_slots: list[int] = []
         self._out_flat = self._out.view(np.float64)
         self._derive()
 
@@ -398,6 +401,8 @@ class StreamAdapter:
     def reset(self, reason: str = "requested") -> None:
         """Forget the estimate; the next IMU sample re-initialises. Counters are kept."""
         self.filter.reset()
+        if self._recording:
+            self.reset_slots.append(int(self._rn[3] + self._rn[0]))
         for name in sk.RESET_FIELDS:
             record(self._ts)[name] = 0
         record(self._acnt).resets += 1
@@ -497,6 +502,7 @@ class StreamAdapter:
         self._set_recording(rec, 0, base)
         self._on_full = on_full
         self._recording = True
+        self.reset_slots = []
 
     def _set_recording(self, rec: np.ndarray, filled: int, base: int) -> None:
         self._rec = rec

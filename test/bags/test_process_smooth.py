@@ -175,3 +175,78 @@ def test_baselines_are_refused(tmp_path: Path, dropouts: Path) -> None:
     with pytest.raises(BagError, match="--smooth needs algorithm mekf or mukf"):
         process_bag(dropouts, tmp_path / "o", dict(algorithm="madgwick"), smooth=True)
     assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.parametrize("algorithm", ["mekf", "mukf"])
+def test_two_way_output_is_estimate_two_way(tmp_path: Path, algorithm: str) -> None:
+    """``--smooth two-way``: the bag read twice, the reversed smoother streamed from a file of
+    the first pass's steps; the output equals ``estimate(smooth="two-way")`` on the same
+    samples bit for bit, in many smoothing windows, and no temporary file is left."""
+    sim = simulate("slow_rotation", duration=8.0, rate=100.0, mag_rate=25.0, seed=2)
+    bag = tmp_path / "in"
+    write_bag(sim, bag)
+    params = dict(use_mag=True, algorithm=algorithm)
+    ticks: dict[str, int] = {}
+
+    def progress(desc: str, total: int) -> object:
+        ticks[desc] = 0
+        return lambda k: ticks.__setitem__(desc, ticks[desc] + k)
+
+    r = process_bag(bag, tmp_path / "s", params, smooth="two-way", window=100,
+                    smooth_window=300, smooth_overlap=200, progress=progress)
+    t, gyr, acc, mag = _bag_samples(bag)
+    e = mkf_ros.estimate(gyr, acc, mag, timestamps=t, smooth="two-way", smooth_window=300,
+                         smooth_overlap=200, **params)  # type: ignore[arg-type]
+    q, cov = _written(tmp_path / "s")
+    assert len(q) == len(t) == r.n_out
+    assert np.array_equal(q, e.quat) and np.array_equal(cov, e.cov.reshape(-1, 9))
+    rts = mkf_ros.estimate(gyr, acc, mag, timestamps=t, smooth=True, smooth_window=300,
+                           smooth_overlap=200, **params)  # type: ignore[arg-type]
+    assert not np.array_equal(q, rts.quat)  # fused: not the RTS smoother's alone
+    assert ticks["reversed pass"] == len(t) and ticks["process"] > 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["in", "s"]  # the spill removed
+    assert "two-way" in r.timings
+
+
+def test_two_way_starts_anew_where_the_filter_did(tmp_path: Path,
+                                                  monkeypatch: pytest.MonkeyPatch) -> None:
+    """A time jump resets the filter (a new chain of steps from the first sample after it):
+    the reversed pass is told to start anew at that step (the rule itself:
+    test/core/test_smoother.py), and the output is finite and smoothed on both sides."""
+    from mkf_ros.core import smoother
+
+    sim = simulate("time_jump", duration=6.0, rate=100.0, mag_rate=25.0, seed=3)
+    bag = tmp_path / "in"
+    write_bag(sim, bag)
+    seen: list[tuple[int, list[int]]] = []
+    real = smoother.smooth_reversed_into
+
+    def spy(params: object, u: np.ndarray, starts: list[int], *a: object,
+            **k: object) -> None:
+        seen.append((len(u), list(starts)))
+        real(params, u, starts, *a, **k)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(smoother, "smooth_reversed_into", spy)
+    r = process_bag(bag, tmp_path / "s", dict(use_mag=True), smooth="two-way")
+    c = process_bag(bag, tmp_path / "c", dict(use_mag=True))
+    assert r.counters["resets_time_jump"] == 1
+    k = sim.meta["time_jumps"][0][0]
+    assert seen == [(len(sim.t), [k])]  # a step per sample; anew at the jump's
+    assert r.scores is not None and c.scores is not None
+    assert np.isfinite(_written(tmp_path / "s")[0]).all()
+    assert r.scores.rmse["inclination"] < c.scores.rmse["inclination"]
+
+
+def test_two_way_refuses_before_reading(tmp_path: Path, dropouts: Path) -> None:
+    """An output that exists, or a baseline algorithm: refused before the first pass, nothing
+    written, no temporary file."""
+    from mkf_ros.bags import BagError
+
+    (tmp_path / "o").mkdir()
+    with pytest.raises(BagError, match="already exists"):
+        process_bag(dropouts, tmp_path / "o", smooth="two-way")
+    with pytest.raises(BagError, match="--smooth needs algorithm mekf or mukf"):
+        process_bag(dropouts, tmp_path / "m", dict(algorithm="madgwick"), smooth="two-way")
+    with pytest.raises(BagError, match="smooth must be"):
+        process_bag(dropouts, tmp_path / "m", smooth="both")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["o"]

@@ -38,6 +38,13 @@ def test_smooth_beats_the_filter(tmp_path: Path, bag: Path,
     # measured 0.71 (1.148° / 1.616°; 0.67 with gyro_bias_stddev 0.05: the causal heading's
     # first seconds converge faster when its variance grows with a wider bias prior)
     assert _rmse(smooth) < 0.8 * _rmse(causal)
+    assert main(["process", str(bag), "--out", str(tmp_path / "t"), "--use-mag", "--no-plot",
+                 "--smooth", "two-way", "--smooth-window", "200", "--smooth-overlap",
+                 "100"]) == 0
+    both = capsys.readouterr().out
+    assert "smoothed both ways" in both and "reversed smoother" in both
+    assert _rmse(both) < 0.8 * _rmse(causal)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["c", "in", "s", "t"]  # no spill left
 
 
 def _no_output(tmp_path: Path, out: Path) -> None:
@@ -49,6 +56,8 @@ def _no_output(tmp_path: Path, out: Path) -> None:
     (["--smooth", "--algorithm", "madgwick"], r"--smooth needs algorithm mekf or mukf"),
     (["--smooth-window", "100"], r"--smooth-window needs --smooth"),
     (["--smooth", "--smooth-overlap", "-1"], r"--smooth-overlap must be at least 0"),
+    (["--smooth", "both"], r"argument --smooth: invalid choice: 'both'.*'rts', 'two-way'"),
+    (["--smooth", "two-way", "--algorithm", "euler_kf"], r"--smooth needs algorithm mekf"),
 ])
 def test_unsupported_options_fail_with_one_line(tmp_path: Path, bag: Path,
                                                 capsys: pytest.CaptureFixture,

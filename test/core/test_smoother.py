@@ -17,7 +17,9 @@ from mkf_ros.core.smoother import (
     fuse_tilt,
     reversed_inputs,
     rts_linear,
+    smooth_reversed_into,
     smooth_run,
+    smooth_stream,
     transition_matrix,
 )
 from mkf_ros.core.state import iso33
@@ -277,6 +279,57 @@ def test_reversed_inputs_integrate_the_path_backwards() -> None:
     np.testing.assert_array_equal(ar, acc[::-1])
     np.testing.assert_array_equal(mr, mag[::-1])
     assert (dr > 0).all()
+
+
+def test_reversed_pass_streamed_from_a_file_starts_anew_at_each_reset(tmp_path) -> None:
+    """``smooth_reversed_into`` (``mkf process --smooth two-way``'s reversed pass) over two
+    recordings one after the other, the readings in a memory-mapped file (a step per row:
+    ``Δt, ω_g, a, m``), told that the filter started anew at the second: each recording's rows
+    are those of the smoother over that recording reversed alone (``smooth_run`` over
+    ``reversed_inputs``), bit for bit, in windows shorter than either recording."""
+    recs = [simulate(s, duration=3.0, rate=100.0, mag_rate=25.0, seed=i)
+            for i, s in enumerate(("slow_rotation", "wiener"))]
+    u = np.concatenate([np.column_stack([np.r_[0.01, np.diff(d.t)], d.gyr, d.acc, d.mag])
+                        for d in recs])
+    path = tmp_path / "steps"
+    u.tofile(path)
+    um = np.memmap(path, np.float64, "r", shape=u.shape)
+    n = len(u)
+    q, P, ok = np.zeros((n, 4)), np.zeros((n, 3, 3)), np.zeros(n, dtype=bool)
+    params = AttitudeFilter(use_mag=True).params
+    ticks: list[int] = []
+    smooth_reversed_into(params, um, [len(recs[0].t)], 120, 70, q, P, ok, ticks.append)
+    assert sum(ticks) == n and len(ticks) == 4  # two windows per recording
+    start = 0
+    for d in recs:
+        part = slice(start, start + len(d.t))
+        seg = u[part]
+        filt, sm = smooth_run(AttitudeFilter(params), *reversed_inputs(
+            seg[:, 0], seg[:, 1:4], seg[:, 4:7], seg[:, 7:10]), 120, 70)
+        np.testing.assert_array_equal(q[part], sm.quat[::-1])
+        np.testing.assert_array_equal(P[part], sm.cov[::-1])
+        np.testing.assert_array_equal(ok[part], filt.initialized[::-1])
+        assert ok[part].sum() > 0.9 * len(d.t)
+        start += len(d.t)
+
+
+def test_smooth_stream_holds_one_window() -> None:
+    """``smooth_stream`` reads the recording in pieces of at most ``window + overlap``
+    samples, in order, each once, and yields every sample's rows once, in order."""
+    d = simulate("slow_rotation", duration=5.0, rate=100.0, seed=1)
+    dts = np.r_[0.01, np.diff(d.t)]
+    reads: list[tuple[int, int]] = []
+
+    def read(a: int, b: int) -> tuple[np.ndarray, ...]:
+        reads.append((a, b))
+        return dts[a:b], d.gyr[a:b], d.acc[a:b], np.full((b - a, 3), np.nan)
+
+    got = [(pos, len(sr.valid)) for pos, _, sr in
+           smooth_stream(AttitudeFilter(), len(dts), read, 100, 60)]  # type: ignore[arg-type]
+    assert all(b - a <= 160 for a, b in reads)
+    assert [a for a, _ in reads] == [0, *(b for _, b in reads[:-1])] and reads[-1][1] == len(dts)
+    assert [p for p, _ in got] == list(np.cumsum([0] + [k for _, k in got])[:-1])
+    assert sum(k for _, k in got) == len(dts)
 
 
 def _q_rotvec(v: np.ndarray) -> np.ndarray:
