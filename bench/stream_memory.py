@@ -1,7 +1,7 @@
 """Peak memory and throughput of ``mkf process`` (and ``mkf synth``) against recording length.
 
     ./run bench stream_memory [--minutes 2 10 60] [--synth-minutes 2 10 60] [--dir DIR]
-                              [--reference CMD] [--smooth]
+                              [--reference CMD] [--smooth [MODE ...]]
 
 For each duration, writes an input bag at 1 kHz IMU, 100 Hz magnetometer and 1 kHz ground
 truth (``wiener`` motion: one minute simulated once, then tiled with shifted stamps and log
@@ -14,7 +14,7 @@ messages/s being IMU messages (all messages: IMU + magnetometer + ground truth, 
 ``--reference CMD`` runs another ``mkf`` (e.g. a checkout of main: ``"env PYTHONPATH=DIR
 python -m mkf_ros.cli.main"``) on the same bags or with the same synth options, and the output
 bags are compared message by message (topic, log time, bytes). ``--smooth`` also runs
-``mkf process --smooth`` (the fixed-interval smoother, bounded memory) on each bag.
+``mkf process --smooth MODE`` (the fixed-interval smoother, bounded memory) on each bag.
 """
 
 from __future__ import annotations
@@ -111,8 +111,9 @@ def main() -> None:
                     help="another mkf to compare outputs with (e.g. main's); for synth the "
                     "messages (per topic: sha-256 of log times and of CDR bytes) and the "
                     "bag's description (custom_data) are compared")
-    ap.add_argument("--smooth", action="store_true",
-                    help="also time mkf process --smooth on each bag, beside the causal run")
+    ap.add_argument("--smooth", nargs="*", default=None, choices=("rts", "two-way"),
+                    metavar="MODE", help="also time mkf process --smooth MODE (rts, two-way; "
+                    "none given: rts) on each bag, beside the causal run")
     args = ap.parse_args()
     mkf = [sys.executable, "-m", "mkf_ros.cli.main"]
     work = args.dir or Path(tempfile.mkdtemp(prefix="stream_memory-"))
@@ -128,13 +129,15 @@ def main() -> None:
                                   "--no-plot", "--quiet"])
             rows.append(("process", m, n, rss, wall, 0))
             print(f"process {m:g} min: {n:,} IMU msgs, {rss:,.0f} MB, {wall:.1f} s", flush=True)
-            if args.smooth:
+            for mode in ([] if args.smooth is None else args.smooth or ["rts"]):
                 sm = work / f"smooth_{m:g}min"
                 shutil.rmtree(sm, ignore_errors=True)
                 rss_s, wall_s, _ = timed([*mkf, "process", str(bag), "--out", str(sm),
-                                          "--use-mag", "--no-plot", "--quiet", "--smooth"])
-                rows.append(("process --smooth", m, n, rss_s, wall_s, 0))
-                print(f"process --smooth {m:g} min: {rss_s:,.0f} MB, {wall_s:.1f} s", flush=True)
+                                          "--use-mag", "--no-plot", "--quiet", "--smooth",
+                                          mode])
+                rows.append((f"process --smooth {mode}", m, n, rss_s, wall_s, 0))
+                print(f"process --smooth {mode} {m:g} min: {rss_s:,.0f} MB, {wall_s:.1f} s",
+                      flush=True)
                 shutil.rmtree(sm, ignore_errors=True)
             if args.reference:
                 ref = work / f"ref_{m:g}min"

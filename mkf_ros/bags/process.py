@@ -456,38 +456,46 @@ class _Smoothing:
         c.encoded = res
 
 
+#: A step's row of the reversed smoother in ``--smooth two-way``'s file (docs/bags.md).
+_REVERSED_ROW = np.dtype([("q", "<f8", 4), ("P", "<f8", (3, 3)), ("ok", "?")])
+
+
 @dataclass
 class _TwoWay:
     """``--smooth two-way``'s files (docs/bags.md): ``steps``, every filter step's readings
     ``(Δt, ω_g, a, m)`` as the first pass spilled them (:class:`_Capture`, ``n`` steps, the
     filter started anew at ``starts``, its parameters ``params``); after :meth:`reverse`,
-    ``q``, ``P``, ``ok``: the reversed smoother's rows of the same steps (memory maps), which
-    the last pass fuses with its own (:meth:`fuse`)."""
+    ``rows``: the reversed smoother's rows of the same steps (:data:`_REVERSED_ROW`), which
+    the last pass fuses with its own (:meth:`fuse`). Both are read and written a block at a
+    time with plain file I/O (memory maps would count every page touched as resident)."""
 
     steps: Path
     n: int = 0
     starts: list[int] = field(default_factory=list)
     params: Any = None
-    q: np.ndarray | None = None
-    P: np.ndarray | None = None
-    ok: np.ndarray | None = None
+    rows: Path | None = None
     fused: int = 0  #: steps of the last pass fused so far
 
-    def reverse(self, tmp: Path, window: int, overlap: int, progress: Any) -> None:
+    def _read(self, a: int, b: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        u = np.fromfile(self.steps, np.float64, (b - a) * 10, offset=a * 80).reshape(-1, 10)
+        return u[:, 0], u[:, 1:4], u[:, 4:7], u[:, 7:10]
+
+    def reverse(self, rows: Path, window: int, overlap: int, progress: Any) -> None:
         """The reversed smoother over the spilled steps (streamed: one smoothing window and
-        overlap in memory) into memory maps in ``tmp``."""
+        overlap in memory) into the file ``rows``."""
         from mkf_ros.core.smoother import smooth_reversed_into
 
-        n = self.n
-        self.q = np.lib.format.open_memmap(tmp / "q.npy", "w+", np.float64, (n, 4))
-        self.P = np.lib.format.open_memmap(tmp / "P.npy", "w+", np.float64, (n, 3, 3))
-        self.ok = np.lib.format.open_memmap(tmp / "ok.npy", "w+", np.bool_, (n,))
-        if n == 0:
-            return
-        u = np.memmap(self.steps, np.float64, "r", shape=(n, 10))
-        tick = progress("reversed pass", n) if progress else None
-        smooth_reversed_into(self.params, u, self.starts, window, overlap, self.q, self.P,
-                             self.ok, tick)
+        self.rows = rows
+        tick = progress("reversed pass", self.n) if progress else None
+        with open(rows, "wb") as f:
+            def write(first: int, q: np.ndarray, P: np.ndarray, ok: np.ndarray) -> None:
+                block = np.empty(len(ok), _REVERSED_ROW)
+                block["q"], block["P"], block["ok"] = q, P, ok
+                f.seek(first * _REVERSED_ROW.itemsize)
+                f.write(block.tobytes())
+
+            smooth_reversed_into(self.params, self.n, self._read, self.starts, window,
+                                 overlap, write, tick)
 
     def fuse(self, rows: Any, first: int) -> int:
         """Fuse the smoothed rows of the steps ``first …`` (a
@@ -495,14 +503,15 @@ class _TwoWay:
         step after them."""
         from mkf_ros.core.smoother import fuse_two_way
 
-        assert self.q is not None and self.P is not None and self.ok is not None
+        assert self.rows is not None
         end = first + len(rows.valid)
         if end > self.n:
             raise RuntimeError(f"two-way smoothing: step {end - 1} of the last pass, but the "
                                f"first captured {self.n} (the two passes over the bag differ)")
-        sl = slice(first, end)
-        rows.quat[:], rows.cov[:] = fuse_two_way(rows.quat, rows.cov, rows.valid, self.q[sl],
-                                                 self.P[sl], self.ok[sl])
+        b = np.fromfile(self.rows, _REVERSED_ROW, end - first,
+                        offset=first * _REVERSED_ROW.itemsize)
+        rows.quat[:], rows.cov[:] = fuse_two_way(rows.quat, rows.cov, rows.valid, b["q"],
+                                                 b["P"], b["ok"])
         self.fused = end
         return end
 
@@ -634,7 +643,7 @@ def process_bag(bag: str | Path, out: str | Path, params: Mapping[str, Any] | No
         _run_bag(bag, out, params, **{**kw, "truth_topic": None, "copy_input": False,
                                       "keep_outputs": False},  # type: ignore[arg-type]
                  two_way=two)
-        two.reverse(Path(tmp), sm_core.DEFAULT_WINDOW if smooth_window is None
+        two.reverse(Path(tmp) / "reversed", sm_core.DEFAULT_WINDOW if smooth_window is None
                     else int(smooth_window),
                     sm_core.DEFAULT_OVERLAP if smooth_overlap is None else int(smooth_overlap),
                     progress)
@@ -656,7 +665,7 @@ def _run_bag(bag: str | Path, out: str | Path, params: Mapping[str, Any] | None,
     """:func:`process_bag`'s pass over the bag; ``two_way`` (with ``smooth``): the first pass
     of ``--smooth two-way`` (nothing written: every filter step's readings spilled,
     :class:`_Capture`) while it has no reversed rows, else the last (smoothed rows fused)."""
-    capture = two_way is not None and two_way.q is None
+    capture = two_way is not None and two_way.rows is None
     from mkf_ros.bags.synth import read_description
     from mkf_ros.core import smoother as sm_core
     from mkf_ros.stream.adapter import (

@@ -574,30 +574,31 @@ def smooth_mode(smooth: bool | str) -> str | None:
     return mode
 
 
-def reversed_reader(dts: np.ndarray, gyr: np.ndarray, acc: np.ndarray, mag: np.ndarray
-                    ) -> Reader:
-    """A :data:`Reader` of the recording backwards in time (docs/math.md §11.5), from arrays
-    (or memory maps) of its ``N`` samples: sample ``j`` of the result is sample
-    ``k = N − 1 − j``. A step's gyro reading and ``Δt`` describe the interval that *ends* at
-    its sample, so backwards sample ``j`` takes those of sample ``k + 1`` (the interval from
-    ``t_k`` to ``t_{k+1}``, turned the other way: ``−ω``); the first keeps its own.
-    Accelerometer and magnetometer readings are instantaneous: reversed as they are."""
-    n = len(dts)
-
-    def read(a: int, b: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        k = n - 1 - np.arange(a, b)  # the samples read, backwards
-        k1 = np.minimum(k + 1, n - 1)  # the interval that ends at the next one
+def reversed_reader(read: Reader, n: int) -> Reader:
+    """A :data:`Reader` of a recording of ``n`` samples (read forwards by ``read``) backwards
+    in time (docs/math.md §11.5): sample ``j`` of the result is sample ``k = n − 1 − j``. A
+    step's gyro reading and ``Δt`` describe the interval that *ends* at its sample, so
+    backwards sample ``j`` takes those of sample ``k + 1`` (the interval from ``t_k`` to
+    ``t_{k+1}``, turned the other way: ``−ω``); the first keeps its own. Accelerometer and
+    magnetometer readings are instantaneous: reversed as they are. Each call reads the one
+    forward block it needs."""
+    def rev(a: int, b: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        lo, hi = n - b, min(n + 1 - a, n)  # the forward samples of a … b − 1 and the next
+        dts, gyr, acc, mag = read(lo, hi)
+        k = n - 1 - lo - np.arange(a, b)  # the samples read, backwards, in the block
+        k1 = np.minimum(k + 1, n - 1 - lo)  # the interval that ends at the next one
         return (np.ascontiguousarray(dts[k1], dtype=np.float64),
                 -np.ascontiguousarray(gyr[k1], dtype=np.float64),
                 np.ascontiguousarray(acc[k], dtype=np.float64),
                 np.ascontiguousarray(mag[k], dtype=np.float64))
-    return read
+    return rev
 
 
 def reversed_inputs(dts: np.ndarray, gyr: np.ndarray, acc: np.ndarray, mag: np.ndarray
                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The whole recording backwards in time (:func:`reversed_reader`)."""
-    return reversed_reader(dts, gyr, acc, mag)(0, len(dts))
+    n = len(dts)
+    return reversed_reader(array_reader(dts, gyr, acc, mag), n)(0, n)
 
 
 #: ``D = diag(√2, √2, 1)``: the congruence ``D P D`` widens the fused tilt to covariance
@@ -711,26 +712,24 @@ def fuse_two_way(q_f: np.ndarray, P_f: np.ndarray, ok_f: np.ndarray, q_b: np.nda
     return fuse_tilt(q_f, P_f, q_b, P_b)
 
 
-def smooth_reversed_into(params: Any, u: np.ndarray, starts: Sequence[int], window: int,
-                         overlap: int, q: np.ndarray, P: np.ndarray, ok: np.ndarray,
+def smooth_reversed_into(params: Any, n: int, read: Reader, starts: Sequence[int],
+                         window: int, overlap: int,
+                         write: Callable[[int, np.ndarray, np.ndarray, np.ndarray], object],
                          progress: Callable[[int], object] | None = None) -> None:
     """The smoother over a recording reversed, streamed (``mkf process --smooth two-way``):
-    ``u`` (N, 10) the readings ``(Δt, ω_g, a, m)`` of the forward pass's steps (a
-    :data:`RECORD`'s ``u``; a memory map: read in windows), ``starts`` the steps where the
-    forward pass started anew (a reset: each segment between two is reversed with a fresh
-    filter of ``params``, as a forward pass over it would start); step ``n``'s reversed
-    smoothed orientation, covariance and whether it has an estimate into ``q[n]``, ``P[n]``,
-    ``ok[n]`` (memory maps too); ``progress(k)`` after each ``k`` rows. Memory: one smoothing
-    window + overlap."""
-    bounds = sorted({0, *(int(s) for s in starts if 0 < s < len(u)), len(u)})
+    ``read`` the readings of its ``n`` steps forwards (a :data:`Reader`; a bag's: a
+    :data:`RECORD`'s ``u`` spilled to a file), ``starts`` the steps where the forward pass
+    started anew (a reset: each segment between two is reversed with a fresh filter of
+    ``params``, as a forward pass over it would start). Hands the reversed smoother's rows out
+    in blocks of consecutive steps, ``write(first step, q (k, 4), P (k, 3, 3), ok (k,))``
+    (``ok``: the step has an estimate), in forward order within a block; ``progress(k)``
+    after each. Memory: one smoothing window + overlap."""
+    bounds = sorted({0, *(int(s) for s in starts if 0 < s < n), n})
     for s0, s1 in itertools.pairwise(bounds):
-        seg = u[s0:s1]
-        read = reversed_reader(seg[:, 0], seg[:, 1:4], seg[:, 4:7], seg[:, 7:10])
-        for pos, fr, sr in smooth_stream(AttitudeFilter(params), s1 - s0, read, window,
+        seg = reversed_reader(lambda a, b, s0=s0: read(s0 + a, s0 + b), s1 - s0)
+        for pos, fr, sr in smooth_stream(AttitudeFilter(params), s1 - s0, seg, window,
                                          overlap):
-            rows = s1 - 1 - np.arange(pos, pos + len(sr.valid))  # forward steps, backwards
-            q[rows] = sr.quat
-            P[rows] = sr.cov
-            ok[rows] = fr.initialized
+            k = len(sr.valid)
+            write(s1 - pos - k, sr.quat[::-1], sr.cov[::-1], fr.initialized[::-1])
             if progress is not None:
-                progress(len(rows))
+                progress(k)

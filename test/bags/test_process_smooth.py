@@ -221,10 +221,10 @@ def test_two_way_starts_anew_where_the_filter_did(tmp_path: Path,
     seen: list[tuple[int, list[int]]] = []
     real = smoother.smooth_reversed_into
 
-    def spy(params: object, u: np.ndarray, starts: list[int], *a: object,
+    def spy(params: object, n: int, read: object, starts: list[int], *a: object,
             **k: object) -> None:
-        seen.append((len(u), list(starts)))
-        real(params, u, starts, *a, **k)  # type: ignore[arg-type]
+        seen.append((n, list(starts)))
+        real(params, n, read, starts, *a, **k)  # type: ignore[arg-type]
 
     monkeypatch.setattr(smoother, "smooth_reversed_into", spy)
     r = process_bag(bag, tmp_path / "s", dict(use_mag=True), smooth="two-way")

@@ -281,25 +281,38 @@ def test_reversed_inputs_integrate_the_path_backwards() -> None:
     assert (dr > 0).all()
 
 
-def test_reversed_pass_streamed_from_a_file_starts_anew_at_each_reset(tmp_path) -> None:
+def test_reversed_pass_streamed_starts_anew_at_each_reset() -> None:
     """``smooth_reversed_into`` (``mkf process --smooth two-way``'s reversed pass) over two
-    recordings one after the other, the readings in a memory-mapped file (a step per row:
-    ``Δt, ω_g, a, m``), told that the filter started anew at the second: each recording's rows
-    are those of the smoother over that recording reversed alone (``smooth_run`` over
-    ``reversed_inputs``), bit for bit, in windows shorter than either recording."""
+    recordings one after the other (a step per row: ``Δt, ω_g, a, m``), told that the filter
+    started anew at the second: each recording's rows are those of the smoother over that
+    recording reversed alone (``smooth_run`` over ``reversed_inputs``), bit for bit, in windows
+    shorter than either; it reads forward blocks of at most a window + overlap (+ the next
+    step) and hands every step's row out once."""
     recs = [simulate(s, duration=3.0, rate=100.0, mag_rate=25.0, seed=i)
             for i, s in enumerate(("slow_rotation", "wiener"))]
     u = np.concatenate([np.column_stack([np.r_[0.01, np.diff(d.t)], d.gyr, d.acc, d.mag])
                         for d in recs])
-    path = tmp_path / "steps"
-    u.tofile(path)
-    um = np.memmap(path, np.float64, "r", shape=u.shape)
     n = len(u)
+    reads: list[tuple[int, int]] = []
+
+    def read(a: int, b: int) -> tuple[np.ndarray, ...]:
+        reads.append((a, b))
+        return u[a:b, 0], u[a:b, 1:4], u[a:b, 4:7], u[a:b, 7:10]
+
     q, P, ok = np.zeros((n, 4)), np.zeros((n, 3, 3)), np.zeros(n, dtype=bool)
+    seen = np.zeros(n, dtype=int)
+
+    def write(first: int, qb: np.ndarray, Pb: np.ndarray, okb: np.ndarray) -> None:
+        sl = slice(first, first + len(okb))
+        q[sl], P[sl], ok[sl] = qb, Pb, okb
+        seen[sl] += 1
+
     params = AttitudeFilter(use_mag=True).params
     ticks: list[int] = []
-    smooth_reversed_into(params, um, [len(recs[0].t)], 120, 70, q, P, ok, ticks.append)
+    smooth_reversed_into(params, n, read, [len(recs[0].t)], 120, 70, write,
+                         ticks.append)  # type: ignore[arg-type]
     assert sum(ticks) == n and len(ticks) == 4  # two windows per recording
+    assert (seen == 1).all() and all(b - a <= 191 for a, b in reads)
     start = 0
     for d in recs:
         part = slice(start, start + len(d.t))
