@@ -634,21 +634,20 @@ def process_bag(bag: str | Path, out: str | Path, params: Mapping[str, Any] | No
               smooth=mode is not None, smooth_window=smooth_window,
               smooth_overlap=smooth_overlap)
     if mode != "two-way":
-        return _run_bag(bag, out, params, **kw)  # type: ignore[arg-type]
+        return _run_bag(bag, out, params, **kw)
     out = Path(out)
     BagWriter.check(out, storage, overwrite)
     with tempfile.TemporaryDirectory(prefix=f".{out.name}.two-way-", dir=out.parent) as tmp:
         two = _TwoWay(Path(tmp) / "steps")
         t0 = time.perf_counter()
         _run_bag(bag, out, params, **{**kw, "truth_topic": None, "copy_input": False,
-                                      "keep_outputs": False},  # type: ignore[arg-type]
-                 two_way=two)
+                                      "keep_outputs": False}, two_way=two)
         two.reverse(Path(tmp) / "reversed", sm_core.DEFAULT_WINDOW if smooth_window is None
                     else int(smooth_window),
                     sm_core.DEFAULT_OVERLAP if smooth_overlap is None else int(smooth_overlap),
                     progress)
         seconds = time.perf_counter() - t0
-        res = _run_bag(bag, out, params, **kw, two_way=two)  # type: ignore[arg-type]
+        res = _run_bag(bag, out, params, **kw, two_way=two)
         if two.fused != two.n:
             raise RuntimeError(f"two-way smoothing: {two.fused} steps fused of {two.n} "
                                "captured (the two passes over the bag differ)")

@@ -23,6 +23,7 @@ later. Memory: :data:`RECORD` (529 bytes) per kept sample.
 
 from __future__ import annotations
 
+import functools
 import itertools
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
@@ -712,6 +713,12 @@ def fuse_two_way(q_f: np.ndarray, P_f: np.ndarray, ok_f: np.ndarray, q_b: np.nda
     return fuse_tilt(q_f, P_f, q_b, P_b)
 
 
+def _shifted(read: Reader, s0: int, a: int, b: int
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``read`` of the samples ``s0 + a … s0 + b − 1``."""
+    return read(s0 + a, s0 + b)
+
+
 def smooth_reversed_into(params: Any, n: int, read: Reader, starts: Sequence[int],
                          window: int, overlap: int,
                          write: Callable[[int, np.ndarray, np.ndarray, np.ndarray], object],
@@ -726,7 +733,7 @@ def smooth_reversed_into(params: Any, n: int, read: Reader, starts: Sequence[int
     after each. Memory: one smoothing window + overlap."""
     bounds = sorted({0, *(int(s) for s in starts if 0 < s < n), n})
     for s0, s1 in itertools.pairwise(bounds):
-        seg = reversed_reader(lambda a, b, s0=s0: read(s0 + a, s0 + b), s1 - s0)
+        seg = reversed_reader(functools.partial(_shifted, read, s0), s1 - s0)
         for pos, fr, sr in smooth_stream(AttitudeFilter(params), s1 - s0, seg, window,
                                          overlap):
             k = len(sr.valid)
