@@ -382,11 +382,14 @@ class _Smoothing:
         self.cov = np.zeros((0, 3, 3))
         self.valid = np.zeros(0, dtype=bool)
         self.seconds = 0.0  #: spent smoothing
+        self.paused = 0.0  #: of which inside the event loop (it paused for room)
 
     def _full(self, filled: int) -> tuple[np.ndarray, int, int]:
         """The recording is full: smooth what can be; where it goes on."""
+        t0 = self.seconds
         self.wins.held = filled
         self._smooth(False)
+        self.paused += self.seconds - t0
         return self.wins.rec, self.wins.held, self.wins.done
 
     def _smooth(self, final: bool) -> None:
@@ -825,7 +828,7 @@ def _run_bag(bag: str | Path, out: str | Path, params: Mapping[str, Any] | None,
                 for c in smoothing.ready(None, True):
                     emit(c)
                 tm["smooth"] = smoothing.seconds
-                tm["filter"] -= smoothing.seconds  # (the event loop's pauses to smooth)
+                tm["filter"] -= smoothing.paused  # (the event loop's pauses to smooth)
             if n_imu == 0:
                 raise BagError(f"IMU topic {imu_name} in {bag} has no messages")
             found = adapter.input_problems(imu_name, acc_name or "")
