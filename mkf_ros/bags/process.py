@@ -538,7 +538,11 @@ class _Capture:
         adapter.record_into(self.rec, self._full)
 
     def _spill(self, k: int) -> None:
-        self.file.write(np.ascontiguousarray(self.rec["u"][:k]).tobytes())
+        try:
+            self.file.write(np.ascontiguousarray(self.rec["u"][:k]).tobytes())
+        except OSError as e:
+            raise BagError(f"--smooth two-way: cannot write its temporary files beside the "
+                           f"output (about 0.2 KB per IMU step): {e.strerror or e}") from None
         self.n += k
 
     def _full(self, filled: int) -> tuple[np.ndarray, int, int]:
@@ -640,20 +644,25 @@ def process_bag(bag: str | Path, out: str | Path, params: Mapping[str, Any] | No
         return _run_bag(bag, out, params, **kw)
     out = Path(out)
     BagWriter.check(out, storage, overwrite)
-    with tempfile.TemporaryDirectory(prefix=f".{out.name}.two-way-", dir=out.parent) as tmp:
+    try:
+        tmp_dir = tempfile.TemporaryDirectory(prefix=f".{out.name}.two-way-", dir=out.parent)
+    except OSError as e:
+        raise BagError(f"--smooth two-way needs temporary files beside {out}: "
+                       f"{e.strerror or e}") from None
+    with tmp_dir as tmp:
         two = _TwoWay(Path(tmp) / "steps")
         t0 = time.perf_counter()
         _run_bag(bag, out, params, **{**kw, "truth_topic": None, "copy_input": False,
                                       "keep_outputs": False}, two_way=two)
-        two.reverse(Path(tmp) / "reversed", sm_core.DEFAULT_WINDOW if smooth_window is None
-                    else int(smooth_window),
-                    sm_core.DEFAULT_OVERLAP if smooth_overlap is None else int(smooth_overlap),
-                    progress)
+        try:
+            two.reverse(Path(tmp) / "reversed", sm_core.DEFAULT_WINDOW if smooth_window is None
+                        else int(smooth_window), sm_core.DEFAULT_OVERLAP
+                        if smooth_overlap is None else int(smooth_overlap), progress)
+        except OSError as e:
+            raise BagError(f"--smooth two-way: cannot write its temporary files beside {out} "
+                           f"(about 0.2 KB per IMU step): {e.strerror or e}") from None
         seconds = time.perf_counter() - t0
         res = _run_bag(bag, out, params, **kw, two_way=two)
-        if two.fused != two.n:
-            raise RuntimeError(f"two-way smoothing: {two.fused} steps fused of {two.n} "
-                               "captured (the two passes over the bag differ)")
     res.timings["two-way"] = seconds
     return res
 
@@ -827,6 +836,10 @@ def _run_bag(bag: str | Path, out: str | Path, params: Mapping[str, Any] | None,
             if smoothing is not None:
                 for c in smoothing.ready(None, True):
                     emit(c)
+                tw = smoothing.two_way
+                if tw is not None and tw.fused != tw.n:  # (the output is dropped)
+                    raise RuntimeError(f"two-way smoothing: {tw.fused} steps fused of {tw.n} "
+                                       "captured (the two passes over the bag differ)")
                 tm["smooth"] = smoothing.seconds
                 tm["filter"] -= smoothing.paused  # (the event loop's pauses to smooth)
             if n_imu == 0:

@@ -252,3 +252,44 @@ def test_two_way_refuses_before_reading(tmp_path: Path, dropouts: Path) -> None:
     with pytest.raises(BagError, match="smooth must be"):
         process_bag(dropouts, tmp_path / "m", smooth="both")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["o"]
+
+
+def test_two_way_without_disk_space_fails_with_one_line(tmp_path: Path, dropouts: Path,
+                                                         monkeypatch: pytest.MonkeyPatch) -> None:
+    """A full disk while the temporary files are written: a BagError naming them and the
+    space they need, no output, no temporary file left."""
+    import errno
+
+    from mkf_ros.bags import BagError
+
+    def full(*a: object, **k: object) -> None:
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(process._Capture, "SLOTS", 64)  # spill in the middle of the pass
+    real_open = open
+    calls = {"n": 0}
+
+    class Full:
+        def __init__(self, f: object) -> None:
+            self.f = f
+
+        def write(self, b: bytes) -> int:
+            calls["n"] += 1
+            if calls["n"] >= 2:
+                full()
+            return self.f.write(b)  # type: ignore[attr-defined]
+
+        def close(self) -> None:
+            self.f.close()  # type: ignore[attr-defined]
+
+    monkeypatch.setattr(process, "open", lambda *a, **k: Full(real_open(*a, **k)),
+                        raising=False)
+    with pytest.raises(BagError, match=r"--smooth two-way: cannot write its temporary files "
+                       r".*0\.2 KB per IMU step.*No space left on device"):
+        process_bag(dropouts, tmp_path / "o", smooth="two-way")
+    assert calls["n"] == 2 and list(tmp_path.iterdir()) == []
+    monkeypatch.setattr(process._TwoWay, "reverse", full)
+    monkeypatch.setattr(process, "open", real_open, raising=False)
+    with pytest.raises(BagError, match=r"No space left on device"):
+        process_bag(dropouts, tmp_path / "o", smooth="two-way")
+    assert list(tmp_path.iterdir()) == []
