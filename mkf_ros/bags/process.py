@@ -459,7 +459,10 @@ class _Smoothing:
         c.encoded = res
 
 
-#: A step's row of the reversed smoother in ``--smooth two-way``'s file (docs/bags.md).
+#: A step's readings ``(Δt, ω_g, a, m)`` in ``--smooth two-way``'s first file (a
+#: :data:`~mkf_ros.core.smoother.RECORD`'s ``u``), and its row of the reversed smoother in the
+#: second (docs/bags.md).
+_STEP_ROW = np.dtype(("<f8", 10))
 _REVERSED_ROW = np.dtype([("q", "<f8", 4), ("P", "<f8", (3, 3)), ("ok", "?")])
 
 
@@ -480,7 +483,7 @@ class _TwoWay:
     fused: int = 0  #: steps of the last pass fused so far
 
     def _read(self, a: int, b: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        u = np.fromfile(self.steps, np.float64, (b - a) * 10, offset=a * 80).reshape(-1, 10)
+        u = np.fromfile(self.steps, _STEP_ROW, b - a, offset=a * _STEP_ROW.itemsize)
         return u[:, 0], u[:, 1:4], u[:, 4:7], u[:, 7:10]
 
     def reverse(self, rows: Path, window: int, overlap: int, progress: Any) -> None:
@@ -539,7 +542,7 @@ class _Capture:
 
     def _spill(self, k: int) -> None:
         try:
-            self.file.write(np.ascontiguousarray(self.rec["u"][:k]).tobytes())
+            self.file.write(self.rec["u"][:k].astype(_STEP_ROW.base).tobytes())
         except OSError as e:
             raise BagError(f"--smooth two-way: cannot write its temporary files beside the "
                            f"output (about 0.2 KB per IMU step): {e.strerror or e}") from None
