@@ -82,7 +82,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="leave the first S seconds out of the scores (default 0)")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
     sm = parser.add_argument_group("smoothing (offline: the future is known)")
-    sm.add_argument("--smooth", nargs="?", const="rts", default=None,
+    sm.add_argument("--smooth", nargs="?", const="rts", default=False,
                     choices=SMOOTH_MODES,
                     help="write the fixed-interval manifold smoother's orientation and "
                     "orientation_covariance (docs/math.md §11; algorithm mekf or mukf) instead "
@@ -234,7 +234,7 @@ def run(args: argparse.Namespace) -> int:
                             gyro_topic=args.gyro_topic, truth_topic=args.truth_topic,
                             output_topic=args.output_topic, storage=args.storage,
                             overwrite=args.overwrite, copy_input=args.copy_input,
-                            skip=args.skip, progress=bars, smooth=args.smooth or False,
+                            skip=args.skip, progress=bars, smooth=args.smooth,
                             smooth_window=args.smooth_window,
                             smooth_overlap=args.smooth_overlap)
     except BagError as e:

@@ -38,7 +38,7 @@ def _jobs(args: argparse.Namespace, out: Path) -> tuple[list[Any], list[str]]:
     options = dict(imu_topic=args.imu_topic, mag_topic=args.mag_topic,
                    truth_topic=args.truth_topic, output_topic=args.output_topic,
                    storage=args.storage, overwrite=args.overwrite, copy_input=args.copy_input,
-                   skip=args.skip, smooth=args.smooth or False, smooth_window=args.smooth_window,
+                   skip=args.skip, smooth=args.smooth, smooth_window=args.smooth_window,
                    smooth_overlap=args.smooth_overlap)
     params = _overrides(args)
     jobs, names, existing = [], [], []

@@ -104,6 +104,7 @@ __all__ = [
     "kernel_table",
     "kernels_at",
     "max_dt",
+    "new_batch_outputs",
     "new_records",
     "output",
     "rate",
@@ -312,6 +313,12 @@ class BatchOutputs(NamedTuple):
     initialized: np.ndarray
 
 
+def new_batch_outputs(n: int) -> BatchOutputs:
+    """Empty :class:`BatchOutputs` of ``n`` rows."""
+    return BatchOutputs(np.empty((n, 4)), np.empty((n, 3, 3)), np.empty((n, 3)),
+                        np.empty((n, 3)), np.empty((n, 3)), np.empty(n, dtype=np.bool_))
+
+
 @jit
 def _write_output(kern: Kernels, c: np.record, s: np.record, out: BatchOutputs, n: int) -> None:
     """Row ``n`` of the outputs (element by element: no array views)."""
@@ -450,8 +457,7 @@ class AttitudeFilter:
         float64, NaN rows missing. The filter's state and counters advance as by N
         :meth:`step` calls."""
         n = len(dts)
-        out = BatchOutputs(np.empty((n, 4)), np.empty((n, 3, 3)), np.empty((n, 3)),
-                           np.empty((n, 3)), np.empty((n, 3)), np.empty(n, dtype=np.bool_))
+        out = new_batch_outputs(n)
         run_batch(kernel_table(), self._cfg, self._st, self._counters, self._work, dts, gyr,
                   acc, mag, out)
         return out

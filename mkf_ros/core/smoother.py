@@ -40,6 +40,7 @@ from mkf_ros.core.filter import (
     _write_output,
     kernel_table,
     kernels_at,
+    new_batch_outputs,
     run_step,
 )
 from mkf_ros.core.frames import swing_rotvec
@@ -514,8 +515,7 @@ def smooth_stream(f: AttitudeFilter, n: int, read: Reader, window: int = DEFAULT
         raise ValueError(f"the smoother needs algorithm mekf or mukf, not {f.params.algorithm!r}")
     cap = min(window + overlap, max(n, 1))
     wins = Windows(arrays.cfg, window, overlap, cap)
-    held = BatchOutputs(np.empty((cap, 4)), np.empty((cap, 3, 3)), np.empty((cap, 3)),
-                        np.empty((cap, 3)), np.empty((cap, 3)), np.empty(cap, dtype=np.bool_))
+    held = new_batch_outputs(cap)  # the held slots' filtered rows, as Windows holds the slots
     table = kernel_table()
     c.record_posterior = True
     try:
@@ -527,18 +527,16 @@ def smooth_stream(f: AttitudeFilter, n: int, read: Reader, window: int = DEFAULT
                              *read(fwd, end), part, wins.rec, wins.held)
             wins.held += end - fwd
             fwd = end
-            pos = wins.done
+            pos, rest = wins.done, wins.held
             for rows in wins.smooth(fwd == n):
                 k = len(rows.valid)
+                rest -= k  # rows still held after these
                 filt = BatchOutputs(*(a[:k].copy() for a in held))
-                for a in held:  # the held slots' filtered rows move with them (Windows)
-                    a[:cap - k] = a[k:].copy()
+                for a in held:  # the rows move with their slots (Windows.smooth)
+                    a[:rest] = a[k:k + rest]
                 bad = ~rows.valid
-                rows.quat[bad] = filt.quat[bad]
-                rows.cov[bad] = filt.cov[bad]
-                rows.omega[bad] = filt.omega[bad]
-                rows.bias[bad] = filt.bias[bad]
-                rows.bias_var[bad] = filt.bias_var[bad]
+                for a, b in zip(rows[:5], filt[:5], strict=True):  # quat … bias_var
+                    a[bad] = b[bad]
                 yield pos, filt, rows
                 pos += k
     finally:
@@ -551,9 +549,7 @@ def smooth_run(f: AttitudeFilter, dts: np.ndarray, gyr: np.ndarray, acc: np.ndar
     """:func:`smooth_stream` over readings in arrays (readings as for
     :meth:`AttitudeFilter.run`): the filtered and the smoothed outputs, one row per sample."""
     n = len(dts)
-    filt = BatchOutputs(np.empty((n, 4)), np.empty((n, 3, 3)), np.empty((n, 3)),
-                        np.empty((n, 3)), np.empty((n, 3)), np.empty(n, dtype=np.bool_))
-    sm = new_smooth_outputs(n)
+    filt, sm = new_batch_outputs(n), new_smooth_outputs(n)
     for pos, fr, sr in smooth_stream(f, n, array_reader(dts, gyr, acc, mag), window, overlap):
         k = len(sr.valid)
         for a, b in zip((*filt, *sm), (*fr, *sr), strict=True):
@@ -689,18 +685,24 @@ def smooth_both_ways(f: AttitudeFilter, dts: np.ndarray, gyr: np.ndarray, acc: n
                      mag: np.ndarray, window: int = DEFAULT_WINDOW,
                      overlap: int = DEFAULT_OVERLAP) -> tuple[BatchOutputs, SmoothOutputs]:
     """:func:`smooth_run` with ``f``, and a fresh filter of ``f``'s parameters smoothed over the
-    recording reversed (:func:`reversed_inputs`), the two in parallel threads (the kernels
+    recording reversed (:func:`smooth_reversed_into`), the two in parallel threads (the kernels
     release the GIL: on two cores the wall time of one); the forward smoother's tilt fused with
     the reversed one's where both have an estimate (:func:`fuse_tilt`, docs/math.md §11.5).
     Returns the filtered outputs and the smoothed ones with ``quat`` and ``cov`` fused (rate
     and bias the forward smoother's)."""
+    n = len(dts)
+    q_b, P_b, ok_b = np.empty((n, 4)), np.empty((n, 3, 3)), np.zeros(n, dtype=np.bool_)
+
+    def write(first: int, q: np.ndarray, P: np.ndarray, ok: np.ndarray) -> None:
+        rows = slice(first, first + len(ok))
+        q_b[rows], P_b[rows], ok_b[rows] = q, P, ok
+
     with ThreadPoolExecutor(max_workers=2) as pool:  # the kernels release the GIL
         fwd = pool.submit(smooth_run, f, dts, gyr, acc, mag, window, overlap)
-        rev = pool.submit(smooth_run, AttitudeFilter(f.params),
-                          *reversed_inputs(dts, gyr, acc, mag), window, overlap)
-        (filt, sm), (back, sb) = fwd.result(), rev.result()
-    sm.quat[:], sm.cov[:] = fuse_two_way(sm.quat, sm.cov, filt.initialized, sb.quat[::-1],
-                                         sb.cov[::-1], back.initialized[::-1])
+        rev = pool.submit(smooth_reversed_into, f.params, n,
+                          array_reader(dts, gyr, acc, mag), (), window, overlap, write)
+        (filt, sm), _ = fwd.result(), rev.result()
+    sm.quat[:], sm.cov[:] = fuse_two_way(sm.quat, sm.cov, filt.initialized, q_b, P_b, ok_b)
     return filt, sm
 
 
