@@ -107,9 +107,10 @@ def estimate(
             twice the time; ``quat`` and ``cov`` fused, ``omega`` and ``bias`` the forward
             smoother's).
         smooth_window, smooth_overlap: the smoother's window and overlap in samples (memory
-            ~0.45 kB per sample of their sum; default
-            :data:`~mkf_ros.core.smoother.DEFAULT_WINDOW`,
-            :data:`~mkf_ros.core.smoother.DEFAULT_OVERLAP`).
+            ~0.53 kB per sample of their sum; default
+            :data:`~mkf_ros.core.smoother.DEFAULT_WINDOW` samples and
+            :data:`~mkf_ros.core.smoother.DEFAULT_OVERLAP_S` seconds at the recording's mean
+            rate, :func:`~mkf_ros.core.smoother.window_sizes`).
         **params: filter parameters (see :data:`mkf_ros.core.params.PARAMS`), e.g.
             ``algorithm="mukf", chart="rv", chart_update=False, world_frame="ned"``.
 
@@ -144,9 +145,7 @@ def estimate(
     f = AttitudeFilter(p)
     if mode:
         run = sm.smooth_both_ways if mode == "two-way" else sm.smooth_run
-        filt, s = run(f, dts, g, a, m,
-                      sm.DEFAULT_WINDOW if smooth_window is None else int(smooth_window),
-                      sm.DEFAULT_OVERLAP if smooth_overlap is None else int(smooth_overlap))
+        filt, s = run(f, dts, g, a, m, smooth_window, smooth_overlap)
         return EstimateResult(
             quat=s.quat, cov=s.cov, omega=s.omega, bias=s.bias,
             bias_std=np.sqrt(s.bias_var), initialized=filt.initialized,

@@ -481,14 +481,15 @@ class _TwoWay:
     params: Any = None
     rows: Path | None = None
     fused: int = 0  #: steps of the last pass fused so far
+    sizes: tuple[int, int] = (1, 0)  #: the smoothing window and overlap (the first pass's)
 
     def _read(self, a: int, b: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         u = np.fromfile(self.steps, _STEP_ROW, b - a, offset=a * _STEP_ROW.itemsize)
         return u[:, 0], u[:, 1:4], u[:, 4:7], u[:, 7:10]
 
-    def reverse(self, rows: Path, window: int, overlap: int, progress: Any) -> None:
+    def reverse(self, rows: Path, progress: Any) -> None:
         """The reversed smoother over the spilled steps (streamed: one smoothing window and
-        overlap in memory) into the file ``rows``."""
+        overlap, :attr:`sizes`, in memory) into the file ``rows``."""
         from mkf_ros.core.smoother import smooth_reversed_into
 
         self.rows = rows
@@ -500,8 +501,8 @@ class _TwoWay:
                 f.seek(first * _REVERSED_ROW.itemsize)
                 f.write(block.tobytes())
 
-            smooth_reversed_into(self.params, self.n, self._read, self.starts, window,
-                                 overlap, write, tick)
+            smooth_reversed_into(self.params, self.n, self._read, self.starts, *self.sizes,
+                                 write, tick)
 
     def fuse(self, rows: Any, first: int) -> int:
         """Fuse the smoothed rows of the steps ``first …`` (a
@@ -619,8 +620,8 @@ def process_bag(bag: str | Path, out: str | Path, params: Mapping[str, Any] | No
     ``smooth``: the output carries the fixed-interval smoother's orientation and covariance
     (docs/math.md §11; MEKF or MUKF) instead of the filter's: every filter step of the stream
     is recorded, smoothed in windows of ``smooth_window`` steps with ``smooth_overlap`` more
-    (default :data:`~mkf_ros.core.smoother.DEFAULT_WINDOW`,
-    :data:`~mkf_ros.core.smoother.DEFAULT_OVERLAP`, as :func:`~mkf_ros.core.smoother.smooth_run`)
+    (defaults as :func:`~mkf_ros.core.smoother.window_sizes`, at the IMU topic's mean rate:
+    its messages over the bag's duration)
     and the messages are written once smoothed: memory and the output's delay are bounded by
     one smoothing window + overlap plus the bag windows they span. The other fields are the
     filter's as without it. ``smooth="two-way"``: that smoother's tilt fused with the same
@@ -658,9 +659,7 @@ def process_bag(bag: str | Path, out: str | Path, params: Mapping[str, Any] | No
         _run_bag(bag, out, params, **{**kw, "truth_topic": None, "copy_input": False,
                                       "keep_outputs": False}, two_way=two)
         try:
-            two.reverse(Path(tmp) / "reversed", sm_core.DEFAULT_WINDOW if smooth_window is None
-                        else int(smooth_window), sm_core.DEFAULT_OVERLAP
-                        if smooth_overlap is None else int(smooth_overlap), progress)
+            two.reverse(Path(tmp) / "reversed", progress)
         except OSError as e:
             raise BagError(f"--smooth two-way: cannot write its temporary files beside {out} "
                            f"(about 0.2 KB per IMU step): {e.strerror or e}") from None
@@ -716,14 +715,10 @@ def _run_bag(bag: str | Path, out: str | Path, params: Mapping[str, Any] | None,
         if p["algorithm"] not in ("mekf", "mukf"):
             raise BagError(f"--smooth needs algorithm mekf or mukf (the smoother is the MKFs'), "
                            f"not {p['algorithm']}")
-        sw = sm_core.DEFAULT_WINDOW if smooth_window is None else int(smooth_window)
-        so = sm_core.DEFAULT_OVERLAP if smooth_overlap is None else int(smooth_overlap)
-        if sw < 1 or so < 0:
-            raise BagError(f"smoother window must be >= 1 and overlap >= 0, got {sw}, {so}")
-        if capture and two_way is not None:
-            capturing = _Capture(adapter, two_way)
-        else:
-            smoothing = _Smoothing(adapter, sw, so, two_way)
+        try:  # validated before the bag is opened; the default overlap needs its rate
+            sm_core.window_sizes(smooth_window, smooth_overlap, 1.0)
+        except ValueError as e:
+            raise BagError(str(e)) from None
     use_mag = bool(p["use_mag"])
     t0 = time.perf_counter()
     acc_name = None
@@ -752,6 +747,15 @@ def _run_bag(bag: str | Path, out: str | Path, params: Mapping[str, Any] | None,
         if truth_topic and normalize_topic(truth_topic) in br.topics:
             truth_name = br.resolve(truth_topic, cdr.QUATERNION_STAMPED.msgtype,
                                     role="ground-truth")
+        if smooth:
+            steps = br.topics[imu_name].count  # the gyro's in split input: one step each
+            sizes = sm_core.window_sizes(smooth_window, smooth_overlap,
+                                         (br.end_ns - br.start_ns) * 1e-9 / max(steps - 1, 1))
+            if two_way is not None and capture:
+                two_way.sizes = sizes
+                capturing = _Capture(adapter, two_way)
+            else:
+                smoothing = _Smoothing(adapter, *sizes, two_way)
         want = [t for t in (imu_name, acc_name, mag_name, truth_name) if t]
         extra = list(br.topics) if copy_input else []
         read = list(dict.fromkeys(want + extra))

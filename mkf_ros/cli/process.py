@@ -96,7 +96,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                     help="with --smooth: filter steps per smoothing window (default 131072)")
     sm.add_argument("--smooth-overlap", type=int, default=None, metavar="N",
                     help="with --smooth: steps smoothed past each window and dropped "
-                    "(default 32768)")
+                    "(default: 60 s at the IMU topic's mean rate, at most 131072)")
     b = parser.add_argument_group("several bags")
     b.add_argument("--jobs", type=int, default=None, metavar="N",
                    help="bags processed at once on this machine (default: number of cores)")

@@ -99,10 +99,42 @@ def forward_params(params: dict) -> dict:
     return {**FORWARD_DEFAULTS, **params}
 
 
-#: Samples per window and overlap of :func:`smooth_run` (docs/math.md §11.4; measured in
-#: docs/real_data.md: the overlap's truncation error is far below the estimate's own error).
+#: Samples per window of :func:`smooth_run` (docs/math.md §11.4): the memory bound.
 DEFAULT_WINDOW = 1 << 17
-DEFAULT_OVERLAP = 1 << 15
+#: The default overlap as a duration (docs/math.md §11.4): what a cut costs decays with the time
+#: the measurements need to correct the state (the 9D heading's is the slowest: a minute on
+#: BROAD), not with a count of samples. Measured in docs/real_data.md: 57 s of overlap left
+#: ≤ 0.11° on BROAD's 9D recordings (their RMSE: 1.9°), 115 s 0.004° but twice the memory and
+#: backward work at 1 kHz (docs/bags.md), 7 s 2°.
+DEFAULT_OVERLAP_S = 60.0
+#: ... in samples at the recording's mean rate, at most one default window (the backward pass
+#: then does at most twice the work it publishes; above 2.2 kHz the default overlap is shorter
+#: than :data:`DEFAULT_OVERLAP_S`).
+MAX_DEFAULT_OVERLAP = DEFAULT_WINDOW
+
+
+def window_sizes(window: int | None, overlap: int | None, period: float) -> tuple[int, int]:
+    """The smoother's window and overlap in samples (docs/math.md §11.4) for a recording of
+    mean sample ``period`` (s): ``window`` None → :data:`DEFAULT_WINDOW`; ``overlap`` None →
+    :data:`DEFAULT_OVERLAP_S` at that period (:data:`MAX_DEFAULT_OVERLAP` at most, one window
+    where the period is unknown, i.e. not positive and finite). ValueError for a window < 1 or an
+    overlap < 0."""
+    w = DEFAULT_WINDOW if window is None else int(window)
+    if overlap is not None:
+        o = int(overlap)
+    elif period > 0 and np.isfinite(period):
+        o = min(MAX_DEFAULT_OVERLAP, int(np.ceil(DEFAULT_OVERLAP_S / period)))
+    else:
+        o = w
+    if w < 1 or o < 0:
+        raise ValueError(f"smoother window must be >= 1 and overlap >= 0, got {w}, {o}")
+    return w, o
+
+
+def mean_period(dts: np.ndarray) -> float:
+    """The mean sample period of steps ``dts`` (s; the first step's is not an interval of the
+    recording): what :func:`window_sizes` converts the default overlap with."""
+    return float(np.mean(dts[1:])) if len(dts) > 1 else 0.0
 
 
 class SmoothOutputs(NamedTuple):
@@ -498,8 +530,7 @@ def array_reader(dts: np.ndarray, gyr: np.ndarray, acc: np.ndarray, mag: np.ndar
     return lambda a, b: tuple(x[a:b] for x in arrays)  # type: ignore[return-value]
 
 
-def smooth_stream(f: AttitudeFilter, n: int, read: Reader, window: int = DEFAULT_WINDOW,
-                  overlap: int = DEFAULT_OVERLAP
+def smooth_stream(f: AttitudeFilter, n: int, read: Reader, window: int, overlap: int
                   ) -> Iterator[tuple[int, BatchOutputs, SmoothOutputs]]:
     """The filter ``f`` (an MEKF or MUKF) forward over ``n`` samples read in pieces by ``read``
     (as :meth:`AttitudeFilter.run`, from its current state, which advances) and the backward
@@ -507,8 +538,7 @@ def smooth_stream(f: AttitudeFilter, n: int, read: Reader, window: int = DEFAULT
     §11.4, :class:`Windows`); ``window ≥ n`` is the full-interval smoother. Yields, in order,
     ``(first sample, filtered rows, smoothed rows)`` (rows without an estimate keep the
     filter's): memory is that of ``window + overlap`` samples whatever ``n``."""
-    if window < 1 or overlap < 0:
-        raise ValueError(f"smoother window must be >= 1 and overlap >= 0, got {window}, {overlap}")
+    window, overlap = window_sizes(window, overlap, 0.0)
     arrays = f.kernel_arrays()
     c = record(arrays.cfg)
     if c.algorithm > ALGO_MUKF:
@@ -544,11 +574,13 @@ def smooth_stream(f: AttitudeFilter, n: int, read: Reader, window: int = DEFAULT
 
 
 def smooth_run(f: AttitudeFilter, dts: np.ndarray, gyr: np.ndarray, acc: np.ndarray,
-               mag: np.ndarray, window: int = DEFAULT_WINDOW,
-               overlap: int = DEFAULT_OVERLAP) -> tuple[BatchOutputs, SmoothOutputs]:
+               mag: np.ndarray, window: int | None = None,
+               overlap: int | None = None) -> tuple[BatchOutputs, SmoothOutputs]:
     """:func:`smooth_stream` over readings in arrays (readings as for
-    :meth:`AttitudeFilter.run`): the filtered and the smoothed outputs, one row per sample."""
+    :meth:`AttitudeFilter.run`; ``window``, ``overlap`` as :func:`window_sizes` resolves them
+    at the steps' mean period): the filtered and the smoothed outputs, one row per sample."""
     n = len(dts)
+    window, overlap = window_sizes(window, overlap, mean_period(dts))
     filt, sm = new_batch_outputs(n), new_smooth_outputs(n)
     for pos, fr, sr in smooth_stream(f, n, array_reader(dts, gyr, acc, mag), window, overlap):
         k = len(sr.valid)
@@ -682,15 +714,16 @@ def fuse_tilt(q_f: np.ndarray, P_f: np.ndarray, q_b: np.ndarray, P_b: np.ndarray
 
 
 def smooth_both_ways(f: AttitudeFilter, dts: np.ndarray, gyr: np.ndarray, acc: np.ndarray,
-                     mag: np.ndarray, window: int = DEFAULT_WINDOW,
-                     overlap: int = DEFAULT_OVERLAP) -> tuple[BatchOutputs, SmoothOutputs]:
+                     mag: np.ndarray, window: int | None = None,
+                     overlap: int | None = None) -> tuple[BatchOutputs, SmoothOutputs]:
     """:func:`smooth_run` with ``f``, and a fresh filter of ``f``'s parameters smoothed over the
     recording reversed (:func:`smooth_reversed_into`), the two in parallel threads (the kernels
     release the GIL: on two cores the wall time of one); the forward smoother's tilt fused with
     the reversed one's where both have an estimate (:func:`fuse_tilt`, docs/math.md §11.5).
     Returns the filtered outputs and the smoothed ones with ``quat`` and ``cov`` fused (rate
-    and bias the forward smoother's)."""
+    and bias the forward smoother's); ``window``, ``overlap`` as :func:`smooth_run`."""
     n = len(dts)
+    window, overlap = window_sizes(window, overlap, mean_period(dts))
     q_b, P_b, ok_b = np.empty((n, 4)), np.empty((n, 3, 3)), np.zeros(n, dtype=np.bool_)
 
     def write(first: int, q: np.ndarray, P: np.ndarray, ok: np.ndarray) -> None:

@@ -21,6 +21,7 @@ from mkf_ros.core.smoother import (
     smooth_run,
     smooth_stream,
     transition_matrix,
+    window_sizes,
 )
 from mkf_ros.core.state import iso33
 from mkf_ros.sim import simulate
@@ -253,6 +254,36 @@ def test_windowed_equals_full_interval(use_mag: bool) -> None:
     angf = np.degrees(2 * np.arccos(np.clip(np.abs(np.sum(f_full.quat * s_full.quat, axis=1)),
                                             0, 1)))
     assert np.median(angf) > 10 * ang.max()
+
+
+def test_default_overlap_is_two_minutes_at_any_rate() -> None:
+    """docs/math.md §11.4: the default overlap is 60 s of the recording, not a count of
+    samples (at most one window, 2¹⁷ samples); the window stays 2¹⁷ samples; an explicit
+    overlap is taken as given; without a known period one window's worth."""
+    assert window_sizes(None, None, 1 / 100) == (131072, 6000)
+    assert window_sizes(None, None, 1 / 286) == (131072, 17160)
+    assert window_sizes(None, None, 1 / 1000) == (131072, 60000)
+    assert window_sizes(None, None, 1 / 4000) == (131072, 131072)
+    assert window_sizes(500, 7, 1 / 1000) == (500, 7)
+    assert window_sizes(500, None, 0.0) == (500, 500)
+    with pytest.raises(ValueError, match="window must be >= 1"):
+        window_sizes(0, None, 0.01)
+    with pytest.raises(ValueError, match="overlap >= 0"):
+        window_sizes(10, -1, 0.01)
+
+
+def test_default_overlap_spans_a_fast_recording() -> None:
+    """At 1 kHz a 40 s recording smoothed in windows of 4000 samples with the default overlap
+    (60 s) is the full-interval smoother's, bit for bit: every window's backward pass starts
+    from the recording's end (with an overlap of 2¹⁵ samples, 33 s at this rate, it did not)."""
+    d = simulate("wiener", duration=40.0, rate=1000.0, seed=3)
+    full = mkf_ros.estimate(d.gyr, d.acc, d.mag, timestamps=d.t, smooth=True)
+    win = mkf_ros.estimate(d.gyr, d.acc, d.mag, timestamps=d.t, smooth=True, smooth_window=4000)
+    short = mkf_ros.estimate(d.gyr, d.acc, d.mag, timestamps=d.t, smooth=True,
+                             smooth_window=4000, smooth_overlap=1 << 15)
+    np.testing.assert_array_equal(win.quat, full.quat)
+    np.testing.assert_array_equal(win.cov, full.cov)
+    assert not np.array_equal(short.quat, full.quat)
 
 
 def test_smoother_refuses_baselines() -> None:
