@@ -66,7 +66,12 @@ import numpy as np
 from mkf_ros.core.params import BY_NAME
 from mkf_ros.core.quaternion import qmul_np
 from mkf_ros.evaluation.datasets import ALL_ERRORS, Recording, read_dataset
-from mkf_ros.evaluation.scoring import dataset_mean, score_recording, tilt_coverage_counts
+from mkf_ros.evaluation.scoring import (
+    dataset_mean,
+    score_recording,
+    scored_mask,
+    tilt_coverage_counts,
+)
 
 #: NWU → ENU: rotation by +90° about the up axis, prepended to a sensor → NWU quaternion.
 Q_ENU_FROM_NWU = np.array([math.cos(math.pi / 4), 0.0, 0.0, math.sin(math.pi / 4)])
@@ -315,9 +320,20 @@ def _task(args: Task) -> tuple[int, str, dict[str, dict[str, float]], dict[str, 
         if cov is not None:
             n_in, n = tilt_coverage_counts(rec, q, cov, COVERAGE_K, skip)
             s.update(cov_in=float(n_in), cov_n=float(n),
-                     cov=n_in / n if n else float("nan"))
+                     cov=n_in / n if n else float("nan"), tilt_sd=tilt_sigma(rec, q, cov, skip))
         scores[label] = s
     return idx, rec.name, scores, secs
+
+
+def tilt_sigma(rec: Recording, q: np.ndarray, cov: np.ndarray, skip: float) -> float:
+    """The published tilt's sharpness beside its coverage: the median over the scored samples
+    of ``√((Σ₀₀ + Σ₁₁)/2)``, the RMS of the two horizontal axes' σ, in degrees (NaN if none)."""
+    m = scored_mask(rec, q, skip)
+    cov = np.asarray(cov, dtype=float)[m]
+    with np.errstate(invalid="ignore"):
+        sd = np.sqrt(0.5 * (cov[:, 0, 0] + cov[:, 1, 1]))
+    sd = sd[np.isfinite(sd)]
+    return float(np.degrees(np.median(sd))) if len(sd) else float("nan")
 
 
 def _warm() -> None:
@@ -421,10 +437,16 @@ def coverage_means(rows: list[dict[str, float]]) -> dict[str, float]:
     """Mean of the per-recording coverage fractions and the pooled fraction (NaN when a row
     has no covariance)."""
     if not rows or any("cov_n" not in r for r in rows):
-        return {"cov": float("nan"), "cov_pooled": float("nan")}
+        return {"cov": float("nan"), "cov_pooled": float("nan"), "tilt_sd": float("nan")}
     n = sum(r["cov_n"] for r in rows)
     return {"cov": float(np.mean([r["cov"] for r in rows])),
-            "cov_pooled": sum(r["cov_in"] for r in rows) / n if n else float("nan")}
+            "cov_pooled": sum(r["cov_in"] for r in rows) / n if n else float("nan"),
+            "tilt_sd": _mean_finite([r.get("tilt_sd", float("nan")) for r in rows])}
+
+
+def _mean_finite(xs: list[float]) -> float:
+    v = [x for x in xs if np.isfinite(x)]
+    return float(np.mean(v)) if v else float("nan")
 
 
 def print_dataset(ds: DatasetResult) -> dict[str, dict[str, float]]:
@@ -539,13 +561,15 @@ def print_readme_peers(ds: DatasetResult) -> None:
 
 def print_summary(summary: list[tuple[str, int, dict[str, dict[str, float]]]]) -> None:
     """Dataset × algorithm table."""
-    print("\n## Summary: mean RMSE over each dataset [deg] (total / heading / inclination) and "
-          f"{COVERAGE_K:g}σ tilt coverage [%] (mean over recordings / pooled over samples)\n")
+    print("\n## Summary: mean RMSE over each dataset [deg] (total / heading / inclination), "
+          f"{COVERAGE_K:g}σ tilt coverage [%] (mean over recordings / pooled over samples) and "
+          "the published tilt σ [deg] (median per recording, mean over recordings)\n")
     rows = [[fmt, str(n), c, _f(m["total"]), _f(m["heading"]), _f(m["inclination"]),
-             _pct(m.get("cov", float("nan"))), _pct(m.get("cov_pooled", float("nan")))]
+             _pct(m.get("cov", float("nan"))), _pct(m.get("cov_pooled", float("nan"))),
+             _f(m.get("tilt_sd", float("nan")))]
             for fmt, n, means in summary for c, m in means.items()]
     _table(["dataset", "recordings", "algorithm", "total", "heading", "inclination",
-            "cov. mean", "cov. pooled"], rows, align="lrlrrrrr")
+            "cov. mean", "cov. pooled", "tilt σ"], rows, align="lrlrrrrrr")
 
 
 # ----------------------------------------------------------------------------------- targets

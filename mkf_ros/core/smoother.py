@@ -638,7 +638,7 @@ _CI_SCALE = (np.sqrt(2.0), np.sqrt(2.0), 1.0)
 @jit
 def fuse_tilt_rows(e: np.ndarray, d: np.ndarray, q_f: np.ndarray, P_f: np.ndarray,
                    P_b: np.ndarray, q: np.ndarray, P: np.ndarray) -> None:
-    """The per-sample arithmetic of :func:`fuse_tilt` (eq. 11.5a–c) into ``q``, ``P``: ``e``
+    """The per-sample arithmetic of :func:`fuse_tilt` (eq. 11.5a–d) into ``q``, ``P``: ``e``
     the world rotation between the estimates (N, 4), ``d`` its swing's inverse (N, 2)."""
     for n in range(q_f.shape[0]):
         finite = np.isfinite(d[n, 0]) and np.isfinite(d[n, 1])
@@ -683,12 +683,20 @@ def fuse_tilt_rows(e: np.ndarray, d: np.ndarray, q_f: np.ndarray, P_f: np.ndarra
                     _CI_SCALE[j]
                 P[n, i, j] = pij
                 P[n, j, i] = pij
+        # + the two estimates' spread about the fused tilt, as a mixture of equal weights
+        # (eq. 11.5d): the forward at −K d, the reversed at d − K d
+        b0, b1 = d[n, 0] - dx[0], d[n, 1] - dx[1]
+        s01 = 0.5 * (dx[0] * dx[1] + b0 * b1)
+        P[n, 0, 0] += 0.5 * (dx[0] * dx[0] + b0 * b0)
+        P[n, 1, 1] += 0.5 * (dx[1] * dx[1] + b1 * b1)
+        P[n, 0, 1] += s01
+        P[n, 1, 0] += s01
 
 
 def fuse_tilt(q_f: np.ndarray, P_f: np.ndarray, q_b: np.ndarray, P_b: np.ndarray
               ) -> tuple[np.ndarray, np.ndarray]:
     """The forward estimate ``(q_f, P_f)`` updated with the tilt of a second estimate
-    ``(q_b, P_b)`` of the same samples (docs/math.md §11.5, eq. 11.5a–c); covariances about
+    ``(q_b, P_b)`` of the same samples (docs/math.md §11.5, eq. 11.5a–d); covariances about
     each estimate's world axes, (N, 3, 3). The second estimate's world frame may differ from
     the first's by a heading (a reversed 6D pass starts its own): only its vertical is used.
     The world rotation between the two, ``e = q_f ⊗ q_b⁻¹``, is a swing about a horizontal
@@ -701,8 +709,12 @@ def fuse_tilt(q_f: np.ndarray, P_f: np.ndarray, q_b: np.ndarray, P_b: np.ndarray
     amount: the covariance is the Joseph form's ``(I − KH) P_f (I − KH)ᵀ + K H P_b' Hᵀ Kᵀ``
     (right for independent errors) with its tilt widened to covariance intersection's bound
     for any correlation (ω = ½: twice), ``D P D``, ``D = diag(√2, √2, 1)``; equal estimates
-    then keep their covariance. Symmetric PSD by construction (a congruence of a sum of
-    congruences). Samples where either is not finite keep the first."""
+    then keep their covariance. Plus the spread of the two tilts about the fused one,
+    ``½ (a aᵀ + b bᵀ)`` with ``a = H K d``, ``b = d − H K d`` (eq. 11.5d: the two estimates as
+    a mixture of equal weights; a disagreement beyond their covariances is a model error,
+    e.g. a gyro scale error turning the two passes' low-passes the opposite ways). Symmetric
+    PSD by construction (a congruence of a sum of congruences, plus outer products). Samples
+    where either is not finite keep the first."""
     q_f, P_f = np.ascontiguousarray(q_f, float), np.ascontiguousarray(P_f, float)
     e = qmul_np(q_f, qconj_np(q_b))  # the second's world → the first's: swing ⊗ twist about z
     with np.errstate(invalid="ignore"):

@@ -392,7 +392,9 @@ def test_fuse_tilt_meets_halfway_whatever_the_second_heading(yaw_b: float) -> No
     about the world x axis fuse to the midpoint (1° from each), whatever heading the second's
     world frame gave it. The two share their samples (correlation unknown): the published
     tilt variance is covariance intersection's bound (ω = ½), here the inputs' own, not half
-    of it; the heading's is the first's. A non-finite second estimate leaves the first."""
+    of it, plus the two estimates' spread about the midpoint, (1°)² about x (eq. 11.5d: a
+    mixture of the two with equal weights); the heading's is the first's. A non-finite second
+    estimate leaves the first."""
     q_true = _q_yaw_pitch_roll(0.7, 0.2, -0.1)
     err = np.radians(2.0)
     q_f = qmul_np(_q_rotvec(np.array([err, 0, 0])), q_true)[None]  # world-axis error 2°
@@ -404,7 +406,8 @@ def test_fuse_tilt_meets_halfway_whatever_the_second_heading(yaw_b: float) -> No
     e = _world_error(q, q_true[None])[0]
     np.testing.assert_allclose(e, _world_error(q_f, q_true[None])[0] / 2, atol=1e-6)
     assert abs(np.linalg.norm(e) - err / 2) < 1e-6
-    np.testing.assert_allclose(P[0], np.diag([a, a, c]), rtol=1e-9, atol=1e-15)
+    np.testing.assert_allclose(P[0], np.diag([a + (err / 2) ** 2, a, c]), rtol=1e-6,
+                               atol=1e-12)
     q2, P2 = fuse_tilt(np.r_[q_f, q_f], np.r_[P_f, P_f], np.r_[q_b, np.full((1, 4), np.nan)],
                        np.r_[P_b, P_b])
     np.testing.assert_array_equal(q2[1], q_f[0])
@@ -422,10 +425,32 @@ def test_fuse_tilt_covariance_is_symmetric_psd_for_random_inputs() -> None:
     np.testing.assert_allclose(np.linalg.norm(qf, axis=1), 1.0, atol=1e-12)
     np.testing.assert_array_equal(Pf, np.swapaxes(Pf, 1, 2))
     assert np.linalg.eigvalsh(Pf).min() > -1e-15
-    # covariance intersection's bound: the fused tilt variance is never above twice the
-    # first's
-    assert (np.trace(Pf[:, :2, :2], axis1=1, axis2=2)
-            <= 2 * np.trace(P[0][:, :2, :2], axis1=1, axis2=2) * (1 + 1e-12)).all()
+    # covariance intersection's bound: where the two tilts agree (the second a turn of the
+    # first about the vertical) the fused tilt variance is never above twice the first's
+    twist = np.c_[np.cos(q[1][:, 0]), np.zeros((n, 2)), np.sin(q[1][:, 0])]
+    _, Pt = fuse_tilt(q[0], P[0], qmul_np(twist, q[0]), P[1])
+    assert (np.trace(Pt[:, :2, :2], axis1=1, axis2=2)
+            <= 2 * np.trace(P[0][:, :2, :2], axis1=1, axis2=2) * (1 + 1e-9)).all()
+
+
+@pytest.mark.parametrize("deg", [0.5, 5.0, 30.0])
+def test_fuse_tilt_covers_two_estimates_that_disagree(deg: float) -> None:
+    """(eq. 11.5d) Two estimates whose tilts differ by far more than their covariances say
+    (σ 0.06–0.11°): a model is wrong somewhere, and the published tilt covariance covers both
+    of them: the second moment of two points of equal weight puts each within √2 σ
+    (Mahalanobis² ≤ 2) of the fused estimate, where covariance intersection's bound alone put
+    them 2–250σ away."""
+    q_true = _q_yaw_pitch_roll(-0.4, 0.1, 0.3)
+    th = np.radians(deg)
+    axis = np.array([0.6, 0.8, 0.0])
+    q_f = qmul_np(_q_rotvec(th / 2 * axis), q_true)[None]
+    q_b = qmul_np(_q_rotvec(-th / 2 * axis), q_true)[None]
+    a = 1e-6
+    P_f, P_b = np.diag([a, a, 1e-3])[None], np.diag([a, 4 * a, 1e-3])[None]
+    q, P = fuse_tilt(q_f, P_f, q_b, P_b)
+    for other in (q_f, q_b):
+        e = _world_error(other, q)[0][:2]  # the other estimate's tilt about the fused one
+        assert e @ np.linalg.solve(P[0, :2, :2], e) <= 2.0 + 1e-3, deg
 
 
 @pytest.mark.parametrize("algorithm", ["mekf", "mukf"])
