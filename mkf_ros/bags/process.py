@@ -48,6 +48,10 @@ class Outputs:
     slot: np.ndarray
 
 
+#: What a smoothed run's waiting outputs hold in place of the fields already encoded.
+_NONE = np.zeros((0, 0))
+
+
 @dataclass
 class Scores:
     """Orientation errors against the ground truth (BROAD metric), degrees."""
@@ -827,6 +831,10 @@ def _run_bag(bag: str | Path, out: str | Path, params: Mapping[str, Any] | None,
                                win[truth_name].log_ns if truth_name else None,
                                [(c, win[t].log_ns, win[t].data) for t, c in copies.items()])
                 outs.index = outs.index + n_imu
+                if smoothing is not None and not keep_outputs:
+                    # encoded: while it waits to be smoothed, a message needs only its
+                    # orientation, covariance, slot and yaw_lost (docs/bags.md)
+                    outs.angvel = outs.angvel_cov = outs.linacc = outs.linacc_cov = _NONE
                 n_imu += len(imu_b)
                 n_acc += len(acc_b) if acc_b else 0
                 n_mag += len(mag_b) if mag_b else 0
