@@ -69,8 +69,8 @@ from mkf_ros.evaluation.datasets import ALL_ERRORS, Recording, read_dataset
 from mkf_ros.evaluation.scoring import (
     dataset_mean,
     score_recording,
-    scored_mask,
     tilt_coverage_counts,
+    tilt_sigma,
 )
 
 #: NWU → ENU: rotation by +90° about the up axis, prepended to a sensor → NWU quaternion.
@@ -323,17 +323,6 @@ def _task(args: Task) -> tuple[int, str, dict[str, dict[str, float]], dict[str, 
                      cov=n_in / n if n else float("nan"), tilt_sd=tilt_sigma(rec, q, cov, skip))
         scores[label] = s
     return idx, rec.name, scores, secs
-
-
-def tilt_sigma(rec: Recording, q: np.ndarray, cov: np.ndarray, skip: float) -> float:
-    """The published tilt's sharpness beside its coverage: the median over the scored samples
-    of ``√((Σ₀₀ + Σ₁₁)/2)``, the RMS of the two horizontal axes' σ, in degrees (NaN if none)."""
-    m = scored_mask(rec, q, skip)
-    cov = np.asarray(cov, dtype=float)[m]
-    with np.errstate(invalid="ignore"):
-        sd = np.sqrt(0.5 * (cov[:, 0, 0] + cov[:, 1, 1]))
-    sd = sd[np.isfinite(sd)]
-    return float(np.degrees(np.median(sd))) if len(sd) else float("nan")
 
 
 def _warm() -> None:

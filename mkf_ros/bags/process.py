@@ -48,10 +48,6 @@ class Outputs:
     slot: np.ndarray
 
 
-#: What a smoothed run's waiting outputs hold in place of the fields already encoded.
-_NONE = np.zeros((0, 0))
-
-
 @dataclass
 class Scores:
     """Orientation errors against the ground truth (BROAD metric), degrees."""
@@ -370,13 +366,17 @@ class _Smoothing:
     slots of one smoothing window + overlap, the smoothed rows and the bag windows they span
     (docs/bags.md)."""
 
+    #: What a waiting chunk's outputs hold in place of the fields already encoded.
+    _DROPPED = np.zeros((0, 0))
+
     def __init__(self, adapter: Any, window: int, overlap: int,
-                 two_way: _TwoWay | None = None) -> None:
+                 two_way: _TwoWay | None = None, keep_outputs: bool = False) -> None:
         from mkf_ros.core.smoother import Windows
         from mkf_ros.stream.kernel import MAX_STEPS_PER_EVENT
 
         self.adapter = adapter
         self.two_way = two_way  #: the reversed smoother's rows to fuse with (two-way)
+        self.keep_outputs = keep_outputs  #: the caller keeps every output field
         self.wins = Windows(adapter.filter.kernel_arrays().cfg, window, overlap,
                             window + overlap + MAX_STEPS_PER_EVENT)
         adapter.record_into(self.wins.rec, self._full)
@@ -413,6 +413,9 @@ class _Smoothing:
         """Queue ``chunk`` (``final``: the bag has ended, smooth every step); the chunks now
         complete, smoothed, in order."""
         if chunk is not None:
+            if not self.keep_outputs:  # encoded: while it waits, only what _apply needs
+                o = chunk.outs
+                o.angvel = o.angvel_cov = o.linacc = o.linacc_cov = self._DROPPED
             self.pending.append(chunk)
         if final:
             self.wins.held = self.adapter.recorded
@@ -468,6 +471,12 @@ class _Smoothing:
 #: second (docs/bags.md).
 _STEP_ROW = np.dtype(("<f8", 10))
 _REVERSED_ROW = np.dtype([("q", "<f8", 4), ("P", "<f8", (3, 3)), ("ok", "?")])
+
+
+def _temp_files_error(folder: Path, e: OSError) -> BagError:
+    """The one line for ``--smooth two-way``'s temporary files that cannot be written."""
+    return BagError(f"--smooth two-way: cannot write its temporary files in {folder} (about "
+                    f"0.2 KB per IMU step): {e.strerror or e}")
 
 
 @dataclass
@@ -549,8 +558,7 @@ class _Capture:
         try:
             self.file.write(self.rec["u"][:k].astype(_STEP_ROW.base).tobytes())
         except OSError as e:
-            raise BagError(f"--smooth two-way: cannot write its temporary files beside the "
-                           f"output (about 0.2 KB per IMU step): {e.strerror or e}") from None
+            raise _temp_files_error(self.two_way.steps.parent.parent, e) from None
         self.n += k
 
     def _full(self, filled: int) -> tuple[np.ndarray, int, int]:
@@ -655,8 +663,7 @@ def process_bag(bag: str | Path, out: str | Path, params: Mapping[str, Any] | No
     try:
         tmp_dir = tempfile.TemporaryDirectory(prefix=f".{out.name}.two-way-", dir=out.parent)
     except OSError as e:
-        raise BagError(f"--smooth two-way needs temporary files beside {out}: "
-                       f"{e.strerror or e}") from None
+        raise _temp_files_error(out.parent, e) from None
     with tmp_dir as tmp:
         two = _TwoWay(Path(tmp) / "steps")
         t0 = time.perf_counter()
@@ -665,8 +672,7 @@ def process_bag(bag: str | Path, out: str | Path, params: Mapping[str, Any] | No
         try:
             two.reverse(Path(tmp) / "reversed", progress)
         except OSError as e:
-            raise BagError(f"--smooth two-way: cannot write its temporary files beside {out} "
-                           f"(about 0.2 KB per IMU step): {e.strerror or e}") from None
+            raise _temp_files_error(out.parent, e) from None
         seconds = time.perf_counter() - t0
         res = _run_bag(bag, out, params, **kw, two_way=two)
     res.timings["two-way"] = seconds
@@ -719,8 +725,8 @@ def _run_bag(bag: str | Path, out: str | Path, params: Mapping[str, Any] | None,
         if p["algorithm"] not in ("mekf", "mukf"):
             raise BagError(f"--smooth needs algorithm mekf or mukf (the smoother is the MKFs'), "
                            f"not {p['algorithm']}")
-        try:  # validated before the bag is opened; the default overlap needs its rate
-            sm_core.window_sizes(smooth_window, smooth_overlap, 1.0)
+        try:  # before the bag is opened (the default overlap needs its rate: below)
+            sm_core.check_window(smooth_window, smooth_overlap)
         except ValueError as e:
             raise BagError(str(e)) from None
     use_mag = bool(p["use_mag"])
@@ -759,7 +765,7 @@ def _run_bag(bag: str | Path, out: str | Path, params: Mapping[str, Any] | None,
                 two_way.sizes = sizes
                 capturing = _Capture(adapter, two_way)
             else:
-                smoothing = _Smoothing(adapter, *sizes, two_way)
+                smoothing = _Smoothing(adapter, *sizes, two_way, keep_outputs)
         want = [t for t in (imu_name, acc_name, mag_name, truth_name) if t]
         extra = list(br.topics) if copy_input else []
         read = list(dict.fromkeys(want + extra))
@@ -831,10 +837,6 @@ def _run_bag(bag: str | Path, out: str | Path, params: Mapping[str, Any] | None,
                                win[truth_name].log_ns if truth_name else None,
                                [(c, win[t].log_ns, win[t].data) for t, c in copies.items()])
                 outs.index = outs.index + n_imu
-                if smoothing is not None and not keep_outputs:
-                    # encoded: while it waits to be smoothed, a message needs only its
-                    # orientation, covariance, slot and yaw_lost (docs/bags.md)
-                    outs.angvel = outs.angvel_cov = outs.linacc = outs.linacc_cov = _NONE
                 n_imu += len(imu_b)
                 n_acc += len(acc_b) if acc_b else 0
                 n_mag += len(mag_b) if mag_b else 0

@@ -119,16 +119,20 @@ def window_sizes(window: int | None, overlap: int | None, period: float) -> tupl
     :data:`DEFAULT_OVERLAP_S` at that period (:data:`MAX_DEFAULT_OVERLAP` at most, one window
     where the period is unknown, i.e. not positive and finite). ValueError for a window < 1 or an
     overlap < 0."""
+    check_window(window, overlap)
     w = DEFAULT_WINDOW if window is None else int(window)
     if overlap is not None:
-        o = int(overlap)
-    elif period > 0 and np.isfinite(period):
-        o = min(MAX_DEFAULT_OVERLAP, int(np.ceil(DEFAULT_OVERLAP_S / period)))
-    else:
-        o = w
-    if w < 1 or o < 0:
-        raise ValueError(f"smoother window must be >= 1 and overlap >= 0, got {w}, {o}")
-    return w, o
+        return w, int(overlap)
+    if period > 0 and np.isfinite(period):
+        return w, min(MAX_DEFAULT_OVERLAP, int(np.ceil(DEFAULT_OVERLAP_S / period)))
+    return w, w
+
+
+def check_window(window: int | None, overlap: int | None) -> None:
+    """ValueError for a window < 1 or an overlap < 0 (None: the default, always valid)."""
+    if (window is not None and window < 1) or (overlap is not None and overlap < 0):
+        raise ValueError(f"smoother window must be >= 1 and overlap >= 0, got {window}, "
+                         f"{overlap}")
 
 
 def mean_period(dts: np.ndarray) -> float:
@@ -489,9 +493,7 @@ class Windows:
     (``window + overlap`` and what a forward pass may append beyond that before it stops)."""
 
     def __init__(self, cfg: np.ndarray, window: int, overlap: int, capacity: int) -> None:
-        if window < 1 or overlap < 0:
-            raise ValueError(f"smoother window must be >= 1 and overlap >= 0, got {window}, "
-                             f"{overlap}")
+        check_window(window, overlap)
         self.cfg = cfg
         self.window, self.overlap = window, overlap
         self.span = window + overlap
@@ -538,7 +540,6 @@ def smooth_stream(f: AttitudeFilter, n: int, read: Reader, window: int, overlap:
     §11.4, :class:`Windows`); ``window ≥ n`` is the full-interval smoother. Yields, in order,
     ``(first sample, filtered rows, smoothed rows)`` (rows without an estimate keep the
     filter's): memory is that of ``window + overlap`` samples whatever ``n``."""
-    window, overlap = window_sizes(window, overlap, 0.0)
     arrays = f.kernel_arrays()
     c = record(arrays.cfg)
     if c.algorithm > ALGO_MUKF:

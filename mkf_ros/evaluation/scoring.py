@@ -122,11 +122,10 @@ def dataset_mean(scores: Iterable[Mapping[str, float]],
 
 
 # ----------------------------------------------------------------------------------- covariance
-def tilt_mahalanobis(rec: Recording, q_est: np.ndarray, cov_world: np.ndarray,
-                     skip_start: float = 0.0) -> np.ndarray:
-    """(N,) Mahalanobis distance of each sample's inclination error under the published tilt
-    covariance; NaN where the sample is not scored (:func:`scored_mask`), +inf where the 2×2
-    tilt block is not finite or not positive definite. See :func:`tilt_coverage`."""
+def _aligned(rec: Recording, q_est: np.ndarray, cov_world: np.ndarray, skip_start: float
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The scored mask, the aligned estimate and the published covariance about the reference
+    world's axes (rotated with the recording's alignment ``G``, as the estimate is)."""
     q_est = np.asarray(q_est, dtype=float)
     cov = np.asarray(cov_world, dtype=float)
     if cov.shape != (q_est.shape[0], 3, 3):
@@ -136,6 +135,28 @@ def tilt_mahalanobis(rec: Recording, q_est: np.ndarray, cov_world: np.ndarray,
     if rec.alignment != "none":  # the covariance is about our world's axes: rotate it with G
         rg = rotmat_np(g)
         cov = rg @ cov @ rg.T
+    return m, q_al, cov
+
+
+def tilt_sigma(rec: Recording, q_est: np.ndarray, cov_world: np.ndarray,
+               skip_start: float = 0.0) -> float:
+    """The published tilt's sharpness, to read beside :func:`tilt_coverage` (a covariance can
+    cover everything by being wide): the median over the scored samples of
+    ``√((Σ₀₀ + Σ₁₁)/2)``, the RMS of the two horizontal axes' σ about the reference world, in
+    degrees (NaN if no sample is scored or none is finite)."""
+    m, _, cov = _aligned(rec, q_est, cov_world, skip_start)
+    with np.errstate(invalid="ignore"):
+        sd = np.sqrt(0.5 * (cov[m, 0, 0] + cov[m, 1, 1]))
+    sd = sd[np.isfinite(sd)]
+    return float(np.degrees(np.median(sd))) if len(sd) else float("nan")
+
+
+def tilt_mahalanobis(rec: Recording, q_est: np.ndarray, cov_world: np.ndarray,
+                     skip_start: float = 0.0) -> np.ndarray:
+    """(N,) Mahalanobis distance of each sample's inclination error under the published tilt
+    covariance; NaN where the sample is not scored (:func:`scored_mask`), +inf where the 2×2
+    tilt block is not finite or not positive definite. See :func:`tilt_coverage`."""
+    m, q_al, cov = _aligned(rec, q_est, cov_world, skip_start)
     e = qmul_np(np.where(m[:, None], q_al, 1.0), qconj_np(np.where(m[:, None], rec.q_ref, 1.0)))
     eps = swing_rotvec(e)
     a = cov[:, 0, 0]

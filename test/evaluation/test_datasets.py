@@ -441,21 +441,6 @@ def test_bench_broad_classes_and_targets(tmp_path: Path,
     assert any(ln.startswith("targets: ") and "FAIL" in ln for ln in out.splitlines())
 
 
-def test_bench_tilt_sigma_beside_coverage() -> None:
-    """The bench's sharpness figure: the median over the scored samples of the RMS of the two
-    horizontal σ (degrees); samples without a reference are not scored."""
-    rd = _bench()
-    q_ref = np.tile([1.0, 0, 0, 0], (4, 1))
-    q_ref[3] = np.nan  # no reference: not scored
-    rec = Recording("r", "broad", np.arange(4.0), np.zeros((4, 3)), np.zeros((4, 3)),
-                    np.zeros((4, 3)), q_ref)
-    cov = np.tile(np.diag([0.01**2, 0.02**2, 1.0]), (4, 1, 1))
-    cov[3] = np.diag([1.0, 1.0, 1.0])
-    cov[2] = np.diag([0.03**2, 0.03**2, 1.0])
-    q = np.tile([1.0, 0, 0, 0], (4, 1))
-    assert abs(rd.tilt_sigma(rec, q, cov, 0.0) - 0.9059) < 1e-3  # √((1e-4 + 4e-4)/2) rad
-
-
 def _fake_broad(rd: ModuleType, vals: dict[str, dict[str, tuple[float, float]]],
                 cov: float = 0.95) -> object:
     """A BROAD DatasetResult whose columns' (9D total, 6D inclination) per trial are ``vals``."""

@@ -23,6 +23,7 @@ from mkf_ros.evaluation.scoring import (
     tilt_coverage,
     tilt_coverage_counts,
     tilt_mahalanobis,
+    tilt_sigma,
 )
 
 DEG = math.pi / 180.0
@@ -240,3 +241,27 @@ def test_coverage_rotates_the_covariance_with_the_constant_alignment() -> None:
     np.testing.assert_allclose(tilt_mahalanobis(r, q_est, cov), 2.0, rtol=1e-6)
     assert tilt_coverage(r, q_est, cov, k=1.5) == 0.0
     assert tilt_coverage(r, q_est, cov, k=3.0) == 1.0
+
+
+def test_tilt_sigma_is_the_median_horizontal_sigma_of_the_scored_samples() -> None:
+    """The sharpness figure beside the coverage: the median over the scored samples of the RMS
+    of the two horizontal σ (degrees); samples without a reference are not scored."""
+    q_ref = np.tile([1.0, 0, 0, 0], (4, 1))
+    q_ref[3] = np.nan  # no reference: not scored
+    rec = _rec(q_ref)
+    cov = np.tile(np.diag([0.01**2, 0.02**2, 1.0]), (4, 1, 1))
+    cov[3] = np.diag([1.0, 1.0, 1.0])
+    cov[2] = np.diag([0.03**2, 0.03**2, 1.0])
+    q = np.tile([1.0, 0, 0, 0], (4, 1))
+    assert abs(tilt_sigma(rec, q, cov, 0.0) - 0.9059) < 1e-3  # √((1e-4 + 4e-4)/2) rad
+
+
+def test_tilt_sigma_is_about_the_reference_world_after_alignment() -> None:
+    """With the constant global alignment the covariance turns with the estimate (as for the
+    coverage): an estimate whose world is the reference's turned 90° about x has its y and z
+    axes swapped, so the horizontal σ are the published x and z ones."""
+    q_ref = random_quats(50, seed=4)
+    q_est = qmul_np(qexp(np.array([90 * DEG, 0.0, 0.0])), q_ref)  # G = R_x(−90°)
+    cov = np.tile(np.diag([0.01**2, 0.05**2, 0.02**2]), (50, 1, 1))
+    got = tilt_sigma(_rec(q_ref, "constant_global"), q_est, cov)
+    assert abs(got - math.degrees(math.sqrt((0.01**2 + 0.02**2) / 2))) < 1e-6
