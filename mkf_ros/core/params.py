@@ -206,6 +206,14 @@ PARAMS: tuple[Param, ...] = (
        "correlated over mag_disturbance_time turns the heading like a gyro bias would, and a "
        "full gain on the bias follows it and then turns the heading for as long as the field "
        "is refused; 1 = the full gain", unit="1", range=(0.0, 1.0), group="robustness"),
+    _P("acc_turn_speed", float, 0.0, "Forward speed of the body while it turns (a vehicle, "
+       "a walking or running person): turning at the vertical rate W it feels a centripetal "
+       "acceleration v*W across gravity for as long as the turn lasts, which no averaging "
+       "removes; the accelerometer's disturbance variance grows by (v*W/g)^2, W low-passed "
+       "over acc_time_constant, so that the gyro carries the tilt through the turn. 0 = the "
+       "body turns in place (a handheld sensor); a person walking or running: 1.5-5 (phones "
+       "carried indoors: 3 lowers the tilt error by 10 %, docs/real_data.md); a car: its speed",
+       unit="m/s", range=(0.0, 100.0), group="robustness"),
     _P("acc_disturbance_time", float, 0.1, "Correlation time of the non-gravitational "
        "acceleration left in the fused accelerometer: its per-sample variance is "
        "acc_disturbance^2 * max(1, time/dt), so that its information per second does not grow "

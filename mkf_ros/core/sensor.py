@@ -487,12 +487,14 @@ def _acc_blend(c: np.record, s: np.record, kq: float, u_raw: tuple, q_raw: float
     # a slow acceleration (a push, a brake) is still passing while the stages disagree
     a1 = s.acc_lp
     d2 = ((a1[0] - lp[0]) ** 2 + (a1[1] - lp[1]) ** 2 + (a1[2] - lp[2]) ** 2) / (g0 * g0)
-    q_lp = c.acc_disturbance_var + ex_lp * ex_lp + d2 + rot * rot
+    # a turn at speed: the centripetal acceleration v Ω̄ across gravity (docs/math.md §9.3)
+    cen = c.acc_turn_speed * s.acc_yaw_lp / g0
+    q_lp = c.acc_disturbance_var + ex_lp * ex_lp + d2 + rot * rot + cen * cen
     if abs(ex_lp) > tol:  # refused (the low-pass holds a sustained acceleration)
         return u_lp, kq * q_lp, 2, 1.0
     if abs(ex) > tol:  # an implausible raw sample has no say (the low-pass still takes it:
         return u_lp, kq * q_lp, 1, 1.0  # shaking is symmetric about gravity)
-    q_rw = c.acc_disturbance_var + ex2 + 2.0 * s.acc_excess
+    q_rw = c.acc_disturbance_var + ex2 + 2.0 * s.acc_excess + cen * cen
     w = q_rw / (q_rw + q_lp)
     u = (w * u_lp[0] + (1.0 - w) * u_raw[0], w * u_lp[1] + (1.0 - w) * u_raw[1],
          w * u_lp[2] + (1.0 - w) * u_raw[2])
@@ -547,6 +549,10 @@ def _acc_measurement(c: np.record, s: np.record, dt: float, wl: tuple, Rw: tuple
       difference between its two stages (a slow push still passing through), and by the gyro's
       error over the rotation in its memory, ``(gyro_scale_error · 2τ |ω|)²``.
 
+    A body moving at ``acc_turn_speed`` v adds the centripetal acceleration of its turns to
+    both, ``(v Ω̄ / g)²``, ``Ω̄`` the vertical rate low-passed over ``acc_time_constant``
+    (docs/math.md §9.3).
+
     Shaking and vibration make the raw view noisy and leave the low-pass right; a fast turn,
     a saturated or miscalibrated gyro spoil the low-pass's memory while the raw view holds.
     Both errors are correlated in time: the variance per sample is ``max(1, T/Δt_a)`` times
@@ -583,6 +589,12 @@ def _acc_measurement(c: np.record, s: np.record, dt: float, wl: tuple, Rw: tuple
     _lowpass_sensitivity(s, al, 1.0 if start else al)
     s.acc_excess += al * (ex2_lp - s.acc_excess)
     s.acc_rate_lp += al * (np.sqrt(wl[0] ** 2 + wl[1] ** 2 + wl[2] ** 2) - s.acc_rate_lp)
+    if c.acc_turn_speed > 0.0:  # the vertical rate, about the low-pass's gravity
+        v = s.acc_lp2
+        n_v = np.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
+        if n_v > 0.0:
+            s.acc_yaw_lp += al * ((wl[0] * v[0] + wl[1] * v[1] + wl[2] * v[2]) / n_v
+                                  - s.acc_yaw_lp)
     if start:  # the low-pass is still forming its first average: the raw sample alone
         return u_raw, kq * q_raw, u_raw, q_raw, raw_status, 0.0
     u, q, status, share = _acc_blend(c, s, kq, u_raw, q_raw, ex, ex2)

@@ -40,7 +40,7 @@ NX_MAX = 9  # states: attitude error e, rate ω, gyro bias b
 COPIED_PARAMS = (
     "mukf_w0", "rate_process_noise", "max_dt", "gravity",
     "acc_norm_tolerance", "acc_gate", "acc_recovery_time", "acc_time_constant", "acc_bias_excess",
-    "mag_bias_gain",
+    "mag_bias_gain", "acc_turn_speed",
     "acc_disturbance_time", "acc_alignment_error", "gyro_scale_error", "gyro_gate",
     "mag_time_constant", "mag_consistency_tolerance", "mag_timing_error", "mag_undisturbed_time",
     "mag_disturbance_time", "mag_norm_tolerance", "mag_dip_tolerance", "mag_gate",
@@ -122,6 +122,7 @@ STATE = np.dtype(
         ("acc_excess", np.float64),  # low-passed (|a| − g)² (normalised), over its τ
         ("acc_dev", np.float64),  # low-passed |a − acc_lp|² (m²/s⁴): the samples' spread
         ("acc_rate_lp", np.float64),  # low-passed |ω|, over acc_time_constant
+        ("acc_yaw_lp", np.float64),  # low-passed vertical rate Ω̄ (signed), over acc_time_constant
         # the low-pass's rotation error per unit gyro bias error (rad per rad/s, body axes), per
         # stage (docs/math.md §9.1): its memory is turned by the bias-corrected gyro
         ("acc_sens", np.float64, (3, 3)),

@@ -572,6 +572,33 @@ def _running(c: Context) -> ChunkFn:
     return chunk
 
 
+def _laps(c: Context) -> ChunkFn:
+    """Laps at speed (a vehicle, a runner on a track): level, moving forward along the body's x
+    axis at ``speed`` m/s, a straight of ``straight`` s, then a half turn to the left over
+    ``turn_time`` s (the yaw rate a smooth pulse, up to ``2π/turn_time`` rad/s), and again. In a
+    turn the body feels the centripetal acceleration ``v Ω`` along its y axis, across gravity,
+    for as long as the turn lasts: an acceleration that points the same way in the body for
+    seconds, which no low-pass of the accelerometer averages out."""
+    c.level_start = True
+    v, s0, tt = c.args["speed"], c.args["straight"], c.args["turn_time"]
+    period = s0 + tt
+    c.intervals["turning"] = [(k * period + s0, (k + 1) * period)
+                              for k in range(int(c.duration // period))]
+
+    def yaw_rate(t: np.ndarray) -> np.ndarray:
+        tau = np.mod(t, period) - s0
+        return np.where(tau > 0.0, (np.pi / tt) * (1.0 - np.cos(2.0 * np.pi * tau / tt)), 0.0)
+
+    def chunk(ch: Chunk) -> None:
+        w = np.zeros((ch.t_fine.size, 3))
+        w[:, 2] = yaw_rate(ch.t_fine)
+        ch.omega_fine = w
+        a = np.zeros((ch.t.size, 3))
+        a[:, 1] = v * yaw_rate(ch.t)
+        ch.lin_acc_body = a
+    return chunk
+
+
 def _slow_turn(c: Context) -> ChunkFn:
     """Level, at rest for ``rest`` s, then a steady turn about the vertical at ``turn_rate``
     rad/s (a robot turning slowly: a turn rest detection must not take for a bias) with a linear
@@ -706,6 +733,9 @@ SCENARIOS: dict[str, Scenario] = _register(
     Scenario("running", "running with the sensor in a pocket: the thigh's swing (its "
              "centripetal acceleration along fixed body axes) and the steps' bounce, for minutes",
              _running, {"stride_freq": 1.4, "swing": 0.6, "lever": 0.35, "bounce": 1.5}),
+    Scenario("laps", "laps at speed: straights and half turns, the turns' centripetal "
+             "acceleration across gravity", _laps,
+             {"speed": 3.0, "straight": 4.0, "turn_time": 3.0}),
     Scenario("slow_turn", "level rest, then a steady slow turn about the vertical", _slow_turn,
              {"turn_rate": 0.04, "rest": 5.0, "vib_acc": 0.0}),
     Scenario("mag_attached", "a magnet attached to the body over the middle of the recording",

@@ -161,3 +161,27 @@ def test_fast_rotation_and_vibration_are_fast() -> None:
     spec = np.abs(np.fft.rfft(v.lin_acc[:, 0]))
     freqs = np.fft.rfftfreq(len(v), 1 / 400.0)
     assert freqs[np.argmax(spec[1:]) + 1] > 20.0
+
+
+def test_laps_turn_half_a_circle_with_their_centripetal_acceleration() -> None:
+    """`laps` (speed v, straight S, turn T): each turn is a half turn to the left about the
+    vertical, the body stays level, and at the turn's peak rate 2π/T the accelerometer reads
+    gravity plus v·2π/T along the body's y axis (the centripetal acceleration of a body moving
+    along its x axis), and gravity alone on the straights."""
+    v, s0, tt = 3.0, 4.0, 3.0
+    sim = simulate("laps", duration=21.0, rate=200.0, seed=3, speed=v, straight=s0,
+                   turn_time=tt, gyro_noise=0.0, acc_noise=0.0, gyro_bias=(0.0, 0.0, 0.0))
+    up = np.einsum("nji,j->ni", rotmat_np(sim.quat), np.array([0.0, 0.0, 1.0]))
+    assert np.abs(up - [0.0, 0.0, 1.0]).max() < 1e-9  # level throughout
+
+    def heading(k: int) -> float:
+        R = rotmat_np(sim.quat[k])
+        return float(np.arctan2(R[1, 0], R[0, 0]))
+
+    k0, k1 = np.searchsorted(sim.t, [s0 - 0.5, s0 + tt + 0.5])
+    turned = (heading(k1) - heading(k0)) % (2 * np.pi)
+    assert turned == pytest.approx(np.pi, abs=1e-3)
+    peak = np.searchsorted(sim.t, s0 + tt / 2)
+    assert sim.acc[peak] == pytest.approx([0.0, v * 2 * np.pi / tt, GRAVITY], abs=1e-6)
+    straight = sim.t % (s0 + tt) < s0 - 0.01
+    assert np.abs(sim.acc[straight] - [0.0, 0.0, GRAVITY]).max() < 1e-9
