@@ -759,8 +759,8 @@ def _run_bag(bag: str | Path, out: str | Path, params: Mapping[str, Any] | None,
                                     role="ground-truth")
         if smooth:
             steps = br.topics[imu_name].count  # the gyro's in split input: one step each
-            sizes = sm_core.window_sizes(smooth_window, smooth_overlap,
-                                         (br.end_ns - br.start_ns) * 1e-9 / max(steps - 1, 1))
+            sizes = sm_core.window_sizes(smooth_window, smooth_overlap, sm_core.mean_period(
+                (br.end_ns - br.start_ns) * 1e-9, steps))
             if two_way is not None and capture:
                 two_way.sizes = sizes
                 capturing = _Capture(adapter, two_way)

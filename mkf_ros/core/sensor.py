@@ -589,12 +589,12 @@ def _acc_measurement(c: np.record, s: np.record, dt: float, wl: tuple, Rw: tuple
     _lowpass_sensitivity(s, al, 1.0 if start else al)
     s.acc_excess += al * (ex2_lp - s.acc_excess)
     s.acc_rate_lp += al * (np.sqrt(wl[0] ** 2 + wl[1] ** 2 + wl[2] ** 2) - s.acc_rate_lp)
-    if c.acc_turn_speed > 0.0:  # the vertical rate, about the low-pass's gravity
-        v = s.acc_lp2
-        n_v = np.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
-        if n_v > 0.0:
-            s.acc_yaw_lp += al * ((wl[0] * v[0] + wl[1] * v[1] + wl[2] * v[2]) / n_v
-                                  - s.acc_yaw_lp)
+    if c.acc_turn_speed > 0.0:  # the vertical rate Ω̄, about the low-pass's gravity
+        up = s.acc_lp2
+        n_up = np.sqrt(up[0] * up[0] + up[1] * up[1] + up[2] * up[2])
+        if n_up > 0.0:
+            yaw = (wl[0] * up[0] + wl[1] * up[1] + wl[2] * up[2]) / n_up
+            s.acc_yaw_lp += al * (yaw - s.acc_yaw_lp)
     if start:  # the low-pass is still forming its first average: the raw sample alone
         return u_raw, kq * q_raw, u_raw, q_raw, raw_status, 0.0
     u, q, status, share = _acc_blend(c, s, kq, u_raw, q_raw, ex, ex2)

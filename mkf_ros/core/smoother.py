@@ -135,10 +135,16 @@ def check_window(window: int | None, overlap: int | None) -> None:
                          f"{overlap}")
 
 
-def mean_period(dts: np.ndarray) -> float:
-    """The mean sample period of steps ``dts`` (s; the first step's is not an interval of the
-    recording): what :func:`window_sizes` converts the default overlap with."""
-    return float(np.mean(dts[1:])) if len(dts) > 1 else 0.0
+def mean_period(duration: float, steps: int) -> float:
+    """The mean sample period (s) of ``steps`` samples spanning ``duration`` s (0 for fewer than
+    two): what :func:`window_sizes` converts the default overlap with."""
+    return duration / (steps - 1) if steps > 1 else 0.0
+
+
+def steps_period(dts: np.ndarray) -> float:
+    """:func:`mean_period` of the steps ``dts`` (the first step's is not an interval of the
+    recording)."""
+    return mean_period(float(np.sum(dts[1:])), len(dts))
 
 
 class SmoothOutputs(NamedTuple):
@@ -581,7 +587,7 @@ def smooth_run(f: AttitudeFilter, dts: np.ndarray, gyr: np.ndarray, acc: np.ndar
     :meth:`AttitudeFilter.run`; ``window``, ``overlap`` as :func:`window_sizes` resolves them
     at the steps' mean period): the filtered and the smoothed outputs, one row per sample."""
     n = len(dts)
-    window, overlap = window_sizes(window, overlap, mean_period(dts))
+    window, overlap = window_sizes(window, overlap, steps_period(dts))
     filt, sm = new_batch_outputs(n), new_smooth_outputs(n)
     for pos, fr, sr in smooth_stream(f, n, array_reader(dts, gyr, acc, mag), window, overlap):
         k = len(sr.valid)
@@ -736,7 +742,7 @@ def smooth_both_ways(f: AttitudeFilter, dts: np.ndarray, gyr: np.ndarray, acc: n
     Returns the filtered outputs and the smoothed ones with ``quat`` and ``cov`` fused (rate
     and bias the forward smoother's); ``window``, ``overlap`` as :func:`smooth_run`."""
     n = len(dts)
-    window, overlap = window_sizes(window, overlap, mean_period(dts))
+    window, overlap = window_sizes(window, overlap, steps_period(dts))
     q_b, P_b, ok_b = np.empty((n, 4)), np.empty((n, 3, 3)), np.zeros(n, dtype=np.bool_)
 
     def write(first: int, q: np.ndarray, P: np.ndarray, ok: np.ndarray) -> None:
