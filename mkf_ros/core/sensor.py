@@ -474,9 +474,10 @@ def _gyro(c: np.record, s: np.record, k: np.record, g: tuple, has_g: bool) -> tu
 # --- 4. the accelerometer --------------------------------------------------------------------
 @hot
 def _acc_blend(c: np.record, s: np.record, kq: float, u_raw: tuple, q_raw: float, ex: float,
-               ex2: float) -> tuple:
+               ex2: float, qc: float) -> tuple:
     """The low-pass view of gravity and its blend with the raw one (:func:`_acc_measurement`);
-    returns ``(u, q, status, share)``, ``share`` the low-pass's weight in ``u``."""
+    returns ``(u, q, status, share)``, ``share`` the low-pass's weight in ``u``; ``qc`` the
+    variance of an error common to both views, which the blend does not reduce."""
     g0 = c.gravity
     tol = c.acc_norm_tolerance
     lp = (s.acc_lp2[0], s.acc_lp2[1], s.acc_lp2[2])
@@ -487,18 +488,16 @@ def _acc_blend(c: np.record, s: np.record, kq: float, u_raw: tuple, q_raw: float
     # a slow acceleration (a push, a brake) is still passing while the stages disagree
     a1 = s.acc_lp
     d2 = ((a1[0] - lp[0]) ** 2 + (a1[1] - lp[1]) ** 2 + (a1[2] - lp[2]) ** 2) / (g0 * g0)
-    # a turn at speed: the centripetal acceleration v Ω̄ across gravity (docs/math.md §9.3)
-    cen = c.acc_turn_speed * s.acc_yaw_lp / g0
-    q_lp = c.acc_disturbance_var + ex_lp * ex_lp + d2 + rot * rot + cen * cen
+    q_lp = c.acc_disturbance_var + ex_lp * ex_lp + d2 + rot * rot
     if abs(ex_lp) > tol:  # refused (the low-pass holds a sustained acceleration)
-        return u_lp, kq * q_lp, 2, 1.0
+        return u_lp, kq * q_lp + qc, 2, 1.0
     if abs(ex) > tol:  # an implausible raw sample has no say (the low-pass still takes it:
-        return u_lp, kq * q_lp, 1, 1.0  # shaking is symmetric about gravity)
-    q_rw = c.acc_disturbance_var + ex2 + 2.0 * s.acc_excess + cen * cen
+        return u_lp, kq * q_lp + qc, 1, 1.0  # shaking is symmetric about gravity)
+    q_rw = c.acc_disturbance_var + ex2 + 2.0 * s.acc_excess
     w = q_rw / (q_rw + q_lp)
     u = (w * u_lp[0] + (1.0 - w) * u_raw[0], w * u_lp[1] + (1.0 - w) * u_raw[1],
          w * u_lp[2] + (1.0 - w) * u_raw[2])
-    return _unit_t(u), kq * q_lp * q_rw / (q_lp + q_rw), 0, w
+    return _unit_t(u), kq * q_lp * q_rw / (q_lp + q_rw) + qc, 0, w
 
 
 @hot
@@ -549,9 +548,10 @@ def _acc_measurement(c: np.record, s: np.record, dt: float, wl: tuple, Rw: tuple
       difference between its two stages (a slow push still passing through), and by the gyro's
       error over the rotation in its memory, ``(gyro_scale_error · 2τ |ω|)²``.
 
-    A body moving at ``acc_turn_speed`` v adds the centripetal acceleration of its turns to
-    both, ``(v Ω̄ / g)²``, ``Ω̄`` the vertical rate low-passed over ``acc_time_constant``
-    (docs/math.md §9.3).
+    A body moving at ``acc_turn_speed`` v adds the centripetal acceleration of its turns,
+    ``(v Ω̄ / g)²``, ``Ω̄`` the vertical rate low-passed over ``acc_time_constant`` τ: the same
+    error in both views (added to the blend's variance, which it does not reduce), correlated
+    over τ (times ``max(1, τ/Δt_a)``; docs/math.md §9.3).
 
     Shaking and vibration make the raw view noisy and leave the low-pass right; a fast turn,
     a saturated or miscalibrated gyro spoil the low-pass's memory while the raw view holds.
@@ -597,7 +597,11 @@ def _acc_measurement(c: np.record, s: np.record, dt: float, wl: tuple, Rw: tuple
             s.acc_yaw_lp += al * (yaw - s.acc_yaw_lp)
     if start:  # the low-pass is still forming its first average: the raw sample alone
         return u_raw, kq * q_raw, u_raw, q_raw, raw_status, 0.0
-    u, q, status, share = _acc_blend(c, s, kq, u_raw, q_raw, ex, ex2)
+    # a turn at speed: the centripetal acceleration v Ω̄ across gravity, in both views alike and
+    # correlated over the low-pass's memory (docs/math.md §9.3)
+    cen = c.acc_turn_speed * s.acc_yaw_lp / c.gravity
+    u, q, status, share = _acc_blend(c, s, kq, u_raw, q_raw, ex, ex2,
+                                     _correlated(tau, dta) * cen * cen)
     return u, q, u_raw, q_raw, status, share
 
 

@@ -420,8 +420,10 @@ def test_a_turn_at_speed_is_not_taken_for_a_tilt(algorithm: str) -> None:
     across gravity for seconds), no magnetometer. Left to its defaults (a body that turns in
     place) the filter follows the centripetal acceleration: 5.3° of tilt at the turns' ends
     (3.4° RMS after the first 10 s). Told the speed (``acc_turn_speed = 3``: docs/math.md §9.3)
-    the gyro carries the tilt through the turns: the RMS falls by at least a third and the
-    worst sample stays below 3.5°; and its published 3σ tilt still covers the error."""
+    the gyro carries the tilt through the turns: the RMS falls by at least two thirds and the
+    worst sample stays below 1.5° (0.72° and 1.12°; 1.99° and 2.82° while the term was added
+    to each view, not to their blend, with the sample's correlation time); and its published
+    3σ tilt still covers the error."""
     sim = simulate("laps", duration=120.0, rate=100.0, seed=2, speed=3.0)
     runs = {v: mkf_ros.estimate(sim.gyr, sim.acc, timestamps=sim.t, algorithm=algorithm,
                                 acc_turn_speed=v) for v in (0.0, 3.0)}
@@ -429,8 +431,8 @@ def test_a_turn_at_speed_is_not_taken_for_a_tilt(algorithm: str) -> None:
             for v, r in runs.items()}
     rms = {v: float(np.sqrt(np.mean(e * e))) for v, e in incl.items()}
     assert incl[0.0].max() > 4.5  # the turns do pull an estimate that ignores them
-    assert rms[3.0] < rms[0.0] * 2.0 / 3.0, rms
-    assert incl[3.0].max() < 3.5, incl[3.0].max()
+    assert rms[3.0] < rms[0.0] / 3.0, rms
+    assert incl[3.0].max() < 1.5, incl[3.0].max()
     cov = runs[3.0].cov[1000:]  # the published tilt variance, world x and y
     sd = np.degrees(np.sqrt(cov[:, 0, 0] + cov[:, 1, 1]))
     assert np.mean(incl[3.0] <= 3.0 * sd) > 0.99
