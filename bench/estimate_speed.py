@@ -2,16 +2,17 @@
 
     ./run bench estimate_speed [--samples N] [--repeat K] [--tables filters smoother]
 
-Prints samples/s (best of K runs) for every algorithm × chart × chart update, 6D (gyro + acc)
-and 9D (+ magnetometer), and in the same run the per-sample loop of ``imufusion`` (x-io Fusion,
-C: ``update`` and read the quaternion every sample) and ``vqf.VQF.updateBatch`` (C++). Ratios
-are against the imufusion loop (targets: MEKF 9D ≥ 1.0, a compiled peer's speed; MUKF ≥ ¼ of the
+Prints samples/s for every algorithm × chart × chart update, 6D (gyro + acc) and 9D (+
+magnetometer), and in the same run the per-sample loop of ``imufusion`` (x-io Fusion, C:
+``update`` and read the quaternion every sample) and ``vqf.VQF.updateBatch`` (C++). Ratios are
+against the imufusion loop (targets: MEKF 9D ≥ 1.0, a compiled peer's speed; MUKF ≥ ¼ of the
 MEKF rate). Our figures include the per-sample 3×3 world covariance, rate and bias outputs.
+Each figure is the best of K rounds, every column run once per round (:func:`best_times`).
 
 The smoother's table: ``estimate(smooth=True)`` (RTS) and ``smooth="two-way"`` against the
 causal ``estimate`` of the same algorithm, wall time and CPU time (all threads: the two-way
-smoother runs its two passes in parallel), best of K; offline VQF (``vqf.offlineVQF``) in the
-same run. Target: smoothing ≤ 3× the causal filter's time.
+smoother runs its two passes in parallel), best of K rounds; offline VQF (``vqf.offlineVQF``)
+in the same run. Target: smoothing ≤ 3× the causal filter's time.
 """
 
 from __future__ import annotations
@@ -27,46 +28,52 @@ import mkf_ros
 from mkf_ros.sim import simulate
 
 
-def best_times(fn: Callable[[], object], repeat: int) -> tuple[float, float]:
-    """Best wall and best CPU time (this process, every thread) of ``repeat`` runs [s]."""
-    wall = cpu = float("inf")
+def best_times(fns: dict[str, Callable[[], object]], repeat: int
+               ) -> dict[str, tuple[float, float]]:
+    """Best wall and best CPU time (this process, every thread) of ``repeat`` runs of each
+    function [s], in rounds: every function once per round, so that a machine whose speed
+    drifts during the run (a shared VM: the same loop measured 345 k and 600 k samples/s ten
+    minutes apart) slows every column alike, instead of the ones measured in its slow minutes."""
+    best = {k: (float("inf"), float("inf")) for k in fns}
     for _ in range(repeat):
-        t0, c0 = time.perf_counter(), time.process_time()
-        fn()
-        wall, cpu = min(wall, time.perf_counter() - t0), min(cpu, time.process_time() - c0)
-    return wall, cpu
+        for k, fn in fns.items():
+            t0, c0 = time.perf_counter(), time.process_time()
+            fn()
+            wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+            best[k] = (min(best[k][0], wall), min(best[k][1], cpu))
+    return best
 
 
 def smoother_table(gyr: np.ndarray, acc: np.ndarray, mag: np.ndarray, rate: float,
                    repeat: int) -> None:
     """Print the smoother's cost against the causal filter (see the module docstring)."""
-    print(f"\nsmoothing {len(gyr):,} samples at {rate:g} Hz, best of {repeat} runs, "
+    print(f"\nsmoothing {len(gyr):,} samples at {rate:g} Hz, best of {repeat} rounds, "
           f"{len(os.sched_getaffinity(0))} cores\n")
     print("| algorithm | dim | mode | wall s | × causal | CPU s | × causal |")
     print("|---|---|---|---:|---:|---:|---:|")
-    for algo in ("mekf", "mukf"):
-        for dim, m in (("6D", None), ("9D", mag)):
-            base = None
-            for mode in (False, True, "two-way"):
-                wall, cpu = best_times(lambda m=m, a=algo, s=mode: mkf_ros.estimate(
-                    gyr, acc, m, dt=1.0 / rate, algorithm=a, smooth=s), repeat)
-                base = base or (wall, cpu)
-                name = {False: "causal", True: "RTS (smooth=True)"}.get(mode, mode)
-                print(f"| {algo} | {dim} | {name} | {wall:.3f} | {wall / base[0]:.2f} | "
-                      f"{cpu:.3f} | {cpu / base[1]:.2f} |")
+    names = {False: "causal", True: "RTS (smooth=True)", "two-way": "two-way"}
+    fns: dict[str, Callable[[], object]] = {
+        f"{algo} | {dim} | {names[mode]}": (lambda m=m, a=algo, s=mode: mkf_ros.estimate(
+            gyr, acc, m, dt=1.0 / rate, algorithm=a, smooth=s))
+        for algo in ("mekf", "mukf") for dim, m in (("6D", None), ("9D", mag))
+        for mode in names}
     try:
         import vqf
 
         for dim, m in (("6D", None), ("9D", mag)):
-            wall, cpu = best_times(lambda m=m: vqf.offlineVQF(gyr, acc, m, 1.0 / rate), repeat)
-            print(f"| vqf offlineVQF (C++) | {dim} | offline | {wall:.3f} | | {cpu:.3f} | |")
+            fns[f"vqf offlineVQF (C++) | {dim} | offline"] = (
+                lambda m=m: vqf.offlineVQF(gyr, acc, m, 1.0 / rate))
     except ImportError:
         print("vqf not installed (./run bench installs requirements/bench.txt)")
+    best = best_times(fns, repeat)
+    for key, (wall, cpu) in best.items():
+        if key.startswith("vqf"):
+            print(f"| {key} | {wall:.3f} | | {cpu:.3f} | |")
+            continue
+        base = best[key.rsplit("|", 1)[0] + "| causal"]
+        print(f"| {key} | {wall:.3f} | {wall / base[0]:.2f} | {cpu:.3f} | {cpu / base[1]:.2f} |")
 
 
-def best_rate(fn: Callable[[], object], n: int, repeat: int) -> float:
-    """Samples per second of the best wall time of ``repeat`` runs (:func:`best_times`)."""
-    return n / best_times(fn, repeat)[0]
 
 
 def main() -> None:
@@ -86,7 +93,7 @@ def main() -> None:
     if "filters" not in args.tables:
         return
 
-    rows: list[tuple[str, str, float]] = []
+    fns: dict[tuple[str, str], Callable[[], object]] = {}
     try:
         import imufusion
 
@@ -107,33 +114,34 @@ def main() -> None:
                 return out
             return run
 
-        for dim, m in (("6D", False), ("9D", True)):
-            rows.append(("imufusion per-sample loop", dim, best_rate(fusion(m), n, args.repeat)))
+        for dim, use in (("6D", False), ("9D", True)):
+            fns[("imufusion per-sample loop", dim)] = fusion(use)
     except ImportError:
         print("imufusion not installed (./run bench installs requirements/bench.txt)")
     try:
         import vqf
 
         for dim, m in (("6D", None), ("9D", mag)):
-            rows.append(("vqf updateBatch (C++)", dim, best_rate(
-                lambda m=m: vqf.VQF(1.0 / rate).updateBatch(gyr, acc, m), n, args.repeat)))
+            fns[("vqf updateBatch (C++)", dim)] = (
+                lambda m=m: vqf.VQF(1.0 / rate).updateBatch(gyr, acc, m))
     except ImportError:
         print("vqf not installed (./run bench installs requirements/bench.txt)")
-
-    ours: dict[tuple[str, str], float] = {}
     for algo in ("mekf", "mukf"):
         for chart in ("o", "rp", "mrp", "rv"):
             for cu in (True, False):
                 for dim, m in (("6D", None), ("9D", mag)):
-                    r = best_rate(lambda m=m, a=algo, c=chart, u=cu: mkf_ros.estimate(
-                        gyr, acc, m, dt=1.0 / rate, algorithm=a, chart=c, chart_update=u),
-                        n, args.repeat)
-                    name = f"mkf_ros {algo} {chart} {'CU' if cu else 'reset'}"
-                    rows.append((name, dim, r))
-                    ours[(f"{algo} {chart} {cu}", dim)] = r
+                    fns[(f"mkf_ros {algo} {chart} {'CU' if cu else 'reset'}", dim)] = (
+                        lambda m=m, a=algo, c=chart, u=cu: mkf_ros.estimate(
+                            gyr, acc, m, dt=1.0 / rate, algorithm=a, chart=c, chart_update=u))
+    keys = list(fns)
+    best = best_times({f"{name} {dim}": fns[(name, dim)] for name, dim in keys}, args.repeat)
+    rows = [(name, dim, n / best[f"{name} {dim}"][0]) for name, dim in keys]
+    ours = {(name.split(" ", 1)[1], dim): r for name, dim, r in rows
+            if name.startswith("mkf_ros")}
 
     ref = {dim: r for name, dim, r in rows if name.startswith("imufusion")}
-    print(f"\n{n:,} samples at {rate:g} Hz, best of {args.repeat} runs, one core\n")
+    print(f"\n{n:,} samples at {rate:g} Hz, best of {args.repeat} rounds (every "
+          "filter once per round), one core\n")
     print(f"| {'filter':<30} | dim | {'samples/s':>11} | vs imufusion loop |")
     print(f"|{'-' * 32}|-----|{'-' * 13}|-------------------|")
     for name, dim, r in rows:
