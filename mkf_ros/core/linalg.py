@@ -288,6 +288,24 @@ def largest_eigh33_t(A: tuple) -> tuple[float, tuple]:
 
 
 @jit_inline
+def below33_t(P: np.ndarray, t: float) -> bool:
+    """Whether every eigenvalue of the symmetric leading 3×3 block of ``P`` is certainly below
+    ``t`` (> 0): the coefficients of the characteristic polynomial of ``t I − P`` alternate
+    (Descartes; its roots are real), each by a margin far above its rounding. False: not
+    certain."""
+    m00, m11, m22 = t - P[0, 0], t - P[1, 1], t - P[2, 2]
+    m01, m02, m12 = -0.5 * (P[0, 1] + P[1, 0]), -0.5 * (P[0, 2] + P[2, 0]), \
+        -0.5 * (P[1, 2] + P[2, 1])
+    e = 1e-12 * t
+    if not m00 + m11 + m22 > e:
+        return False
+    c11, c22 = m11 * m22 - m12 * m12, m00 * m22 - m02 * m02
+    if not c11 + c22 + m00 * m11 - m01 * m01 > e * t:
+        return False
+    return m00 * c11 - m01 * (m01 * m22 - m12 * m02) + m02 * (m01 * m12 - m11 * m02) > e * t * t
+
+
+@jit_inline
 def scale_direction(P: np.ndarray, n: int, u: tuple, s: float) -> None:
     """``P ← D P Dᵀ`` with ``D = I + (s − 1) u uᵀ`` on rows and columns 0–2 of the leading
     ``n × n`` block (``u`` unit): the variance along ``u`` times ``s²``, every correlation

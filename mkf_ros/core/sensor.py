@@ -39,6 +39,7 @@ from mkf_ros.core.baseline_glue import (
 from mkf_ros.core.frames import align_tilt, heading_correction, keep_yaw
 from mkf_ros.core.linalg import (
     ZERO33,
+    below33_t,
     copy_block,
     copy_into,
     eye,
@@ -111,6 +112,9 @@ from mkf_ros.core.state import (
 )
 
 ZERO3 = (0.0, 0.0, 0.0)
+#: How far (relative) an attitude variance may exceed the cap before it is scaled back to it
+#: (:func:`_cap_attitude_variance`).
+CAP_SLACK = 1e-6
 #: The per-sample steps: compiled once each and linked into :func:`step` (they take the
 #: records, passed by pointer, so a call costs little).
 hot = jit_inline
@@ -1100,21 +1104,31 @@ def _cap_attitude_variance(s: np.record, nx: int) -> None:
     then any other direction still above it (an extreme ``rate_process_noise`` leaves the
     tilt unknown between two accelerometer samples), along the largest eigenvector. Each a
     congruence ``P ← D P Dᵀ`` with ``D = I + (s − 1) v vᵀ`` on the attitude rows
-    (:func:`~mkf_ros.core.linalg.scale_direction`): P stays symmetric PSD."""
+    (:func:`~mkf_ros.core.linalg.scale_direction`): P stays symmetric PSD.
+
+    Each is scaled back to the cap once it exceeds it by more than :data:`CAP_SLACK`
+    (relative; the published covariance is capped exactly by
+    :func:`mkf_ros.core.filter.output`), and the eigenvalue is computed only when
+    :func:`~mkf_ros.core.linalg.below33_t` cannot rule it out: a 6D heading sits at the cap
+    for good, and scaling it back and computing the largest eigenvalue at every step cost
+    ~14 % of every 6D step once the heading was unknown (MEKF 6D, 1000 s at 200 Hz, three
+    alternating runs: 1.73–1.83 µs per sample before, 1.52–1.59 with the slack; 9D, whose
+    heading is known, unchanged). Outputs move by ≤ 2e-6 (MUKF 6D), 3e-8 (MEKF 6D)."""
     P = s.P
     u = rotmat_t(t4(s.q_c))[2]
     v = 0.0
     for i in range(3):
         for j in range(3):
             v += u[i] * P[i, j] * u[j]
-    if v > YAW_VAR_UNKNOWN:
+    top = YAW_VAR_UNKNOWN * (1.0 + CAP_SLACK)
+    if v > top:
         scale_direction(P, nx, u, np.sqrt(YAW_VAR_UNKNOWN / v))
-    if P[0, 0] + P[1, 1] + P[2, 2] <= YAW_VAR_UNKNOWN:
-        return  # (no eigenvalue exceeds the trace)
+    if P[0, 0] + P[1, 1] + P[2, 2] <= top or below33_t(P, top):
+        return  # (no eigenvalue exceeds the trace, or certainly none exceeds the top)
     for _ in range(3):
         lam, e = largest_eigh33_t(((P[0, 0], P[0, 1], P[0, 2]), (P[1, 0], P[1, 1], P[1, 2]),
                                    (P[2, 0], P[2, 1], P[2, 2])))
-        if not lam > YAW_VAR_UNKNOWN * (1.0 + 1e-9):
+        if not lam > top:
             return
         scale_direction(P, nx, e, np.sqrt(YAW_VAR_UNKNOWN / lam))
 

@@ -251,7 +251,8 @@ def test_no_attitude_variance_beyond_unknown_at_the_extreme_rate_noise(algorithm
     """An angle uniform over ±180° has variance π²/3; a Gaussian beyond it about any axis means
     nothing. At the largest accepted rate_process_noise the published covariance reached
     5e15 rad² (MUKF) and 1e8 rad² (Euler UKF). Now every published eigenvalue is ≤ π²/3 at
-    every sample (and the MKFs' own attitude block too)."""
+    every sample (and the MKFs' own attitude block too, within the 1e-6 by which it may exceed
+    the cap before it is scaled back)."""
     sim = simulate("slow_rotation", duration=3, rate=100, seed=3)
     f = AttitudeFilter(algorithm=algorithm, use_mag=use_mag,
                        rate_process_noise=BY_NAME["rate_process_noise"].range[1])
@@ -261,4 +262,4 @@ def test_no_attitude_variance_beyond_unknown_at_the_extreme_rate_noise(algorithm
         assert np.linalg.eigvalsh(f.covariance).max() <= cap, k
         assert psd_violation(f.covariance) <= 1e-9, k
         if algorithm in ("mekf", "mukf"):
-            assert np.linalg.eigvalsh(f.state_covariance[:3, :3]).max() <= cap * (1 + 1e-9), k
+            assert np.linalg.eigvalsh(f.state_covariance[:3, :3]).max() <= cap * (1 + 1e-6), k

@@ -82,6 +82,33 @@ def test_largest_eigenpair_of_a_symmetric_3x3() -> None:
         np.testing.assert_allclose(A @ v, lam * v, atol=1e-7 * scale)
 
 
+def test_below_is_never_wrong_and_certain_with_a_margin() -> None:
+    """``below33_t(P, t)``: True only if every eigenvalue (numpy.linalg.eigvalsh) is below
+    ``t``, False at and above it; True for ``t`` twice the largest, and for a 6D heading's
+    covariance (one variance at the cap, two small coupled ones: the cap's fast path) as
+    soon as ``t`` exceeds the largest by a relative 1e-9."""
+    from mkf_ros.core.linalg import below33_t
+
+    def check(A: np.ndarray, certain_from: float) -> None:
+        A = 0.5 * (A + A.T)
+        lam = np.linalg.eigvalsh(A)[-1]
+        for t in (lam * (1 + 1e-9), lam * (1 + 1e-6), lam * 2, lam, lam * (1 - 1e-9), lam / 2):
+            if not t > 0:
+                continue
+            got = below33_t(A, t)
+            assert not got or lam < t, (A, t)
+            assert got or t < lam * certain_from, (lam, t)
+
+    for A in _symmetric_cases():
+        if np.linalg.eigvalsh(0.5 * (A + A.T)).min() >= 0:
+            check(A, 2.0)
+    rng = np.random.default_rng(11)
+    for _ in range(300):
+        Q, _r = np.linalg.qr(rng.normal(size=(3, 3)))
+        A = Q @ np.diag([np.pi ** 2 / 3, *10.0 ** rng.uniform(-6, -1, 2)]) @ Q.T
+        check(A + 1e-4 * rng.uniform() * _spd(rng, 3) / 3, 1.0 + 1e-9)
+
+
 def test_eigenvalues_capped_and_the_rest_kept() -> None:
     from mkf_ros.core.linalg import cap_eigenvalues33_t
 
