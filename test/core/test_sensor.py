@@ -142,14 +142,17 @@ def test_zero_length_step_and_heading_after_gap(algorithm: str) -> None:
     assert g.covariance[2, 2] == pytest.approx(np.pi**2 / 3, rel=1e-3)
 
 
+@pytest.mark.xfail(strict=True, reason="known: the MUKF's sigma points carry an unknown heading's "
+                   "spread (docs/real_data.md, the MUKF's two-way figure); the bounded spread "
+                   "that fixes it moved ardrone_imu.bag's heading 7 deg at 77.86 s, not landed")
 def test_an_unknown_heading_does_not_widen_the_mukf_tilt() -> None:
     """A 6D heading reaches its cap (π²/3, σ 104°) after minutes of motion without rest. The
     MUKF's sigma points then spread ±3.5 σ about the vertical, where the RP chart's coordinates
     no longer compose as rotations, and on RepoIMU's reversed Test10 its published tilt σ grew
     to 11° where the MEKF's stayed at 3°. Swings about the vertical of an IMU 0.3 m from the
     axis, tilted 20° (7 rad/s, 15 m/s² of centripetal acceleration), from the same state with
-    the heading at the cap: the MUKF's tilt σ within 2× the MEKF's at every sample (4.1× before
-    the sigma points' heading spread was bounded)."""
+    the heading at the cap: the MUKF's tilt σ within 2× the MEKF's at every sample (today 4.1×;
+    1.5× with the sigma points' heading spread bounded by (π/4)²)."""
     from scipy.spatial.transform import Rotation
 
     rate, n = 100.0, 2000
