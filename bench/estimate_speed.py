@@ -21,15 +21,17 @@ import argparse
 import os
 import time
 from collections.abc import Callable
+from typing import TypeVar
 
 import numpy as np
 
 import mkf_ros
 from mkf_ros.sim import simulate
 
+K = TypeVar("K")  #: a column's key
 
-def best_times(fns: dict[str, Callable[[], object]], repeat: int
-               ) -> dict[str, tuple[float, float]]:
+
+def best_times(fns: dict[K, Callable[[], object]], repeat: int) -> dict[K, tuple[float, float]]:
     """Best wall and best CPU time (this process, every thread) of ``repeat`` runs of each
     function [s], in rounds: every function once per round, so that a machine whose speed
     drifts during the run (a shared VM: the same loop measured 345 k and 600 k samples/s ten
@@ -52,8 +54,8 @@ def smoother_table(gyr: np.ndarray, acc: np.ndarray, mag: np.ndarray, rate: floa
     print("| algorithm | dim | mode | wall s | × causal | CPU s | × causal |")
     print("|---|---|---|---:|---:|---:|---:|")
     names = {False: "causal", True: "RTS (smooth=True)", "two-way": "two-way"}
-    fns: dict[str, Callable[[], object]] = {
-        f"{algo} | {dim} | {names[mode]}": (lambda m=m, a=algo, s=mode: mkf_ros.estimate(
+    fns: dict[tuple[str, str, str], Callable[[], object]] = {
+        (algo, dim, names[mode]): (lambda m=m, a=algo, s=mode: mkf_ros.estimate(
             gyr, acc, m, dt=1.0 / rate, algorithm=a, smooth=s))
         for algo in ("mekf", "mukf") for dim, m in (("6D", None), ("9D", mag))
         for mode in names}
@@ -61,18 +63,15 @@ def smoother_table(gyr: np.ndarray, acc: np.ndarray, mag: np.ndarray, rate: floa
         import vqf
 
         for dim, m in (("6D", None), ("9D", mag)):
-            fns[f"vqf offlineVQF (C++) | {dim} | offline"] = (
+            fns[("vqf offlineVQF (C++)", dim, "offline")] = (
                 lambda m=m: vqf.offlineVQF(gyr, acc, m, 1.0 / rate))
     except ImportError:
         print("vqf not installed (./run bench installs requirements/bench.txt)")
     best = best_times(fns, repeat)
-    for key, (wall, cpu) in best.items():
-        if key.startswith("vqf"):
-            print(f"| {key} | {wall:.3f} | | {cpu:.3f} | |")
-            continue
-        base = best[key.rsplit("|", 1)[0] + "| causal"]
-        print(f"| {key} | {wall:.3f} | {wall / base[0]:.2f} | {cpu:.3f} | {cpu / base[1]:.2f} |")
-
+    for (algo, dim, mode), (wall, cpu) in best.items():
+        base = best.get((algo, dim, "causal"))
+        ratios = (f"{wall / base[0]:.2f}", f"{cpu / base[1]:.2f}") if base else ("", "")
+        print(f"| {algo} | {dim} | {mode} | {wall:.3f} | {ratios[0]} | {cpu:.3f} | {ratios[1]} |")
 
 
 
@@ -133,11 +132,8 @@ def main() -> None:
                     fns[(f"mkf_ros {algo} {chart} {'CU' if cu else 'reset'}", dim)] = (
                         lambda m=m, a=algo, c=chart, u=cu: mkf_ros.estimate(
                             gyr, acc, m, dt=1.0 / rate, algorithm=a, chart=c, chart_update=u))
-    keys = list(fns)
-    best = best_times({f"{name} {dim}": fns[(name, dim)] for name, dim in keys}, args.repeat)
-    rows = [(name, dim, n / best[f"{name} {dim}"][0]) for name, dim in keys]
-    ours = {(name.split(" ", 1)[1], dim): r for name, dim, r in rows
-            if name.startswith("mkf_ros")}
+    best = best_times(fns, args.repeat)
+    rows = [(name, dim, n / wall) for (name, dim), (wall, _) in best.items()]
 
     ref = {dim: r for name, dim, r in rows if name.startswith("imufusion")}
     print(f"\n{n:,} samples at {rate:g} Hz, best of {args.repeat} rounds (every "
@@ -147,8 +143,9 @@ def main() -> None:
     for name, dim, r in rows:
         ratio = f"{r / ref[dim]:.2f}" if dim in ref else "n/a"
         print(f"| {name:<30} | {dim}  | {r:>11,.0f} | {ratio:>17} |")
-    mekf9 = np.mean([v for (k, d), v in ours.items() if k.startswith("mekf") and d == "9D"])
-    mukf9 = np.mean([v for (k, d), v in ours.items() if k.startswith("mukf") and d == "9D"])
+    mekf9, mukf9 = (np.mean([r for name, dim, r in rows
+                             if name.startswith(f"mkf_ros {a} ") and dim == "9D"])
+                    for a in ("mekf", "mukf"))
     print(f"\nmean 9D rate: MEKF {mekf9:,.0f}/s, MUKF {mukf9:,.0f}/s, "
           f"MUKF/MEKF = {mukf9 / mekf9:.3f} (target ≥ 0.25; the paper reports about 1/3)")
     if "9D" in ref:

@@ -288,14 +288,17 @@ def largest_eigh33_t(A: tuple) -> tuple[float, tuple]:
 
 
 @jit_inline
-def below33_t(P: np.ndarray, t: float) -> bool:
-    """Whether every eigenvalue of the symmetric leading 3×3 block of ``P`` is certainly below
-    ``t`` (> 0): the coefficients of the characteristic polynomial of ``t I − P`` alternate
-    (Descartes; its roots are real), each by a margin far above its rounding. False: not
-    certain."""
-    m00, m11, m22 = t - P[0, 0], t - P[1, 1], t - P[2, 2]
-    m01, m02, m12 = -0.5 * (P[0, 1] + P[1, 0]), -0.5 * (P[0, 2] + P[2, 0]), \
-        -0.5 * (P[1, 2] + P[2, 1])
+def below33_t(A: tuple, t: float) -> bool:
+    """Whether every eigenvalue of the symmetric 3×3 ``A`` (tuple of rows) is certainly below
+    ``t`` (> 0), without an eigenvalue: the roots of ``det(x I − M)``, ``M = t I − A``, are all
+    positive iff its coefficients alternate in sign (its roots are real: Descartes), i.e. iff
+    ``tr M``, the sum of ``M``'s principal 2×2 minors and ``det M`` are positive. Each is asked
+    to be so by a margin (``1e-12 t^k``, far above their rounding, ~1e-15 t^k), so that True
+    leaves no doubt: ``λ_max < t`` by more than a closed-form eigenvalue's rounding, and a
+    caller decides as :func:`largest_eigh33_t` would. False: not certain (compute it)."""
+    m00, m11, m22 = t - A[0][0], t - A[1][1], t - A[2][2]
+    m01, m02, m12 = -0.5 * (A[0][1] + A[1][0]), -0.5 * (A[0][2] + A[2][0]), \
+        -0.5 * (A[1][2] + A[2][1])
     e = 1e-12 * t
     if not m00 + m11 + m22 > e:
         return False
@@ -303,6 +306,15 @@ def below33_t(P: np.ndarray, t: float) -> bool:
     if not c11 + c22 + m00 * m11 - m01 * m01 > e * t:
         return False
     return m00 * c11 - m01 * (m01 * m22 - m12 * m02) + m02 * (m01 * m12 - m11 * m02) > e * t * t
+
+
+@jit_inline
+def none_above33_t(C: tuple, t: float) -> bool:
+    """The quick test before an eigenvalue: no eigenvalue of the positive semidefinite 3×3
+    ``C`` exceeds ``t`` because its trace does not (every eigenvalue is at most the trace), or
+    certainly none does (:func:`below33_t`). False: compute it. A 6D heading sits at the cap
+    for good, where the trace never passes and the eigenvalue cost ~14 % of a step."""
+    return C[0][0] + C[1][1] + C[2][2] <= t or below33_t(C, t)
 
 
 @jit_inline
@@ -329,8 +341,8 @@ def cap_eigenvalues33_t(C: tuple, cap: float) -> tuple:
     that the result is positive semidefinite by construction. A subtraction
     ``C − (λ − cap) v vᵀ`` or a congruence along ``v`` is not: at λ ≈ 10⁹ the rounding of
     either left eigenvalues of −10⁻⁸. ``C`` itself when no eigenvalue exceeds ``cap`` (the
-    trace bounds them: the quick case)."""
-    if C[0][0] + C[1][1] + C[2][2] <= cap:
+    trace bounds them, or :func:`none_above33_t`: the quick case)."""
+    if none_above33_t(C, cap):
         return C
     lam, v = largest_eigh33_t(C)
     if not lam > cap:

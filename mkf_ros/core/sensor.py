@@ -39,11 +39,11 @@ from mkf_ros.core.baseline_glue import (
 from mkf_ros.core.frames import align_tilt, heading_correction, keep_yaw
 from mkf_ros.core.linalg import (
     ZERO33,
-    below33_t,
     copy_block,
     copy_into,
     eye,
     largest_eigh33_t,
+    none_above33_t,
     scale_direction,
     symmetrize_leading,
 )
@@ -593,12 +593,13 @@ def _acc_measurement(c: np.record, s: np.record, dt: float, wl: tuple, Rw: tuple
     _lowpass_sensitivity(s, al, 1.0 if start else al)
     s.acc_excess += al * (ex2_lp - s.acc_excess)
     s.acc_rate_lp += al * (np.sqrt(wl[0] ** 2 + wl[1] ** 2 + wl[2] ** 2) - s.acc_rate_lp)
-    if c.acc_turn_speed > 0.0:  # the vertical rate Ω̄, about the low-pass's gravity
-        up = s.acc_lp2
-        n_up = np.sqrt(up[0] * up[0] + up[1] * up[1] + up[2] * up[2])
-        if n_up > 0.0:
-            yaw = (wl[0] * up[0] + wl[1] * up[1] + wl[2] * up[2]) / n_up
-            s.acc_yaw_lp += al * (yaw - s.acc_yaw_lp)
+    # the vertical rate Ω̄, about the low-pass's gravity (kept whatever acc_turn_speed, so that
+    # a speed set live starts from the present turn, not from when it was last set)
+    up = s.acc_lp2
+    n_up = np.sqrt(up[0] * up[0] + up[1] * up[1] + up[2] * up[2])
+    if n_up > 0.0:
+        s.acc_yaw_lp += al * ((wl[0] * up[0] + wl[1] * up[1] + wl[2] * up[2]) / n_up
+                              - s.acc_yaw_lp)
     if start:  # the low-pass is still forming its first average: the raw sample alone
         return u_raw, kq * q_raw, u_raw, q_raw, raw_status, 0.0
     # a turn at speed: the centripetal acceleration v Ω̄ across gravity, in both views alike and
@@ -1109,8 +1110,8 @@ def _cap_attitude_variance(s: np.record, nx: int) -> None:
     Each is scaled back to the cap once it exceeds it by more than :data:`CAP_SLACK`
     (relative; the published covariance is capped exactly by
     :func:`mkf_ros.core.filter.output`), and the eigenvalue is computed only when
-    :func:`~mkf_ros.core.linalg.below33_t` cannot rule it out: a 6D heading sits at the cap
-    for good, and scaling it back and computing the largest eigenvalue at every step cost
+    :func:`~mkf_ros.core.linalg.none_above33_t` cannot rule it out: a 6D heading sits at the
+    cap for good, and scaling it back and computing the largest eigenvalue at every step cost
     ~14 % of every 6D step once the heading was unknown (MEKF 6D, 1000 s at 200 Hz, three
     alternating runs: 1.73–1.83 µs per sample before, 1.52–1.59 with the slack; 9D, whose
     heading is known, unchanged). Outputs move by ≤ 2e-6 (MUKF 6D), 3e-8 (MEKF 6D)."""
@@ -1123,11 +1124,11 @@ def _cap_attitude_variance(s: np.record, nx: int) -> None:
     top = YAW_VAR_UNKNOWN * (1.0 + CAP_SLACK)
     if v > top:
         scale_direction(P, nx, u, np.sqrt(YAW_VAR_UNKNOWN / v))
-    if P[0, 0] + P[1, 1] + P[2, 2] <= top or below33_t(P, top):
-        return  # (no eigenvalue exceeds the trace, or certainly none exceeds the top)
     for _ in range(3):
-        lam, e = largest_eigh33_t(((P[0, 0], P[0, 1], P[0, 2]), (P[1, 0], P[1, 1], P[1, 2]),
-                                   (P[2, 0], P[2, 1], P[2, 2])))
+        A = ((P[0, 0], P[0, 1], P[0, 2]), (P[1, 0], P[1, 1], P[1, 2]), (P[2, 0], P[2, 1], P[2, 2]))
+        if none_above33_t(A, top):
+            return
+        lam, e = largest_eigh33_t(A)
         if not lam > top:
             return
         scale_direction(P, nx, e, np.sqrt(YAW_VAR_UNKNOWN / lam))

@@ -83,7 +83,7 @@ def test_largest_eigenpair_of_a_symmetric_3x3() -> None:
 
 
 def test_below_is_never_wrong_and_certain_with_a_margin() -> None:
-    """``below33_t(P, t)``: True only if every eigenvalue (numpy.linalg.eigvalsh) is below
+    """``below33_t(A, t)``: True only if every eigenvalue (numpy.linalg.eigvalsh) is below
     ``t``, False at and above it; True for ``t`` twice the largest, and for a 6D heading's
     covariance (one variance at the cap, two small coupled ones: the cap's fast path) as
     soon as ``t`` exceeds the largest by a relative 1e-9."""
@@ -95,7 +95,7 @@ def test_below_is_never_wrong_and_certain_with_a_margin() -> None:
         for t in (lam * (1 + 1e-9), lam * (1 + 1e-6), lam * 2, lam, lam * (1 - 1e-9), lam / 2):
             if not t > 0:
                 continue
-            got = below33_t(A, t)
+            got = below33_t(_t33(A), t)
             assert not got or lam < t, (A, t)
             assert got or t < lam * certain_from, (lam, t)
 
