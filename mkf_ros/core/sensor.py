@@ -115,6 +115,9 @@ ZERO3 = (0.0, 0.0, 0.0)
 #: How far (relative) an attitude variance may exceed the cap before it is scaled back to it
 #: (:func:`_cap_attitude_variance`).
 CAP_SLACK = 1e-6
+#: The largest heading variance the MUKF's sigma points are drawn with when nothing observes the
+#: heading ((π/4)², σ 45°; :func:`_heading_spread`).
+MUKF_HEADING_SPREAD_VAR = (np.pi / 4) ** 2
 #: The per-sample steps: compiled once each and linked into :func:`step` (they take the
 #: records, passed by pointer, so a call costs little).
 hot = jit_inline
@@ -1065,6 +1068,8 @@ def mukf_update(c: np.record, s: np.record, w: np.record, dt: float,
     nx = c.nx
     heading_m = z.has_m and c.mag_heading
     use_vm = z.has_m and not c.mag_heading
+    # an unobserved heading's spread, bounded for the sigma points (its variance back after)
+    f = _heading_spread(s, nx, not z.has_m and not (c.use_mag and s.heading_fixed), 1.0)
     x = (t4(s.q_c), t3(s.e), t3(s.w), t3(s.b))
     meas = MukfMeasurement(
         (z.a, z.m if z.has_m else ZERO3), (UP, z.m_ref if z.has_m else ZERO3),
@@ -1090,9 +1095,48 @@ def mukf_update(c: np.record, s: np.record, w: np.record, dt: float,
                           (ZERO3, ZERO3, ZERO3))
         for i in range(4):
             s.q_c[i] = q[i]
+    _heading_spread(s, nx, f < 1.0, 1.0 / f)
     acc_nis = nis[B_VEC0] if z.has_a else 0.0
     mag_nis = nis[B_HEADING] if c.mag_heading else nis[B_VEC1]
     return ok, acc_nis, mag_nis
+
+
+@hot
+def _heading_spread(s: np.record, nx: int, on: bool, back: float) -> float:
+    """The MUKF's sigma points with a heading that nothing observes (no magnetometer in this
+    step, and none has fixed the heading: docs/math.md §9.3). Before the step (``back = 1``):
+    the variance ``v`` along the world vertical ``u`` scaled down to
+    :data:`MUKF_HEADING_SPREAD_VAR` if above (``P ← D P Dᵀ``, ``D = I + (f − 1) u uᵀ`` on the
+    attitude rows, ``f = √(MUKF_HEADING_SPREAD_VAR / v)``); returns ``f`` (1: unchanged).
+    After it (``back = 1/f``): the variance along the new vertical raised by the factor
+    ``back²`` again, the difference added as an independent rotation about the vertical
+    (``P ← P + v (back² − 1) u uᵀ``: PSD, the correlations left as the points made them).
+
+    Gravity does not depend on the heading, but a 6D heading at its cap (σ 104°) put the points
+    ±3.5 σ about the vertical, where the RP chart's coordinates no longer compose as rotations:
+    the tilt covariance they carried grew, 3.6 → 11° over 80 s of RepoIMU's reversed Test10
+    where the MEKF kept 3° (docs/real_data.md). Scaling the correlations back up by ``1/f``
+    with the variance amplified what the points' nonlinearity put into them: on
+    ``ardrone_imu.bag`` the rate measurement after a 0.16 s gap then turned the heading 7°."""
+    if not on:
+        return 1.0
+    u = rotmat_t(t4(s.q_c))[2]
+    P = s.P
+    v = 0.0
+    for i in range(3):
+        for j in range(3):
+            v += u[i] * P[i, j] * u[j]
+    if back != 1.0:
+        d = max(0.0, v * (back * back - 1.0))
+        for i in range(3):
+            for j in range(3):
+                P[i, j] += d * u[i] * u[j]
+        return back
+    if not v > MUKF_HEADING_SPREAD_VAR:
+        return 1.0
+    f = np.sqrt(MUKF_HEADING_SPREAD_VAR / v)
+    scale_direction(P, nx, u, f)
+    return f
 
 
 @hot
