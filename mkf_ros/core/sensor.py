@@ -586,7 +586,7 @@ def _acc_measurement(c: np.record, s: np.record, dt: float, wl: tuple, Rw: tuple
     kq = _correlated(c.acc_disturbance_time, dta)
     raw_status = 0 if abs(ex) <= c.acc_norm_tolerance else 2
     if tau <= 0.0:
-        return u_raw, kq * q_raw, u_raw, q_raw, raw_status, 0.0
+        return u_raw, kq * _raw_alone(c, s, dta, ex2), u_raw, q_raw, raw_status, 0.0
     t = s.t_acc_lp
     s.t_acc_lp = t + dta
     al, start = _lowpass_gain(s, LP_ACC, t, dta, tau)  # start: still the first average
@@ -611,6 +611,23 @@ def _acc_measurement(c: np.record, s: np.record, dt: float, wl: tuple, Rw: tuple
     u, q, status, share = _acc_blend(c, s, kq, u_raw, q_raw, ex, ex2,
                                      _correlated(tau, dta) * cen * cen)
     return u, q, u_raw, q_raw, status, share
+
+
+@hot
+def _raw_alone(c: np.record, s: np.record, dta: float, ex2: float) -> float:
+    """The raw view's variance per sample when it is fused alone (``acc_time_constant = 0``):
+    as in the blend (:func:`_acc_blend`), ``acc_disturbance² + e² + 2E``, ``E`` the recent
+    excess power (``acc_excess``), here low-passed over the disturbance's correlation time
+    ``acc_disturbance_time`` (there is no low-pass memory to take it over; 0: this sample's).
+    Without ``E`` the raw sample's variance saw only the acceleration along gravity: under
+    BROAD's fast shaking the tilt went 30–69° off, the gyro bias learning from it at full gain
+    (§9.1's ``γ`` takes ``E`` too)."""
+    t = s.t_acc_lp
+    s.t_acc_lp = t + dta
+    T = c.acc_disturbance_time
+    al = _lowpass_gain(s, LP_ACC, t, dta, T)[0] if T > 0.0 else 1.0
+    s.acc_excess += al * (ex2 - s.acc_excess)
+    return c.acc_disturbance_var + ex2 + 2.0 * s.acc_excess
 
 
 @hot
