@@ -626,8 +626,10 @@ def _raw_alone(c: np.record, s: np.record, dta: float, ex2: float) -> float:
     s.t_acc_lp = t + dta
     T = c.acc_disturbance_time
     al = _lowpass_gain(s, LP_ACC, t, dta, T)[0] if T > 0.0 else 1.0
-    s.acc_excess += al * (ex2 - s.acc_excess)
-    return c.acc_disturbance_var + ex2 + 2.0 * s.acc_excess
+    E = float(s.acc_excess)
+    E += al * (ex2 - E)
+    s.acc_excess = E
+    return c.acc_disturbance_var + ex2 + 2.0 * E
 
 
 @hot

@@ -155,16 +155,14 @@ def test_rejections_are_counted_by_reason() -> None:
 def test_sustained_shaking_does_not_tilt(algorithm: str) -> None:
     """Two 15 s stretches of shaking at up to 10 g with rocking up to 6 rad/s (BROAD's fast
     translation): without a magnetometer the inclination stays within 1.5° RMS and 5° at
-    worst. The paper's raw accelerometer (acc_time_constant = 0) is dragged off by the shaking:
-    more than 4× worse (what the low-pass of docs/math.md §9.3 fixes)."""
+    worst (0.62° / 0.63° RMS). (The raw samples alone, ``acc_time_constant = 0``, were more
+    than 4× worse here while their variance missed the recent excess power; with it they hold
+    this simulation too, 0.58° RMS: test_raw_accelerometer_alone_survives_shaking. On BROAD's
+    real shaking the low-pass still matters: 0.71° against 4.97°, docs/real_data.md.)"""
     sim = simulate("shaking", duration=60, rate=100, seed=3)
     r = mkf_ros.estimate(sim.gyr, sim.acc, timestamps=sim.t, algorithm=algorithm)
     incl = orientation_errors(r.quat, sim.quat)["inclination"][100:]
     assert rmse_deg(incl) < 1.5 and np.degrees(incl.max()) < 5.0
-    raw = mkf_ros.estimate(sim.gyr, sim.acc, timestamps=sim.t, algorithm=algorithm,
-                           acc_time_constant=0.0)
-    assert rmse_deg(orientation_errors(raw.quat, sim.quat)["inclination"][100:]) > \
-        4 * rmse_deg(incl)
 
 
 @pytest.mark.parametrize("algorithm", ALGOS)
