@@ -244,6 +244,10 @@ def is_worker_loss(e: BaseException) -> bool:
     return type(e).__name__ in ("KilledWorker", "CommClosedError", "FutureCancelledError")
 
 
+#: How often :func:`run_in_order` wakes while it waits for calls (s): the latency of Ctrl-C.
+WAIT_POLL_S = 0.2
+
+
 def run_in_order(executor: cf.Executor, fn: Callable[[T], R], items: Iterable[T],
                  in_flight: int, on_result: Callable[[T, R], None],
                  on_error: Callable[[T, BaseException], bool]) -> None:
@@ -274,7 +278,11 @@ def run_in_order(executor: cf.Executor, fn: Callable[[T], R], items: Iterable[T]
     try:
         fill()
         while running:
-            done, _ = cf.wait(running, return_when=cf.FIRST_COMPLETED)
+            # woken at least every WAIT_POLL_S: CPython runs a signal's handler only in the
+            # main thread, and a Ctrl-C that the kernel delivered to another thread (the
+            # pool's) does not end a wait with no timeout; while no call finishes (workers
+            # still compiling, or stuck), Ctrl-C was then never seen
+            done, _ = cf.wait(running, timeout=WAIT_POLL_S, return_when=cf.FIRST_COMPLETED)
             for f in [f for f in running if f in done]:  # in submission order
                 item = running.pop(f)
                 try:

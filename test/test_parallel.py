@@ -170,3 +170,37 @@ def test_the_local_cluster_listens_on_127_0_0_1_only(
                  if c.status == psutil.CONN_LISTEN]
     assert len(listening) >= 1 + 2 * 2  # scheduler + (nanny, worker) per worker at least
     assert {a.ip for a in listening} == {"127.0.0.1"}, listening
+
+
+def test_ctrl_c_on_another_thread_stops_the_wait() -> None:
+    """A Ctrl-C that the kernel hands to a thread other than the main one (any thread may take
+    a process's signal) sets Python's flag, but only the main thread runs the handler, and a
+    wait with no timeout is not woken by it: ``mkf study`` sat 4 min after Ctrl-C while no unit
+    finished. ``run_in_order`` must raise KeyboardInterrupt while the running call is still
+    running (it ends only when the test lets it)."""
+    import signal
+
+    release = threading.Event()
+    started = threading.Event()
+    finished = threading.Event()
+
+    def slow(_: int) -> int:
+        started.set()
+        release.wait(10)
+        finished.set()
+        return 0
+
+    with cf.ThreadPoolExecutor(1) as ex:
+        def interrupt() -> None:
+            started.wait(60)
+            signal.pthread_kill(threading.get_ident(), signal.SIGINT)  # on this helper thread
+
+        helper = threading.Thread(target=interrupt)
+        helper.start()
+        try:
+            with pytest.raises(KeyboardInterrupt):
+                parallel.run_in_order(ex, slow, [1], 1, lambda i, r: None, lambda i, e: False)
+            assert not finished.is_set()  # the call was still running: the wait was cut short
+        finally:
+            release.set()
+            helper.join()
