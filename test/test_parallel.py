@@ -190,6 +190,8 @@ def test_ctrl_c_on_another_thread_stops_the_wait() -> None:
         finished.set()
         return 0
 
+    # Python's Ctrl-C handler, whatever this process inherited (a background job: ignored)
+    old = signal.signal(signal.SIGINT, signal.default_int_handler)
     with cf.ThreadPoolExecutor(1) as ex:
         def interrupt() -> None:
             started.wait(60)
@@ -204,3 +206,4 @@ def test_ctrl_c_on_another_thread_stops_the_wait() -> None:
         finally:
             release.set()
             helper.join()
+            signal.signal(signal.SIGINT, old)
