@@ -70,6 +70,7 @@ from mkf_ros.core.state import (
     build_config,
     classify_reading,
     count_reading,
+    heading_fixed,
     new_records,
     record,
 )
@@ -262,12 +263,6 @@ def uses_mag(c: np.record) -> bool:
 def is_initialized(s: np.record) -> bool:
     """Whether the filter has an estimate (aligned, or the paper's start)."""
     return s.initialized
-
-
-@jit
-def heading_fixed(c: np.record, s: np.record) -> bool:
-    """Whether the magnetometer has fixed the heading (never without ``use_mag``)."""
-    return s.heading_fixed and c.use_mag
 
 
 @jit

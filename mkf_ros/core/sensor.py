@@ -103,6 +103,7 @@ from mkf_ros.core.state import (
     Fusion,
     classify_reading,
     count_reading,
+    heading_fixed,
     inflate_world,
     iso33,
     mag_yaw_var,
@@ -500,7 +501,7 @@ def _acc_blend(c: np.record, s: np.record, kq: float, u_raw: tuple, q_raw: float
         return u_lp, kq * q_lp + qc, 2, 1.0
     if abs(ex) > tol:  # an implausible raw sample has no say (the low-pass still takes it:
         return u_lp, kq * q_lp + qc, 1, 1.0  # shaking is symmetric about gravity)
-    q_rw = c.acc_disturbance_var + ex2 + 2.0 * s.acc_excess
+    q_rw = _raw_var(c, ex2, s.acc_excess)
     w = q_rw / (q_rw + q_lp)
     u = (w * u_lp[0] + (1.0 - w) * u_raw[0], w * u_lp[1] + (1.0 - w) * u_raw[1],
          w * u_lp[2] + (1.0 - w) * u_raw[2])
@@ -585,16 +586,16 @@ def _acc_measurement(c: np.record, s: np.record, dt: float, wl: tuple, Rw: tuple
     u_raw = (a[0] / n_raw, a[1] / n_raw, a[2] / n_raw)
     kq = _correlated(c.acc_disturbance_time, dta)
     raw_status = 0 if abs(ex) <= c.acc_norm_tolerance else 2
-    if tau <= 0.0:
-        return u_raw, kq * _raw_alone(c, s, dta, ex2), u_raw, q_raw, raw_status, 0.0
-    t = s.t_acc_lp
-    s.t_acc_lp = t + dta
-    al, start = _lowpass_gain(s, LP_ACC, t, dta, tau)  # start: still the first average
+    if tau <= 0.0:  # the raw view alone: its excess power over the disturbance's time
+        al = _acc_memory_gain(s, dta, c.acc_disturbance_time)[0]
+        q = _raw_var(c, ex2, _learn_excess(s, al, ex2))
+        return u_raw, kq * q, u_raw, q_raw, raw_status, 0.0
+    al, start = _acc_memory_gain(s, dta, tau)  # start: still the first average
     a_lp, ex2_lp = _acc_robust(c, s, a, al, ex2)
     _lowpass(s.acc_lp, a_lp, al)
     _lowpass(s.acc_lp2, (s.acc_lp[0], s.acc_lp[1], s.acc_lp[2]), 1.0 if start else al)
     _lowpass_sensitivity(s, al, 1.0 if start else al)
-    s.acc_excess += al * (ex2_lp - s.acc_excess)
+    _learn_excess(s, al, ex2_lp)
     s.acc_rate_lp += al * (np.sqrt(wl[0] ** 2 + wl[1] ** 2 + wl[2] ** 2) - s.acc_rate_lp)
     # the vertical rate Ω̄, about the low-pass's gravity (kept whatever acc_turn_speed, so that
     # a speed set live starts from the present turn, not from when it was last set)
@@ -614,21 +615,34 @@ def _acc_measurement(c: np.record, s: np.record, dt: float, wl: tuple, Rw: tuple
 
 
 @hot
-def _raw_alone(c: np.record, s: np.record, dta: float, ex2: float) -> float:
-    """The raw view's variance per sample when it is fused alone (``acc_time_constant = 0``):
-    as in the blend (:func:`_acc_blend`), ``acc_disturbance² + e² + 2E``, ``E`` the recent
-    excess power (``acc_excess``), here low-passed over the disturbance's correlation time
-    ``acc_disturbance_time`` (there is no low-pass memory to take it over; 0: this sample's).
-    Without ``E`` the raw sample's variance saw only the acceleration along gravity: under
-    BROAD's fast shaking the tilt went 30–69° off, the gyro bias learning from it at full gain
-    (§9.1's ``γ`` takes ``E`` too)."""
+def _acc_memory_gain(s: np.record, dta: float, tau: float) -> tuple[float, bool]:
+    """The accelerometer's memories one sample on (``dta`` s since the previous): the gain of a
+    low-pass over ``tau`` that starts as the running mean (:func:`_lowpass_gain`), and whether
+    it is still in that start; ``tau = 0``: no memory, gain 1."""
     t = s.t_acc_lp
     s.t_acc_lp = t + dta
-    T = c.acc_disturbance_time
-    al = _lowpass_gain(s, LP_ACC, t, dta, T)[0] if T > 0.0 else 1.0
+    return _lowpass_gain(s, LP_ACC, t, dta, tau) if tau > 0.0 else (1.0, False)
+
+
+@hot
+def _learn_excess(s: np.record, al: float, ex2: float) -> float:
+    """The recent excess power of the magnitude ``E`` (``acc_excess``) low-passed with gain
+    ``al`` towards this sample's ``ex2``; returns it."""
     E = float(s.acc_excess)
     E += al * (ex2 - E)
     s.acc_excess = E
+    return E
+
+
+@hot
+def _raw_var(c: np.record, ex2: float, E: float) -> float:
+    """The raw view's variance (before the correlation factor): ``acc_disturbance²`` plus the
+    sample's magnitude excess ``ex2`` and twice the recent excess power ``E`` (the two
+    components across gravity that a norm cannot see, docs/math.md §9.3). Without the
+    low-pass (``acc_time_constant = 0``) ``E`` is taken over ``acc_disturbance_time``; without
+    it at all the raw sample's variance saw only the acceleration along gravity: under BROAD's
+    fast shaking the tilt went 30–69° off, the gyro bias learning from it at full gain (§9.1's
+    ``γ`` takes ``E`` too)."""
     return c.acc_disturbance_var + ex2 + 2.0 * E
 
 
@@ -1088,7 +1102,7 @@ def mukf_update(c: np.record, s: np.record, w: np.record, dt: float,
     heading_m = z.has_m and c.mag_heading
     use_vm = z.has_m and not c.mag_heading
     # an unobserved heading's spread, bounded for the sigma points (its variance back after)
-    f = _heading_spread(s, nx, not z.has_m and not (c.use_mag and s.heading_fixed), 1.0)
+    f = _bound_heading_spread(s, nx) if not (z.has_m or heading_fixed(c, s)) else 1.0
     x = (t4(s.q_c), t3(s.e), t3(s.w), t3(s.b))
     meas = MukfMeasurement(
         (z.a, z.m if z.has_m else ZERO3), (UP, z.m_ref if z.has_m else ZERO3),
@@ -1114,22 +1128,37 @@ def mukf_update(c: np.record, s: np.record, w: np.record, dt: float,
                           (ZERO3, ZERO3, ZERO3))
         for i in range(4):
             s.q_c[i] = q[i]
-    _heading_spread(s, nx, f < 1.0, 1.0 / f)
+    if f < 1.0:
+        back = 1.0 / f
+        inflate_world(s, 0.0, max(0.0, _vertical_variance(s)[1] * (back * back - 1.0)))
     acc_nis = nis[B_VEC0] if z.has_a else 0.0
     mag_nis = nis[B_HEADING] if c.mag_heading else nis[B_VEC1]
     return ok, acc_nis, mag_nis
 
 
 @hot
-def _heading_spread(s: np.record, nx: int, on: bool, back: float) -> float:
+def _vertical_variance(s: np.record) -> tuple:
+    """``(u, v)``: the world vertical in the body (the error state's frame) and the attitude
+    variance about it, ``v = uᵀ P_θθ u`` (the heading's)."""
+    u = rotmat_t(t4(s.q_c))[2]
+    P = s.P
+    v = 0.0
+    for i in range(3):
+        for j in range(3):
+            v += u[i] * P[i, j] * u[j]
+    return u, v
+
+
+@hot
+def _bound_heading_spread(s: np.record, nx: int) -> float:
     """The MUKF's sigma points with a heading that nothing observes (no magnetometer in this
-    step, and none has fixed the heading: docs/math.md §9.3). Before the step (``back = 1``):
-    the variance ``v`` along the world vertical ``u`` scaled down to
-    :data:`MUKF_HEADING_SPREAD_VAR` if above (``P ← D P Dᵀ``, ``D = I + (f − 1) u uᵀ`` on the
-    attitude rows, ``f = √(MUKF_HEADING_SPREAD_VAR / v)``); returns ``f`` (1: unchanged).
-    After it (``back = 1/f``): the variance along the new vertical raised by the factor
-    ``back²`` again, the difference added as an independent rotation about the vertical
-    (``P ← P + v (back² − 1) u uᵀ``: PSD, the correlations left as the points made them).
+    step, and none has fixed the heading: docs/math.md §9.3): the variance ``v`` about the
+    world vertical ``u`` scaled down to :data:`MUKF_HEADING_SPREAD_VAR` if above (``P ← D P
+    Dᵀ``, ``D = I + (f − 1) u uᵀ`` on the attitude rows, ``f = √(MUKF_HEADING_SPREAD_VAR /
+    v)``); returns ``f`` (1: unchanged). After the step :func:`mukf_update` gives the variance
+    back, ``v′ (f⁻² − 1)`` about the new vertical, as an independent rotation
+    (:func:`~mkf_ros.core.state.inflate_world`: PSD, the correlations left as the points made
+    them).
 
     Gravity does not depend on the heading, but a 6D heading at its cap (σ 104°) put the points
     ±3.5 σ about the vertical, where the RP chart's coordinates no longer compose as rotations:
@@ -1137,24 +1166,11 @@ def _heading_spread(s: np.record, nx: int, on: bool, back: float) -> float:
     where the MEKF kept 3° (docs/real_data.md). Scaling the correlations back up by ``1/f``
     with the variance amplified what the points' nonlinearity put into them: on
     ``ardrone_imu.bag`` the rate measurement after a 0.16 s gap then turned the heading 7°."""
-    if not on:
-        return 1.0
-    u = rotmat_t(t4(s.q_c))[2]
-    P = s.P
-    v = 0.0
-    for i in range(3):
-        for j in range(3):
-            v += u[i] * P[i, j] * u[j]
-    if back != 1.0:
-        d = max(0.0, v * (back * back - 1.0))
-        for i in range(3):
-            for j in range(3):
-                P[i, j] += d * u[i] * u[j]
-        return back
+    u, v = _vertical_variance(s)
     if not v > MUKF_HEADING_SPREAD_VAR:
         return 1.0
     f = np.sqrt(MUKF_HEADING_SPREAD_VAR / v)
-    scale_direction(P, nx, u, f)
+    scale_direction(s.P, nx, u, f)
     return f
 
 
@@ -1179,11 +1195,7 @@ def _cap_attitude_variance(s: np.record, nx: int) -> None:
     alternating runs: 1.73–1.83 µs per sample before, 1.52–1.59 with the slack; 9D, whose
     heading is known, unchanged). Outputs move by ≤ 2e-6 (MUKF 6D), 3e-8 (MEKF 6D)."""
     P = s.P
-    u = rotmat_t(t4(s.q_c))[2]
-    v = 0.0
-    for i in range(3):
-        for j in range(3):
-            v += u[i] * P[i, j] * u[j]
+    u, v = _vertical_variance(s)
     top = YAW_VAR_UNKNOWN * (1.0 + CAP_SLACK)
     if v > top:
         scale_direction(P, nx, u, np.sqrt(YAW_VAR_UNKNOWN / v))

@@ -32,7 +32,7 @@ from mkf_ros.core.linalg import ZERO33, congruence, copy_block, copy_into, mm
 from mkf_ros.core.mekf import MEKF_SCRATCH_ROWS, transport_covariance, transport_covariance_t
 from mkf_ros.core.mukf import MUKF_SCRATCH, NOISE_MODES
 from mkf_ros.core.params import ALGORITHMS, FilterParams
-from mkf_ros.core.quaternion import qmul, qmul_t, qnormalize, qnormalize_t, rotmat
+from mkf_ros.core.quaternion import qmul, qmul_t, qnormalize, qnormalize_t, rotmat, rotmat_t, t4
 
 NX_MAX = 9  # states: attitude error e, rate ω, gyro bias b
 
@@ -403,15 +403,22 @@ def set_world_attitude_cov(s: np.record, nx: int, var_tilt: float, var_yaw: floa
 
 
 @jit
+def heading_fixed(c: np.record, s: np.record) -> bool:
+    """Whether the magnetometer has fixed the heading (never without ``use_mag``)."""
+    return s.heading_fixed and c.use_mag
+
+
+@jit
 def inflate_world(s: np.record, var_tilt: float, var_yaw: float) -> None:
-    """Add uncertainty about the world axes (tilt about x and y, yaw about z) to ``P_ee``: used
-    when a sensor has been rejected for so long that the estimate itself is suspect."""
+    """Add uncertainty about the world axes (tilt about x and y, yaw about z) to ``P_ee``: an
+    independent rotation (used when a sensor has been rejected for so long that the estimate
+    itself is suspect, and to give the MUKF's bounded heading spread its variance back)."""
     P = s.P
-    R = rotmat(s.q_c)
+    R = rotmat_t(t4(s.q_c))
     for i in range(3):
         for j in range(3):
-            P[i, j] += (var_tilt * (R[0, i] * R[0, j] + R[1, i] * R[1, j])
-                        + var_yaw * R[2, i] * R[2, j])
+            P[i, j] += (var_tilt * (R[0][i] * R[0][j] + R[1][i] * R[1][j])
+                        + var_yaw * R[2][i] * R[2][j])
 
 
 @jit
