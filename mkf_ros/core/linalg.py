@@ -218,6 +218,7 @@ def cross_t(a: tuple, b: tuple) -> tuple:
 
 
 #: The 3×3 zero matrix as a tuple of rows.
+ZERO3 = (0.0, 0.0, 0.0)
 ZERO33 = ((0.0, 0.0, 0.0), (0.0, 0.0, 0.0), (0.0, 0.0, 0.0))
 
 

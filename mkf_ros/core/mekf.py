@@ -22,7 +22,7 @@ import numpy as np
 
 from mkf_ros.core._jit import jit, jit_inline
 from mkf_ros.core.charts import from_chart_t, saturate_t, t_matrix_t
-from mkf_ros.core.linalg import ZERO33, cross33_t, symmetrize_leading
+from mkf_ros.core.linalg import ZERO3, ZERO33, cross33_t, symmetrize_leading
 from mkf_ros.core.quaternion import q_omega_t, qmul_t, qnormalize_t, rotmat_t, t3, t4, t33
 
 # Speed (the arithmetic of a 6-state update is a few hundred flops): 3-vectors, quaternions and
@@ -572,17 +572,41 @@ def mekf_heading_update(
 
 @jit_inline
 def mekf_apply_t(chart: int, chart_update: bool, q: tuple, w: tuple, b: tuple, P: np.ndarray,
-                 nx: int, dx: np.ndarray) -> tuple[tuple, tuple, tuple]:
-    """:func:`mekf_apply` on tuples: returns ``(q̄⁺, ω̄⁺, b̄⁺)``."""
+                 nx: int, dx: np.ndarray, up: tuple) -> tuple[tuple, tuple, tuple]:
+    """:func:`mekf_apply` on tuples: returns ``(q̄⁺, ω̄⁺, b̄⁺)``. ``up``: the world vertical in
+    the body of ``q̄⁻`` when nothing observes the heading (the chart update then carries it to
+    the new vertical, :func:`free_heading_transport_t`), zero otherwise."""
     d = from_chart_t(chart, saturate_t(chart, (dx[0], dx[1], dx[2])))
     q = qnormalize_t(qmul_t(q, d))
     w = (w[0] + dx[3], w[1] + dx[4], w[2] + dx[5])
     if nx == 9:
         b = (b[0] + dx[6], b[1] + dx[7], b[2] + dx[8])
     if chart_update:
-        transport_covariance_t(P, nx, t_matrix_t(chart, d))
+        T = t_matrix_t(chart, d)
+        if up[0] != 0.0 or up[1] != 0.0 or up[2] != 0.0:
+            T = free_heading_transport_t(T, up, rotmat_t(q)[2])
+        transport_covariance_t(P, nx, T)
     symmetrize_leading(P, nx)
     return q, w, b
+
+
+@jit_inline
+def free_heading_transport_t(T: tuple, u: tuple, un: tuple) -> tuple:
+    """The chart update's map with the heading unobserved: ``M = T + (u⁺ − T u) uᵀ``, which
+    acts as the chart's ``T(δ̄)`` across the vertical and carries the vertical ``u`` (world up
+    in the body before the update) to the new one ``u⁺ = R(δ̄)ᵀ u`` exactly (docs/math.md
+    §9.3). An error about the vertical by any angle θ leaves the tilt as it is: the reset's
+    error ``δ̄* ⊗ exp(θ u) = exp(θ u⁺) ⊗ δ̄*`` has the same tilt for every θ. ``T`` is right
+    to first order in the error; for a heading spread over ±180° its ``½ [δ̄]×`` turns the
+    heading's variance by half the correction only, and what is left across the new vertical
+    is taken for tilt (tyrex running trials: 0.5–1.5° of inclination)."""
+    Tu = (T[0][0] * u[0] + T[0][1] * u[1] + T[0][2] * u[2],
+          T[1][0] * u[0] + T[1][1] * u[1] + T[1][2] * u[2],
+          T[2][0] * u[0] + T[2][1] * u[1] + T[2][2] * u[2])
+    r = (un[0] - Tu[0], un[1] - Tu[1], un[2] - Tu[2])
+    return ((T[0][0] + r[0] * u[0], T[0][1] + r[0] * u[1], T[0][2] + r[0] * u[2]),
+            (T[1][0] + r[1] * u[0], T[1][1] + r[1] * u[1], T[1][2] + r[1] * u[2]),
+            (T[2][0] + r[2] * u[0], T[2][1] + r[2] * u[1], T[2][2] + r[2] * u[2]))
 
 
 @jit_inline
@@ -591,7 +615,7 @@ def mekf_apply(chart: int, chart_update: bool, qc: np.ndarray, w: np.ndarray, b:
     """Multiplicative update and chart update (§5): ``ē = sat(Δx_e)``, ``δ̄ = φ⁻¹(ē)``,
     ``q̄⁺ = q̄⁻ * δ̄``, ``ω̄⁺ = ω̄⁻ + Δω``; with the chart update ``P⁺ = T̃ P' T̃ᵀ``,
     ``T̃ = blockdiag(T(δ̄), I)`` (eq. 47b), otherwise ``P⁺ = P'`` (reset). ``P`` symmetrised."""
-    q, w1, b1 = mekf_apply_t(chart, chart_update, t4(qc), t3(w), t3(b), P, nx, dx)
+    q, w1, b1 = mekf_apply_t(chart, chart_update, t4(qc), t3(w), t3(b), P, nx, dx, ZERO3)
     for i in range(4):
         qc[i] = q[i]
     for i in range(3):

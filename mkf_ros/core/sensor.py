@@ -38,6 +38,7 @@ from mkf_ros.core.baseline_glue import (
 )
 from mkf_ros.core.frames import align_tilt, heading_correction, keep_yaw
 from mkf_ros.core.linalg import (
+    ZERO3,
     ZERO33,
     copy_block,
     copy_into,
@@ -112,7 +113,6 @@ from mkf_ros.core.state import (
     set_world_attitude_cov,
 )
 
-ZERO3 = (0.0, 0.0, 0.0)
 #: How far (relative) an attitude variance may exceed the cap before it is scaled back to it
 #: (:func:`_cap_attitude_variance`).
 CAP_SLACK = 1e-6
@@ -999,9 +999,12 @@ def _mekf_heading(s: np.record, w: np.record, nx: int, R: tuple, m: tuple, ref: 
 
 @jit
 def _mekf_apply(c: np.record, s: np.record, w: np.record, q: tuple, wt: tuple,
-                b: tuple) -> tuple:
-    """:func:`~mkf_ros.core.mekf.mekf_apply_t` of ``w.dx``: ``(q̄⁺, ω̄⁺, b̄⁺)``."""
-    return mekf_apply_t(c.chart, c.chart_update, q, wt, b, s.P, c.nx, w.dx)
+                b: tuple, z: Fusion) -> tuple:
+    """:func:`~mkf_ros.core.mekf.mekf_apply_t` of ``w.dx``: ``(q̄⁺, ω̄⁺, b̄⁺)``; while nothing
+    observes the heading (no magnetometer now, none has fixed it) the chart update carries
+    the heading's variance to the new vertical (docs/math.md §9.3)."""
+    up = ZERO3 if z.has_m or heading_fixed(c, s) else rotmat_t(q)[2]
+    return mekf_apply_t(c.chart, c.chart_update, q, wt, b, s.P, c.nx, w.dx, up)
 
 
 @hot
@@ -1042,7 +1045,7 @@ def _rate_updates(c: np.record, s: np.record, k: np.record, w: np.record, dt: fl
             k.rest_updates += 1
             s.t_rest_fused += dt
     if c.algorithm == ALGO_MEKF:
-        q, wt, b = _mekf_apply(c, s, w, t4(s.q_c), wt, b)
+        q, wt, b = _mekf_apply(c, s, w, t4(s.q_c), wt, b, z)
         for i in range(4):
             s.q_c[i] = q[i]
     else:
@@ -1082,7 +1085,7 @@ def _mekf_update(c: np.record, s: np.record, w: np.record, dt: float,
         else:
             mag_nis = _mekf_vector(s, w, nx, R, z.m, z.m_ref, iso33(c.mag_var),
                                    iso33(c.mag_disturbance_var), z.mag_gate, False, ZERO33, 1.0)
-    q, wt, b = _mekf_apply(c, s, w, q, wt, b)
+    q, wt, b = _mekf_apply(c, s, w, q, wt, b, z)
     for i in range(4):
         s.q_c[i] = q[i]
     for i in range(3):

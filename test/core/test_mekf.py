@@ -11,8 +11,9 @@ from spec_reference import (
     mekf_vector_update_ref,
 )
 
-from mkf_ros.core.charts import CHART_NAMES, chart_id, from_chart
+from mkf_ros.core.charts import CHART_NAMES, chart_id, from_chart, t_matrix
 from mkf_ros.core.mekf import (
+    free_heading_transport_t,
     mekf_apply,
     mekf_gyro_update,
     mekf_heading_update,
@@ -315,3 +316,31 @@ def test_heading_update_equals_transcription(nx: int, bias_gain: float) -> None:
         np.testing.assert_allclose(Pk[:nx, :nx], Pr, atol=1e-12)
         np.testing.assert_allclose(dxk, dxr, atol=1e-12)
         assert nis == pytest.approx(nisr, rel=1e-10)
+
+
+@pytest.mark.parametrize("chart", CHART_NAMES)
+def test_free_heading_transport_carries_the_vertical(chart: str) -> None:
+    """docs/math.md §9.3: with the heading unobserved the chart update's map ``M`` takes the
+    world vertical in the body before the correction, ``u``, to the one after it, ``u⁺ =
+    R(δ̄)ᵀ u``, and acts as the chart's ``T(δ̄)`` on every direction across ``u``. The reason,
+    checked on quaternions: the reset's error ``δ̄* ⊗ exp(θ u)`` is ``exp(θ u⁺) ⊗ δ̄*``, so it
+    tilts the body by the same angle whatever the heading error θ."""
+    rng = np.random.default_rng(7)
+    for _ in range(20):
+        q = rng.normal(size=4)
+        q /= np.linalg.norm(q)
+        d = from_chart(chart_id(chart), rng.normal(0.0, 0.05, 3))
+        qn = qmul(q, d)
+        u, un = rotmat(q)[2], rotmat(qn)[2]
+        np.testing.assert_allclose(un, rotmat(d).T @ u, atol=1e-12)
+        T = t_matrix(chart_id(chart), d)
+        M = np.array(free_heading_transport_t(tuple(map(tuple, T)), tuple(u), tuple(un)))
+        np.testing.assert_allclose(M @ u, un, atol=1e-12)
+        w = np.cross(u, rng.normal(size=3))
+        np.testing.assert_allclose(M @ w, T @ w, atol=1e-12)
+        tilts = []
+        for theta in (0.1, 1.0, 3.0):
+            e = np.concatenate([[np.cos(theta / 2)], np.sin(theta / 2) * u])  # exp(θ u)
+            err = qmul(d * np.array([1.0, -1.0, -1.0, -1.0]), e)  # δ̄* ⊗ exp(θ u)
+            tilts.append(np.arccos(np.clip(rotmat(err).T @ un @ un, -1.0, 1.0)))
+        np.testing.assert_allclose(tilts, tilts[0], atol=1e-9)

@@ -256,7 +256,7 @@ def test_windowed_equals_full_interval(use_mag: bool) -> None:
     assert np.median(angf) > 10 * ang.max()
 
 
-def test_default_overlap_is_two_minutes_at_any_rate() -> None:
+def test_default_overlap_is_a_minute_at_any_rate() -> None:
     """docs/math.md §11.4: the default overlap is 60 s of the recording, not a count of
     samples (at most one window, 2¹⁷ samples); the window stays 2¹⁷ samples; an explicit
     overlap is taken as given; without a known period one window's worth."""
