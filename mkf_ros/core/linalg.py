@@ -217,7 +217,7 @@ def cross_t(a: tuple, b: tuple) -> tuple:
     return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
 
 
-#: The 3×3 zero matrix as a tuple of rows.
+#: The zero 3-vector and the 3×3 zero matrix as a tuple of rows.
 ZERO3 = (0.0, 0.0, 0.0)
 ZERO33 = ((0.0, 0.0, 0.0), (0.0, 0.0, 0.0), (0.0, 0.0, 0.0))
 

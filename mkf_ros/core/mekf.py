@@ -22,7 +22,7 @@ import numpy as np
 
 from mkf_ros.core._jit import jit, jit_inline
 from mkf_ros.core.charts import from_chart_t, saturate_t, t_matrix_t
-from mkf_ros.core.linalg import ZERO3, ZERO33, cross33_t, symmetrize_leading
+from mkf_ros.core.linalg import ZERO33, cross33_t, symmetrize_leading
 from mkf_ros.core.quaternion import q_omega_t, qmul_t, qnormalize_t, rotmat_t, t3, t4, t33
 
 # Speed (the arithmetic of a 6-state update is a few hundred flops): 3-vectors, quaternions and
@@ -572,19 +572,20 @@ def mekf_heading_update(
 
 @jit_inline
 def mekf_apply_t(chart: int, chart_update: bool, q: tuple, w: tuple, b: tuple, P: np.ndarray,
-                 nx: int, dx: np.ndarray, up: tuple) -> tuple[tuple, tuple, tuple]:
-    """:func:`mekf_apply` on tuples: returns ``(q̄⁺, ω̄⁺, b̄⁺)``. ``up``: the world vertical in
-    the body of ``q̄⁻`` when nothing observes the heading (the chart update then carries it to
-    the new vertical, :func:`free_heading_transport_t`), zero otherwise."""
+                 nx: int, dx: np.ndarray, free_heading: bool) -> tuple[tuple, tuple, tuple]:
+    """:func:`mekf_apply` on tuples: returns ``(q̄⁺, ω̄⁺, b̄⁺)``. ``free_heading``: nothing
+    observes the heading, and the chart update carries the world vertical of ``q̄⁻`` to that
+    of ``q̄⁺`` (:func:`free_heading_transport_t`)."""
     d = from_chart_t(chart, saturate_t(chart, (dx[0], dx[1], dx[2])))
+    qp = q
     q = qnormalize_t(qmul_t(q, d))
     w = (w[0] + dx[3], w[1] + dx[4], w[2] + dx[5])
     if nx == 9:
         b = (b[0] + dx[6], b[1] + dx[7], b[2] + dx[8])
     if chart_update:
         T = t_matrix_t(chart, d)
-        if up[0] != 0.0 or up[1] != 0.0 or up[2] != 0.0:
-            T = free_heading_transport_t(T, up, rotmat_t(q)[2])
+        if free_heading:  # the world vertical in the body, before and after
+            T = free_heading_transport_t(T, rotmat_t(qp)[2], rotmat_t(q)[2])
         transport_covariance_t(P, nx, T)
     symmetrize_leading(P, nx)
     return q, w, b
@@ -615,7 +616,7 @@ def mekf_apply(chart: int, chart_update: bool, qc: np.ndarray, w: np.ndarray, b:
     """Multiplicative update and chart update (§5): ``ē = sat(Δx_e)``, ``δ̄ = φ⁻¹(ē)``,
     ``q̄⁺ = q̄⁻ * δ̄``, ``ω̄⁺ = ω̄⁻ + Δω``; with the chart update ``P⁺ = T̃ P' T̃ᵀ``,
     ``T̃ = blockdiag(T(δ̄), I)`` (eq. 47b), otherwise ``P⁺ = P'`` (reset). ``P`` symmetrised."""
-    q, w1, b1 = mekf_apply_t(chart, chart_update, t4(qc), t3(w), t3(b), P, nx, dx, ZERO3)
+    q, w1, b1 = mekf_apply_t(chart, chart_update, t4(qc), t3(w), t3(b), P, nx, dx, False)
     for i in range(4):
         qc[i] = q[i]
     for i in range(3):

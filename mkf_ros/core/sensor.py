@@ -105,6 +105,7 @@ from mkf_ros.core.state import (
     classify_reading,
     count_reading,
     heading_fixed,
+    heading_unobserved,
     inflate_world,
     iso33,
     mag_yaw_var,
@@ -950,7 +951,7 @@ def _magnetometer(c: np.record, s: np.record, k: np.record, u: Units, dt: float,
     dtm = s.dt_mag  # time since the previous magnetometer sample
     if has_m:
         s.dt_mag = 0.0
-    if c.use_mag and s.heading_fixed and not c.paper_init:
+    if heading_fixed(c, s) and not c.paper_init:
         has_m = _mag_checks(c, s, k, u, dt, dtm, wl, Rw, m_body, m_norm, has_m)
     return has_m, dtm
 
@@ -1001,10 +1002,10 @@ def _mekf_heading(s: np.record, w: np.record, nx: int, R: tuple, m: tuple, ref: 
 def _mekf_apply(c: np.record, s: np.record, w: np.record, q: tuple, wt: tuple,
                 b: tuple, z: Fusion) -> tuple:
     """:func:`~mkf_ros.core.mekf.mekf_apply_t` of ``w.dx``: ``(q̄⁺, ω̄⁺, b̄⁺)``; while nothing
-    observes the heading (no magnetometer now, none has fixed it) the chart update carries
-    the heading's variance to the new vertical (docs/math.md §9.3)."""
-    up = ZERO3 if z.has_m or heading_fixed(c, s) else rotmat_t(q)[2]
-    return mekf_apply_t(c.chart, c.chart_update, q, wt, b, s.P, c.nx, w.dx, up)
+    observes the heading (:func:`~mkf_ros.core.state.heading_unobserved`) the chart update
+    carries the heading's variance to the new vertical (docs/math.md §9.3)."""
+    return mekf_apply_t(c.chart, c.chart_update, q, wt, b, s.P, c.nx, w.dx,
+                        heading_unobserved(c, s, z))
 
 
 @hot
@@ -1105,7 +1106,7 @@ def mukf_update(c: np.record, s: np.record, w: np.record, dt: float,
     heading_m = z.has_m and c.mag_heading
     use_vm = z.has_m and not c.mag_heading
     # an unobserved heading's spread, bounded for the sigma points (its variance back after)
-    f = _bound_heading_spread(s, nx) if not (z.has_m or heading_fixed(c, s)) else 1.0
+    f = _bound_heading_spread(s, nx) if heading_unobserved(c, s, z) else 1.0
     x = (t4(s.q_c), t3(s.e), t3(s.w), t3(s.b))
     meas = MukfMeasurement(
         (z.a, z.m if z.has_m else ZERO3), (UP, z.m_ref if z.has_m else ZERO3),

@@ -409,6 +409,15 @@ def heading_fixed(c: np.record, s: np.record) -> bool:
 
 
 @jit
+def heading_unobserved(c: np.record, s: np.record, z: Fusion) -> bool:
+    """Whether nothing observes the heading in this step: no magnetometer sample now, and
+    none has fixed it (6D, or 9D before the first field). The MEKF's chart update then carries
+    the vertical exactly, the MUKF bounds its sigma points' heading spread (docs/math.md
+    §9.3)."""
+    return not (z.has_m or heading_fixed(c, s))
+
+
+@jit
 def inflate_world(s: np.record, var_tilt: float, var_yaw: float) -> None:
     """Add uncertainty about the world axes (tilt about x and y, yaw about z) to ``P_ee``: an
     independent rotation (used when a sensor has been rejected for so long that the estimate
