@@ -18,6 +18,12 @@ import pytest
 # on a domain of its own, so parallel runs on one machine do not see each other.
 os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
 os.environ.setdefault("ROS_DOMAIN_ID", str(random.randint(1, 101)))
+# pytest-xdist workers (`./run test` runs two) inherit one domain: each takes its own next to
+# it (1..101 cyclically), so that one worker's nodes never receive the other's test topics.
+_worker = os.environ.get("PYTEST_XDIST_WORKER", "")
+if _worker.startswith("gw") and _worker[2:].isdigit():
+    _domain = (int(os.environ["ROS_DOMAIN_ID"]) - 1 + int(_worker[2:])) % 101 + 1
+    os.environ["ROS_DOMAIN_ID"] = str(_domain)
 # rclpy.init raises "failed to initialize logging" if ~/.ros/log cannot be created.
 os.environ.setdefault("ROS_LOG_DIR", tempfile.mkdtemp(prefix="mkf_ros-roslog-"))
 
