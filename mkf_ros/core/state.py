@@ -356,6 +356,9 @@ def build_config(p: FilterParams, split_input: bool = False) -> np.ndarray:
     c.q_from_enu[:] = FROM_ENU[p.world_frame]
     ref = np.asarray(p.mag_reference, dtype=float)
     n = float(np.linalg.norm(ref))
+    if n == 0.0 and np.any(ref):  # any non-zero vector is a direction (the parameter check's
+        ref = ref / np.abs(ref).max()  # rule); one too small to square is scaled up first
+        n = float(np.linalg.norm(ref))
     if n > 0.0:
         q = FROM_ENU[p.world_frame]  # given in the world frame → ENU: R(q_{W←ENU})ᵀ ref
         c.mag_ref_given = True

@@ -263,3 +263,25 @@ def test_no_attitude_variance_beyond_unknown_at_the_extreme_rate_noise(algorithm
         assert psd_violation(f.covariance) <= 1e-9, k
         if algorithm in ("mekf", "mukf"):
             assert np.linalg.eigvalsh(f.state_covariance[:3, :3]).max() <= cap * (1 + 1e-6), k
+
+
+@pytest.mark.parametrize("algorithm", ["mekf", "mukf"])
+@pytest.mark.parametrize("tiny", [2.182963053890949e-290, 5e-324])
+def test_any_non_zero_mag_reference_is_a_direction(algorithm: str, tiny: float) -> None:
+    """The parameter check accepts any non-zero ``mag_reference`` as the field's direction.
+    Found by the long property profile: ``[2.2e-290] * 3``, whose squared length underflows to
+    0, was accepted with ``init_mode: paper`` and gave NaN at the first sample (the filter took
+    it for "no reference"). It is the direction ``[1, 1, 1]``: the outputs equal those with
+    that reference."""
+    sim = simulate("slow_rotation", duration=2, rate=100, seed=3)
+    outs = []
+    for ref in ([tiny] * 3, [1.0, 1.0, 1.0]):
+        f = AttitudeFilter(algorithm=algorithm, use_mag=True, init_mode="paper",
+                           mag_reference=ref)
+        q = []
+        for k in range(sim.t.size):
+            f.step(0.01 if k else 0.0, sim.gyr[k], sim.acc[k], sim.mag[k])
+            q.append(f.quaternion)
+        outs.append(np.array(q))
+    assert np.isfinite(outs[0]).all()
+    np.testing.assert_array_equal(outs[0], outs[1])
