@@ -322,16 +322,27 @@ def none_above33_t(C: tuple, t: float) -> bool:
 def scale_direction(P: np.ndarray, n: int, u: tuple, s: float) -> None:
     """``P ← D P Dᵀ`` with ``D = I + (s − 1) u uᵀ`` on rows and columns 0–2 of the leading
     ``n × n`` block (``u`` unit): the variance along ``u`` times ``s²``, every correlation
-    with it scaled alike (a congruence: ``P`` stays symmetric PSD)."""
+    with it scaled alike (a congruence: ``P`` stays PSD). Each entry is computed once, from
+    the upper triangle, and mirrored: symmetric by construction. (A row pass then a column
+    pass in place left the attitude block asymmetric by the rounding of the variance before
+    the scaling: 1e-11 of the diagonal after the cap took a 10 s step's heading variance back
+    to π²/3, found by the long property profile.)"""
     f = s - 1.0
-    for j in range(n):  # rows: P[0:3, j] += f u (uᵀ P[0:3, j])
+    a = (P[0, 0] * u[0] + P[0, 1] * u[1] + P[0, 2] * u[2],  # a = P u (the block as it was)
+         P[0, 1] * u[0] + P[1, 1] * u[1] + P[1, 2] * u[2],
+         P[0, 2] * u[0] + P[1, 2] * u[1] + P[2, 2] * u[2])
+    ff = f * f * (u[0] * a[0] + u[1] * a[1] + u[2] * a[2])
+    for i in range(3):  # the block: P + f (u aᵀ + a uᵀ) + f² (uᵀ P u) u uᵀ
+        for j in range(i, 3):
+            v = P[i, j] + f * (u[i] * a[j] + a[i] * u[j]) + ff * u[i] * u[j]
+            P[i, j] = v
+            P[j, i] = v
+    for j in range(3, n):  # the correlations: rows 0–2 of D P, mirrored
         t = f * (u[0] * P[0, j] + u[1] * P[1, j] + u[2] * P[2, j])
         for i in range(3):
-            P[i, j] += u[i] * t
-    for i in range(n):  # columns
-        t = f * (u[0] * P[i, 0] + u[1] * P[i, 1] + u[2] * P[i, 2])
-        for j in range(3):
-            P[i, j] += t * u[j]
+            v = P[i, j] + u[i] * t
+            P[i, j] = v
+            P[j, i] = v
 
 
 @jit

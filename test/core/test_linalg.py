@@ -141,3 +141,21 @@ def test_scaling_a_direction_is_a_congruence() -> None:
     expected = D @ P @ D.T
     scale_direction(P, 9, tuple(u), 0.3)
     np.testing.assert_allclose(P, expected, rtol=1e-12, atol=1e-12)
+    np.testing.assert_array_equal(P, P.T)
+
+
+def test_scaling_a_huge_variance_back_stays_symmetric() -> None:
+    """The attitude cap takes a heading variance of 10⁴ rad² (a 10 s step without a heading
+    reference) back to π²/3: the result is exactly symmetric, whatever the rounding of the
+    large variance (a row pass then a column pass left 1e-11 of the diagonal)."""
+    from mkf_ros.core.linalg import scale_direction
+
+    rng = np.random.default_rng(5)
+    for _ in range(200):
+        B = rng.normal(size=(9, 9))
+        P = B @ B.T
+        u = rng.normal(size=3)
+        u /= np.linalg.norm(u)
+        P[:3, :3] += 1e4 * np.outer(u, u)  # the heading variance along u, then scaled back
+        scale_direction(P, 9, tuple(u), float(np.sqrt(3.29 / (u @ P[:3, :3] @ u))))
+        np.testing.assert_array_equal(P, P.T)
