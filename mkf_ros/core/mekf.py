@@ -23,7 +23,16 @@ import numpy as np
 from mkf_ros.core._jit import jit, jit_inline
 from mkf_ros.core.charts import from_chart_t, saturate_t, t_matrix_t
 from mkf_ros.core.linalg import ZERO33, cross33_t, symmetrize_leading
-from mkf_ros.core.quaternion import q_omega_t, qmul_t, qnormalize_t, rotmat_t, t3, t4, t33
+from mkf_ros.core.quaternion import (
+    q_omega_t,
+    qmul_t,
+    qnormalize_t,
+    rotmat_t,
+    t3,
+    t4,
+    t33,
+    up_in_body_t,
+)
 
 # Speed (the arithmetic of a 6-state update is a few hundred flops): 3-vectors, quaternions and
 # 3×3 matrices are tuples (``R[i][j]``), the nx×3 and 3×3 intermediates of a block live in one
@@ -585,7 +594,7 @@ def mekf_apply_t(chart: int, chart_update: bool, q: tuple, w: tuple, b: tuple, P
     if chart_update:
         T = t_matrix_t(chart, d)
         if free_heading:  # the world vertical in the body, before and after
-            T = free_heading_transport_t(T, rotmat_t(qp)[2], rotmat_t(q)[2])
+            T = free_heading_transport_t(T, up_in_body_t(qp), up_in_body_t(q))
         transport_covariance_t(P, nx, T)
     symmetrize_leading(P, nx)
     return q, w, b

@@ -43,6 +43,7 @@ from mkf_ros.core.quaternion import (
     t3,
     t4,
     t33,
+    up_in_body_t,
 )
 
 NOISE_CONSISTENT, NOISE_PUBLISHED, NOISE_INTEGRATED = 0, 1, 2
@@ -770,7 +771,7 @@ def _gain_projection(Kt: np.ndarray, dK: np.ndarray, nx: int, qm: tuple, v0: tup
     tilt_v0, bias_gain, bias_gain_h = v0
     if nx < 9:
         bias_gain = 1.0
-    u = rotmat_t(qm)[2]  # world vertical in the new chart's axes
+    u = up_in_body_t(qm)  # world vertical in the new chart's axes
     u0, u1, u2 = u
     pv = 1.0 if tilt_v0 else 0.0  # gravity: the vertical's share removed, or kept
     g0 = row_v0k if (tilt_v0 or bias_gain < 1.0) else -1

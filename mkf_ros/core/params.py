@@ -427,11 +427,24 @@ def unknown_parameter(name: str, known: Iterable[str]) -> str:
             f"docs/estimator.md and mkf_ros.core.params.PARAMS")
 
 
+def mag_reference_direction(v: Iterable[float]) -> np.ndarray | None:
+    """The unit field direction that a ``mag_reference`` gives (in its world frame), or None
+    for all zeros (learn it from the first magnetometer samples): any non-zero vector, however
+    small, scaled to its largest component before it is normalised (its squared length would
+    underflow to 0 below ~1e-154)."""
+    ref = np.asarray(list(v), dtype=float)
+    if not np.any(ref):
+        return None
+    ref = ref / np.abs(ref).max()
+    return ref / np.linalg.norm(ref)
+
+
 def _check_combination(vals: Mapping[str, Any]) -> None:
     """The rules between filter parameters (each one is valid alone): ValueError, one line."""
     if abs(np.linalg.det(np.reshape(vals["mag_soft_iron"], (3, 3)))) < 1e-12:
         raise ValueError("mag_soft_iron must be an invertible 3x3 matrix (row-major, 9 numbers)")
-    if vals["use_mag"] and vals["init_mode"] == "paper" and not any(vals["mag_reference"]):
+    if (vals["use_mag"] and vals["init_mode"] == "paper"
+            and mag_reference_direction(vals["mag_reference"]) is None):
         raise ValueError("init_mode 'paper' with use_mag needs mag_reference (the paper's "
                          "filter has no alignment step to learn it)")
 

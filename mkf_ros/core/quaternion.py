@@ -140,6 +140,15 @@ def rotmat_t(q: tuple) -> tuple:
 
 
 @jit
+def up_in_body_t(q: tuple) -> tuple:
+    """The world vertical (world z) in the body's axes, ``R(q)ᵀ e_z``: the third row of
+    :func:`rotmat_t` (the same expressions)."""
+    q0, q1, q2, q3 = q[0], q[1], q[2], q[3]
+    return (2.0 * (q1 * q3 - q0 * q2), 2.0 * (q2 * q3 + q0 * q1),
+            1.0 - 2.0 * (q1 * q1 + q2 * q2))
+
+
+@jit
 def t33(a: np.ndarray) -> tuple:
     """3×3 array → tuple of its rows."""
     return ((a[0, 0], a[0, 1], a[0, 2]), (a[1, 0], a[1, 1], a[1, 2]),

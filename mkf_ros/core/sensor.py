@@ -67,6 +67,7 @@ from mkf_ros.core.quaternion import (
     rotmat_t,
     t3,
     t4,
+    up_in_body_t,
 )
 from mkf_ros.core.state import (
     ACC,
@@ -1144,7 +1145,7 @@ def mukf_update(c: np.record, s: np.record, w: np.record, dt: float,
 def _vertical_variance(s: np.record) -> tuple:
     """``(u, v)``: the world vertical in the body (the error state's frame) and the attitude
     variance about it, ``v = uᵀ P_θθ u`` (the heading's)."""
-    u = rotmat_t(t4(s.q_c))[2]
+    u = up_in_body_t(t4(s.q_c))
     P = s.P
     v = 0.0
     for i in range(3):

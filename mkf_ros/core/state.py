@@ -31,7 +31,7 @@ from mkf_ros.core.frames import FROM_ENU
 from mkf_ros.core.linalg import ZERO33, congruence, copy_block, copy_into, mm
 from mkf_ros.core.mekf import MEKF_SCRATCH_ROWS, transport_covariance, transport_covariance_t
 from mkf_ros.core.mukf import MUKF_SCRATCH, NOISE_MODES
-from mkf_ros.core.params import ALGORITHMS, FilterParams
+from mkf_ros.core.params import ALGORITHMS, FilterParams, mag_reference_direction
 from mkf_ros.core.quaternion import qmul, qmul_t, qnormalize, qnormalize_t, rotmat, rotmat_t, t4
 
 NX_MAX = 9  # states: attitude error e, rate ω, gyro bias b
@@ -354,15 +354,11 @@ def build_config(p: FilterParams, split_input: bool = False) -> np.ndarray:
     c.mag_hard_iron[:] = (p.mag_bias_x, p.mag_bias_y, p.mag_bias_z)
     c.mag_soft_iron[:] = np.reshape(p.mag_soft_iron, (3, 3))
     c.q_from_enu[:] = FROM_ENU[p.world_frame]
-    ref = np.asarray(p.mag_reference, dtype=float)
-    n = float(np.linalg.norm(ref))
-    if n == 0.0 and np.any(ref):  # any non-zero vector is a direction (the parameter check's
-        ref = ref / np.abs(ref).max()  # rule); one too small to square is scaled up first
-        n = float(np.linalg.norm(ref))
-    if n > 0.0:
+    ref = mag_reference_direction(p.mag_reference)
+    if ref is not None:
         q = FROM_ENU[p.world_frame]  # given in the world frame → ENU: R(q_{W←ENU})ᵀ ref
         c.mag_ref_given = True
-        c.mag_ref[:] = rotmat(q).T @ (ref / n)
+        c.mag_ref[:] = rotmat(q).T @ ref
     return rec
 
 

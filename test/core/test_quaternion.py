@@ -73,3 +73,17 @@ def test_q_omega_small_rate_is_finite() -> None:
         q = q_omega(w, 0.01)
         assert np.all(np.isfinite(q))
         np.testing.assert_allclose(q[1:], w * 0.005, atol=1e-20)
+
+
+def test_up_in_body_is_the_world_vertical_in_body_axes() -> None:
+    """``up_in_body_t(q) = R(q)ᵀ e_z`` (numpy's rotation matrix), bit for bit the third row
+    of ``rotmat_t``."""
+    from mkf_ros.core.quaternion import rotmat_np, rotmat_t, up_in_body_t
+
+    rng = np.random.default_rng(7)
+    for _ in range(100):
+        q = rng.normal(size=4)
+        q /= np.linalg.norm(q)
+        u = np.array(up_in_body_t(tuple(q)))
+        np.testing.assert_allclose(u, rotmat_np(q).T @ [0.0, 0.0, 1.0], atol=1e-15)
+        assert tuple(u) == rotmat_t(tuple(q))[2]
