@@ -20,10 +20,14 @@ os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
 os.environ.setdefault("ROS_DOMAIN_ID", str(random.randint(1, 101)))
 # pytest-xdist workers (`./run test` runs two) inherit one domain: each takes its own next to
 # it (1..101 cyclically), so that one worker's nodes never receive the other's test topics.
+# Once per worker: a child process that runs this file again inherits the moved domain and
+# the marker, and keeps both.
 _worker = os.environ.get("PYTEST_XDIST_WORKER", "")
-if _worker.startswith("gw") and _worker[2:].isdigit():
+if (_worker.startswith("gw") and _worker[2:].isdigit()
+        and os.environ.get("MKF_TEST_DOMAIN_WORKER") != _worker):
     _domain = (int(os.environ["ROS_DOMAIN_ID"]) - 1 + int(_worker[2:])) % 101 + 1
     os.environ["ROS_DOMAIN_ID"] = str(_domain)
+    os.environ["MKF_TEST_DOMAIN_WORKER"] = _worker
 # rclpy.init raises "failed to initialize logging" if ~/.ros/log cannot be created.
 os.environ.setdefault("ROS_LOG_DIR", tempfile.mkdtemp(prefix="mkf_ros-roslog-"))
 
