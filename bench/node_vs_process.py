@@ -133,10 +133,10 @@ def run_case(ctx: Any, path: Path, imu_topic: str, mag_topic: str | None, params
     n = min(len(st), len(o.index))
     same_row = ((st[:n] == in_st[:n])
                 & (_bits(q_node[:n]) == _bits(o.quat[:n])).all(1)
-                & (_bits(cov_node[:n]) == _bits(o.cov[:n])).all(1))
+                & (_bits(cov_node[:n]) == _bits(o.cov[:n].reshape(-1, 9))).all(1))
     diff = np.flatnonzero(~same_row)
     dq = np.abs(q_node[:n] - o.quat[:n])[diff]
-    dc = np.abs(cov_node[:n] - o.cov[:n])[diff]
+    dc = np.abs(cov_node[:n] - o.cov[:n].reshape(-1, 9))[diff]
     first = (f"{diff[0]} (IMU msg {o.index[diff[0]]})" if len(diff) else
              "—" if len(st) == len(o.index) else f"{n} (count)")
     bad = sorted(k for k in set(node_counters) | set(r.counters)

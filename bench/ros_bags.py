@@ -15,7 +15,7 @@ output bag, with the default parameters (``--set`` overrides them; ``estimate_gy
 default), for ``algorithm`` mekf and mukf, without the magnetometer (6D) and, where the bag has a
 ``sensor_msgs/MagneticField`` topic, with ``use_mag`` true (9D). The IMU topic is the bag's one
 ``sensor_msgs/Imu`` topic. The same decoded messages also go once more through
-:func:`mkf_ros.bags.process.run_stream` (the glue ``process_bag`` uses) with an adapter that
+:func:`mkf_ros.bags.messages.run_stream` (the glue ``process_bag`` uses) with an adapter that
 notes after every message the filter's ``rest_updates`` counter and keeps the per-output
 ``heading_initialized`` flag; the script checks that this run publishes bit for bit what
 ``process_bag`` published.
@@ -178,10 +178,11 @@ def read_bag(path: Path) -> BagData:
 
 # ------------------------------------------------------------------------------- running
 class RecordingAdapter:
-    """A :class:`~mkf_ros.stream.adapter.StreamAdapter` for :func:`~mkf_ros.bags.process.run_stream`
-    that processes one message at a time (``chunk=1``, same results bit for bit) and notes
-    after each IMU message the filter's ``rest_updates`` counter; keeps the full
-    :class:`~mkf_ros.stream.adapter.StreamOutputs` (``heading_initialized``, bias, ...)."""
+    """A :class:`~mkf_ros.stream.adapter.StreamAdapter` for
+    :func:`~mkf_ros.bags.messages.run_stream` that processes one message at a time
+    (``chunk=1``, same results bit for bit) and notes after each IMU message the filter's
+    ``rest_updates`` counter; keeps the full :class:`~mkf_ros.stream.adapter.StreamOutputs`
+    (``heading_initialized``, bias, ...)."""
 
     def __init__(self, params: dict[str, Any]) -> None:
         from mkf_ros.stream.adapter import StreamAdapter
@@ -232,7 +233,8 @@ class Run:
 
 def run_case(bd: BagData, algorithm: str, use_mag: bool, overrides: dict[str, Any],
              tmp: Path) -> Run:
-    from mkf_ros.bags.process import process_bag, run_stream
+    from mkf_ros.bags.messages import run_stream
+    from mkf_ros.bags.process import process_bag
 
     params = {**overrides, "algorithm": algorithm, "use_mag": use_mag}
     r = process_bag(bd.path, tmp / "out.mcap", params, imu_topic=bd.imu_topic,
@@ -251,7 +253,7 @@ def run_case(bd: BagData, algorithm: str, use_mag: bool, overrides: dict[str, An
     rest_msg = np.diff(rest_count, prepend=0) > 0
     return Run(bag=bd, algorithm=algorithm, use_mag=use_mag, params=r.params,
                n_in=r.n_imu + r.n_mag, n_out=r.n_out, index=o.index, t=r.log_s,
-               stamp=r.stamps, quat=o.quat, yaw_var=o.cov[:, 8], heading=so.heading_initialized,
+               stamp=r.stamps, quat=o.quat, yaw_var=o.cov[:, 2, 2], heading=so.heading_initialized,
                bias=so.bias, rest=rest_msg[o.index], counters=r.counters, same=same,
                notes=list(r.notes))
 

@@ -80,6 +80,8 @@ def plot(cal: MagCalibration, raw: np.ndarray, path: str, title: str) -> None:
     import matplotlib.pyplot as plt
     import numpy as np
 
+    from mkf_ros.files import atomic_path
+
     done = cal.apply(raw)
     r = cal.field_magnitude
     fig, axes = plt.subplots(1, 3, figsize=(13, 4.6))
@@ -97,7 +99,8 @@ def plot(cal: MagCalibration, raw: np.ndarray, path: str, title: str) -> None:
     fig.suptitle(f"{title}: RMS residual {100 * cal.rms_relative:.2f} % of the field, coverage "
                  f"{100 * cal.coverage:.0f} %", fontsize=10)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=110)
     plt.close(fig)
 
 
@@ -107,6 +110,7 @@ def run(args: argparse.Namespace) -> int:
     from mkf_ros.bags import BagError
     from mkf_ros.cli.main import CliError
     from mkf_ros.core.magcal import fit_ellipsoid, params_yaml
+    from mkf_ros.files import write_text
 
     if args.out and Path(args.out).exists() and not args.overwrite:
         raise CliError(f"{args.out} already exists (use --overwrite to replace it)")
@@ -133,7 +137,7 @@ def run(args: argparse.Namespace) -> int:
     print(cal.summary())
     text = params_yaml(cal, args.node_name)
     if args.out:
-        Path(args.out).write_text(text)
+        write_text(args.out, text)
         print(f"parameters written to {args.out} (estimator --ros-args --params-file "
               f"{args.out}; mkf process --params {args.out})")
     else:

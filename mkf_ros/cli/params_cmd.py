@@ -7,6 +7,7 @@ import re
 from pathlib import Path
 
 from mkf_ros.core.params import BY_NAME, Param
+from mkf_ros.files import write_text
 
 HELP = "print the parameters (commented YAML for --params-file, or a Markdown table)"
 
@@ -63,7 +64,7 @@ def update_generated(root: Path) -> list[Path]:
     done = []
     cfg = root / "config" / "estimator.yaml"
     if cfg.parent.is_dir():
-        cfg.write_text(to_yaml(params, "/**"))
+        write_text(cfg, to_yaml(params, "/**"))
         done.append(cfg)
     for path, begin, end in ((root / "README.md", r"<!-- PARAMS-TABLE[^>]*-->\n",
                               "<!-- /PARAMS-TABLE -->"),
@@ -75,7 +76,7 @@ def update_generated(root: Path) -> list[Path]:
         new, n = re.subn(f"({begin})(.*?)({re.escape(end)})",
                          lambda m: m.group(1) + table + m.group(3), text, flags=re.S)
         if n:
-            path.write_text(new)
+            write_text(path, new)
             done.append(path)
     return done
 

@@ -62,7 +62,7 @@ def run(args: argparse.Namespace) -> int:
     from mkf_ros import parallel
     from mkf_ros.bags.batch import run_batch, summary_csv, summary_table
     from mkf_ros.cli.main import CliError
-    from mkf_ros.study.runner import atomic_write_text
+    from mkf_ros.files import write_text
 
     if args.storage not in ("mcap", "sqlite3"):
         raise CliError(f"unknown storage {args.storage!r} (choose from mcap, sqlite3)")
@@ -125,7 +125,7 @@ def run(args: argparse.Namespace) -> int:
     # failure does): no unit is running any more, so remove them here
     _remove_partial([j for j, s in zip(jobs, summaries, strict=True) if not s.ok])
     print(summary_table(summaries, names))
-    atomic_write_text(out / "summary.csv", summary_csv(summaries, names))
+    write_text(out / "summary.csv", summary_csv(summaries, names))
     ok = sum(s.ok for s in summaries)
     print(f"{len(summaries)} bags: {ok} processed, {len(summaries) - ok} failed -> {out}/ "
           f"(table: {out / 'summary.csv'})")

@@ -296,9 +296,11 @@ def rate_covariance(s: np.record, i: int, j: int) -> float:
 
 
 class BatchOutputs(NamedTuple):
-    """Per-sample outputs of :meth:`AttitudeFilter.run` (:func:`run_batch`): orientation
-    ``[w, x, y, z]`` in the world frame, its covariance about world axes (``π² I`` before
-    initialisation), rate, bias, bias variance, initialised."""
+    """Per-sample outputs of a batch: of :meth:`AttitudeFilter.run` (:func:`run_batch`) and of
+    the smoother (:mod:`mkf_ros.core.smoother`): orientation ``[w, x, y, z]`` in the world
+    frame, its covariance about world axes (``π² I`` before initialisation), rate, bias, bias
+    variance (the kernels' quantity; :func:`mkf_ros.estimate` publishes its square root as
+    ``bias_std``), and whether the row holds an estimate (the filter initialised)."""
 
     quat: np.ndarray
     cov: np.ndarray
@@ -503,7 +505,7 @@ class AttitudeFilter:
         return record(self._st).b.copy()
 
     @property
-    def bias_stddev(self) -> np.ndarray:
+    def bias_std(self) -> np.ndarray:
         return (np.sqrt(np.diag(record(self._st).P)[6:9]) if record(self._cfg).nx == 9
                 else np.zeros(3))
 

@@ -349,14 +349,15 @@ def _projected_correction(P: np.ndarray, nx: int, dx: np.ndarray, work: np.ndarr
 
 @jit_inline
 def mekf_vector_update_t(
-    P: np.ndarray, nx: int, dx: np.ndarray, R: tuple, vm: tuple, vref: tuple, Rv: tuple,
-    Qv: tuple, gate: float, tilt_only: bool, work: np.ndarray, Sb: tuple, bias_gain: float,
+    P: np.ndarray, nx: int, dx: np.ndarray, R: tuple, vm: tuple, vref: tuple, noise: tuple,
+    gate: float, tilt_only: bool, work: np.ndarray, Sb: tuple, bias_gain: float,
 ) -> float:
-    """:func:`mekf_vector_update` on tuples (``R``, ``Rv``, ``Qv`` tuples of rows) with scratch
-    ``work``; with a bias state, ``Sb`` (3×3, rows) the reading's rotation per unit bias
-    error, ``H = [[v̄]×, 0, [v̄]× S_b]`` (a low-passed accelerometer turned by the bias-corrected
-    gyro, docs/math.md §9.1; zeros otherwise), and ``bias_gain`` the share of the gain the bias
-    takes (:func:`_scale_bias_gain`; 1: the Kalman gain)."""
+    """:func:`mekf_vector_update` on tuples (``R`` and the noise ``(R_v, Q_v)``, tuples of
+    rows) with scratch ``work``; with a bias state, ``Sb`` (3×3, rows) the reading's rotation
+    per unit bias error, ``H = [[v̄]×, 0, [v̄]× S_b]`` (a low-passed accelerometer turned by
+    the bias-corrected gyro, docs/math.md §9.1; zeros otherwise), and ``bias_gain`` the share
+    of the gain the bias takes (:func:`_scale_bias_gain`; 1: the Kalman gain)."""
+    Rv, Qv = noise
     vb = (R[0][0] * vref[0] + R[1][0] * vref[1] + R[2][0] * vref[2],  # v̄ = R(q̄⁻)ᵀ v
           R[0][1] * vref[0] + R[1][1] * vref[1] + R[2][1] * vref[2],
           R[0][2] * vref[0] + R[1][2] * vref[1] + R[2][2] * vref[2])
@@ -418,7 +419,7 @@ def mekf_vector_update(
     ``H = [[v̄]×, 0]``, noise ``R(q̄⁻)ᵀ Q_v R(q̄⁻) + R_v``. ``R`` is ``R(q̄⁻)``. With
     ``tilt_only`` (extension, for gravity) the gain is kept off the world vertical
     (:func:`_joseph_projected`). Returns the NIS (see :func:`_block_update`)."""
-    return mekf_vector_update_t(P, nx, dx, t33(R), t3(vm), t3(vref), t33(Rv), t33(Qv), gate,
+    return mekf_vector_update_t(P, nx, dx, t33(R), t3(vm), t3(vref), (t33(Rv), t33(Qv)), gate,
                                 tilt_only, mekf_scratch(nx), ZERO33, 1.0)
 
 
@@ -674,8 +675,9 @@ def mekf_update(chart: int, chart_update: bool, x: tuple, P: np.ndarray, nx: int
     ok = True
     for k in range(use_v.shape[0]):
         if use_v[k]:
-            ok &= mekf_vector_update_t(P, nx, dx, R, t3(vm[k]), t3(vref[k]), t33(Rv[k]),
-                                       t33(Qv[k]), np.inf, False, work, ZERO33, 1.0) >= 0
+            ok &= mekf_vector_update_t(P, nx, dx, R, t3(vm[k]), t3(vref[k]),
+                                       (t33(Rv[k]), t33(Qv[k])), np.inf, False, work, ZERO33,
+                                       1.0) >= 0
     if use_w:
         ok &= mekf_rate_update_t(P, nx, dx, wt, bt, t3(wm), t33(Rw), True, np.inf, work) >= 0
     mekf_apply(chart, chart_update, qc, w, b, P, nx, dx)

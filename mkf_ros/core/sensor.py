@@ -988,7 +988,7 @@ def _mekf_vector(s: np.record, w: np.record, nx: int, R: tuple, vm: tuple, vref:
                  Rv: tuple, Qv: tuple, gate: float, tilt_only: bool, Sb: tuple,
                  bias_gain: float) -> float:
     """:func:`~mkf_ros.core.mekf.mekf_vector_update_t` into ``w.dx``."""
-    return mekf_vector_update_t(s.P, nx, w.dx, R, vm, vref, Rv, Qv, gate, tilt_only, w.mekf,
+    return mekf_vector_update_t(s.P, nx, w.dx, R, vm, vref, (Rv, Qv), gate, tilt_only, w.mekf,
                                 Sb, bias_gain)
 
 

@@ -27,7 +27,7 @@ import functools
 import itertools
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
-from typing import Any, NamedTuple
+from typing import Any
 
 import numpy as np
 
@@ -147,24 +147,13 @@ def steps_period(dts: np.ndarray) -> float:
     return mean_period(float(np.sum(dts[1:])), len(dts))
 
 
-class SmoothOutputs(NamedTuple):
-    """Per-sample smoothed outputs: orientation ``[w, x, y, z]`` in the world frame (``w ≥ 0``),
-    its covariance about world axes (as the filter's, docs/math.md §9.6), rate, bias, bias
-    variance, and whether the sample has an estimate (False before the first alignment: the
-    rows are then undefined and the caller keeps the filter's)."""
-
-    quat: np.ndarray
-    cov: np.ndarray
-    omega: np.ndarray
-    bias: np.ndarray
-    bias_var: np.ndarray
-    valid: np.ndarray
-
-
-def new_smooth_outputs(n: int) -> SmoothOutputs:
-    """Empty :class:`SmoothOutputs` of ``n`` rows."""
-    return SmoothOutputs(np.zeros((n, 4)), np.zeros((n, 3, 3)), np.zeros((n, 3)),
-                         np.zeros((n, 3)), np.zeros((n, 3)), np.zeros(n, dtype=np.bool_))
+def new_smooth_outputs(n: int) -> BatchOutputs:
+    """``n`` rows of smoothed outputs, zeros: the filter's
+    :class:`~mkf_ros.core.filter.BatchOutputs` (the smoother publishes its estimate as the
+    filter does, docs/math.md §9.6; ``initialized`` False where a sample has no estimate,
+    before the first alignment: the caller keeps the filter's rows there)."""
+    return BatchOutputs(np.zeros((n, 4)), np.zeros((n, 3, 3)), np.zeros((n, 3)),
+                        np.zeros((n, 3)), np.zeros((n, 3)), np.zeros(n, dtype=np.bool_))
 
 
 # --- records ---------------------------------------------------------------------------------
@@ -259,8 +248,8 @@ def cut(rec: np.ndarray, m: int) -> None:
 # --- the backward pass -----------------------------------------------------------------------
 @jit_inline
 def rts_linear(nx: int, Pa: np.ndarray, Pp: np.ndarray, A: tuple, dt: float, Qp: np.ndarray,
-               Ps: np.ndarray, dx: np.ndarray, C: np.ndarray, G: np.ndarray, X: np.ndarray,
-               Pout: np.ndarray, dxo: np.ndarray) -> bool:
+               Ps: np.ndarray, dx: np.ndarray, C: np.ndarray, scratch: tuple, Pout: np.ndarray,
+               dxo: np.ndarray) -> bool:
     """One Rauch–Tung–Striebel step of a linear-Gaussian model (docs/math.md §11.2), on the
     leading ``nx × nx`` blocks, for the transition of the filter's prediction
     ``Φ = [[A, Δt I, 0], [0, I, 0], [0, 0, I]]`` (``A`` a 3×3 tuple of rows; §5): the posterior
@@ -272,8 +261,10 @@ def rts_linear(nx: int, Pa: np.ndarray, Pp: np.ndarray, A: tuple, dt: float, Qp:
         ``Pout = (I − CΦ) Pa (I − CΦ)ᵀ + C (Qp + Ps) Cᵀ``
 
     (equal to ``Pa + C (Ps − Pp) Cᵀ``; a sum of congruences of PSD matrices, computed as such:
-    symmetric PSD by construction). ``G``, ``X``: scratch; ``Pp`` is overwritten (its Cholesky
-    factor), ``Qp`` too (by ``Qp + Ps``). False if ``Pp`` is not positive definite."""
+    symmetric PSD by construction). ``scratch``: two ``nx × nx`` arrays ``(G, X)``; ``Pp`` is
+    overwritten (its Cholesky factor), ``Qp`` too (by ``Qp + Ps``). False if ``Pp`` is not
+    positive definite."""
+    G, X = scratch
     for j in range(nx):  # X = Φ Pa (Φ's structure), then Pp⁻¹ Φ Pa = Cᵀ
         p0, p1, p2 = Pa[0, j], Pa[1, j], Pa[2, j]
         for i in range(3):
@@ -397,7 +388,7 @@ def rts_manifold(c: np.record, r: np.record, qs: np.ndarray, ws: np.ndarray, bs:
         dx[3 + i] = ws[i] - wa[i]
         if nx == 9:
             dx[6 + i] = bs[i] - ba[i]
-    if not rts_linear(nx, Pa, Pp, Am, r.dt, Qp, Pn, dx, C, G, X, Po, dxo):
+    if not rts_linear(nx, Pa, Pp, Am, r.dt, Qp, Pn, dx, C, (G, X), Po, dxo):
         return False
     # back to the manifold at the posterior's centre, as the filter's update (§5)
     de = saturate_t(c.chart, (dxo[0], dxo[1], dxo[2]))
@@ -430,7 +421,7 @@ def _load(r: np.record, nx: int, qs: np.ndarray, ws: np.ndarray, bs: np.ndarray,
 
 @jit_inline
 def _write_smoothed(c: np.record, qs: np.ndarray, ws: np.ndarray, bs: np.ndarray,
-                    Ps: np.ndarray, out: SmoothOutputs, j: int) -> None:
+                    Ps: np.ndarray, out: BatchOutputs, j: int) -> None:
     """Row ``j`` of the outputs, published as the filter's (docs/math.md §9.6): ``q_W`` with
     ``q0 ≥ 0`` and ``Σ_W = R(q_W) Pˢ_ee R(q_W)ᵀ + diag(σ_a², σ_a², 0)``, capped at ``π²/3``
     about any axis."""
@@ -455,11 +446,11 @@ def _write_smoothed(c: np.record, qs: np.ndarray, ws: np.ndarray, bs: np.ndarray
         out.omega[j, i] = ws[i]
         out.bias[j, i] = bs[i]
         out.bias_var[j, i] = Ps[6 + i, 6 + i] if c.nx == 9 else 0.0
-    out.valid[j] = True
+    out.initialized[j] = True
 
 
 @jit
-def backward(cfg: np.ndarray, rec: np.ndarray, n: int, out: SmoothOutputs) -> int:
+def backward(cfg: np.ndarray, rec: np.ndarray, n: int, out: BatchOutputs) -> int:
     """The backward pass over the slots ``rec[0:n]`` (docs/math.md §11.3), from ``rec[n − 1]``
     (its estimate taken as the smoothed one) down to ``rec[0]``, into rows ``0 … n − 1`` of
     ``out``. Returns how many links fell back to the filtered estimate (a prediction whose
@@ -474,7 +465,7 @@ def backward(cfg: np.ndarray, rec: np.ndarray, n: int, out: SmoothOutputs) -> in
     for j in range(n - 1, -1, -1):
         r = rec[j]
         if r.kind == NONE:
-            out.valid[j] = False
+            out.initialized[j] = False
             have = False
             continue
         if r.kind == TRANS and have:
@@ -512,8 +503,8 @@ class Windows:
         self.failed = 0  #: links that fell back to the filtered estimate
         self._local = new_smooth_outputs(min(self.span, max(capacity, 1)))
 
-    def smooth(self, final: bool) -> list[SmoothOutputs]:
-        """The smoothed rows ready now, in order (each a fresh :class:`SmoothOutputs`, rows for
+    def smooth(self, final: bool) -> list[BatchOutputs]:
+        """The smoothed rows ready now, in order (each a fresh :class:`BatchOutputs`, rows for
         the slots ``done …``); ``final``: the forward pass has ended, smooth every held slot."""
         res = []
         while self.held >= self.span or (final and self.held > 0):
@@ -522,7 +513,7 @@ class Windows:
                 self._local = new_smooth_outputs(n)
             self.failed += backward(self.cfg, self.rec, n, self._local)
             keep = n if (final and n == self.held) else min(self.window, n)
-            res.append(SmoothOutputs(*(a[:keep].copy() for a in self._local)))
+            res.append(BatchOutputs(*(a[:keep].copy() for a in self._local)))
             rest = self.held - keep
             self.rec[:rest] = self.rec[keep:self.held]
             self.held = rest
@@ -542,7 +533,7 @@ def array_reader(dts: np.ndarray, gyr: np.ndarray, acc: np.ndarray, mag: np.ndar
 
 
 def smooth_stream(f: AttitudeFilter, n: int, read: Reader, window: int, overlap: int
-                  ) -> Iterator[tuple[int, BatchOutputs, SmoothOutputs]]:
+                  ) -> Iterator[tuple[int, BatchOutputs, BatchOutputs]]:
     """The filter ``f`` (an MEKF or MUKF) forward over ``n`` samples read in pieces by ``read``
     (as :meth:`AttitudeFilter.run`, from its current state, which advances) and the backward
     pass in windows of ``window`` samples started ``overlap`` samples later (docs/math.md
@@ -569,12 +560,12 @@ def smooth_stream(f: AttitudeFilter, n: int, read: Reader, window: int, overlap:
             fwd = end
             pos, rest = wins.done, wins.held
             for rows in wins.smooth(fwd == n):
-                k = len(rows.valid)
+                k = len(rows.initialized)
                 rest -= k  # rows still held after these
                 filt = BatchOutputs(*(a[:k].copy() for a in held))
                 for a in held:  # the rows move with their slots (Windows.smooth)
                     a[:rest] = a[k:k + rest]
-                bad = ~rows.valid
+                bad = ~rows.initialized
                 for a, b in zip(rows[:5], filt[:5], strict=True):  # quat … bias_var
                     a[bad] = b[bad]
                 yield pos, filt, rows
@@ -585,7 +576,7 @@ def smooth_stream(f: AttitudeFilter, n: int, read: Reader, window: int, overlap:
 
 def smooth_run(f: AttitudeFilter, dts: np.ndarray, gyr: np.ndarray, acc: np.ndarray,
                mag: np.ndarray, window: int | None = None,
-               overlap: int | None = None) -> tuple[BatchOutputs, SmoothOutputs]:
+               overlap: int | None = None) -> tuple[BatchOutputs, BatchOutputs]:
     """:func:`smooth_stream` over readings in arrays (readings as for
     :meth:`AttitudeFilter.run`; ``window``, ``overlap`` as :func:`window_sizes` resolves them
     at the steps' mean period): the filtered and the smoothed outputs, one row per sample."""
@@ -593,7 +584,7 @@ def smooth_run(f: AttitudeFilter, dts: np.ndarray, gyr: np.ndarray, acc: np.ndar
     window, overlap = window_sizes(window, overlap, steps_period(dts))
     filt, sm = new_batch_outputs(n), new_smooth_outputs(n)
     for pos, fr, sr in smooth_stream(f, n, array_reader(dts, gyr, acc, mag), window, overlap):
-        k = len(sr.valid)
+        k = len(sr.initialized)
         for a, b in zip((*filt, *sm), (*fr, *sr), strict=True):
             a[pos:pos + k] = b
     return filt, sm
@@ -737,7 +728,7 @@ def fuse_tilt(q_f: np.ndarray, P_f: np.ndarray, q_b: np.ndarray, P_b: np.ndarray
 
 def smooth_both_ways(f: AttitudeFilter, dts: np.ndarray, gyr: np.ndarray, acc: np.ndarray,
                      mag: np.ndarray, window: int | None = None,
-                     overlap: int | None = None) -> tuple[BatchOutputs, SmoothOutputs]:
+                     overlap: int | None = None) -> tuple[BatchOutputs, BatchOutputs]:
     """:func:`smooth_run` with ``f``, and a fresh filter of ``f``'s parameters smoothed over the
     recording reversed (:func:`smooth_reversed_into`), the two in parallel threads (the kernels
     release the GIL: on two cores the wall time of one); the forward smoother's tilt fused with
@@ -793,7 +784,7 @@ def smooth_reversed_into(params: Any, n: int, read: Reader, starts: Sequence[int
         seg = reversed_reader(functools.partial(_shifted, read, s0), s1 - s0)
         for pos, fr, sr in smooth_stream(AttitudeFilter(params), s1 - s0, seg, window,
                                          overlap):
-            k = len(sr.valid)
+            k = len(sr.initialized)
             write(s1 - pos - k, sr.quat[::-1], sr.cov[::-1], fr.initialized[::-1])
             if progress is not None:
                 progress(k)

@@ -6,13 +6,13 @@ on headless machines; files are written atomically (temporary name, then rename)
 
 from __future__ import annotations
 
-import os
 from collections.abc import Mapping
 from pathlib import Path
 
 import numpy as np
 
 from mkf_ros.evaluation.metrics import roll_pitch_yaw
+from mkf_ros.files import atomic_path
 
 #: shading of the disturbance intervals a synthetic recording reports
 INTERVAL_STYLE = {
@@ -100,10 +100,6 @@ def accuracy_figure(path: str | Path, t: np.ndarray, q_est: np.ndarray, q_true: 
                      transform=axes[1].transAxes, fontsize=7.5, color="0.3")
     if title:
         fig.suptitle(title, fontsize=11)
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}{path.suffix}")
-    try:
+    with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=110)
-        tmp.replace(path)
-    finally:
-        tmp.unlink(missing_ok=True)
     return path

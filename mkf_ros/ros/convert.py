@@ -68,8 +68,8 @@ def fill_imu(out: Imu, inp: Imu, est: StreamOutput, angular_velocity_stddev: flo
     orientation and its covariance from the filter, angular velocity per the chosen source,
     linear acceleration passed through; covariances per :mod:`mkf_ros.stream.rep145`."""
     out.header = inp.header
-    set_quat(out.orientation, est.quat_wxyz)
-    out.orientation_covariance = np.ascontiguousarray(est.orientation_cov, dtype=float).reshape(9)
+    set_quat(out.orientation, est.quat)
+    out.orientation_covariance = np.ascontiguousarray(est.cov, dtype=float).reshape(9)
     w, a = est.angular_velocity, est.linear_acceleration
     set_vec(out.angular_velocity, np.zeros(3) if w is None else w)
     out.angular_velocity_covariance = rep145.published_covariance(

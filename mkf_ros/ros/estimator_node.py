@@ -436,7 +436,7 @@ class EstimatorNode(Node):
     def _extras(self, header: Header, out: Any, p: dict[str, Any]) -> None:
         """TF and debug topics (message objects; only when enabled)."""
         if self._tf is not None and p["publish_tf"]:
-            self._send_tf(self._tf, header, out.quat_wxyz, p)
+            self._send_tf(self._tf, header, out.quat, p)
         rpy_pub, bias_pub = self._rpy_pub, self._bias_pub  # created together
         if rpy_pub is not None and bias_pub is not None and p["publish_debug_topics"]:
             self._send_debug(rpy_pub, bias_pub, header, out)
@@ -456,7 +456,7 @@ class EstimatorNode(Node):
     def _send_debug(self, rpy_pub: Publisher, bias_pub: Publisher, header: Header,
                     out: Any) -> None:
         r = Vector3Stamped(header=header)
-        r.vector.x, r.vector.y, r.vector.z = convert.rpy(out.quat_wxyz)
+        r.vector.x, r.vector.y, r.vector.z = convert.rpy(out.quat)
         rpy_pub.publish(r)
         b = Vector3Stamped(header=header)
         convert.set_vec(b.vector, out.bias)
@@ -631,7 +631,7 @@ class EstimatorNode(Node):
                 last_imu=self._last_imu_wall, last_mag=self._last_mag_wall,
                 initialized=f.initialized, heading_initialized=f.heading_initialized,
                 cov=f.covariance if f.initialized else None, bias=f.bias,
-                bias_stddev=f.bias_stddev, acc_norm=s.acc_norm, mag_norm=s.mag_norm,
+                bias_stddev=f.bias_std, acc_norm=s.acc_norm, mag_norm=s.mag_norm,
                 mag_offset=s.mag_offset, dt_stats=s.pop_dt_stats(),
                 last_reset_reason=s.last_reset_reason, frame_id=self._frame_id,
                 input_problems=self._input_problems())

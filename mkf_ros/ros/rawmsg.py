@@ -103,8 +103,8 @@ class ImuEncoder:
 
     def encode(self, h: RawHeader, est: StreamOutput, angular_velocity_stddev: float,
                linear_acceleration_stddev: float) -> bytes:
-        q = est.quat_wxyz
-        return self._encode(h, (q[1], q[2], q[3], q[0]), est.orientation_cov.reshape(9),
+        q = est.quat
+        return self._encode(h, (q[1], q[2], q[3], q[0]), est.cov.reshape(9),
                             est.angular_velocity, est.angular_velocity_cov,
                             est.angular_velocity_cov_add, est.linear_acceleration,
                             angular_velocity_stddev, linear_acceleration_stddev)

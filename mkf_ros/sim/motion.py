@@ -31,7 +31,7 @@ from __future__ import annotations
 import itertools
 import math
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from typing import Any
 
 import numpy as np
@@ -798,13 +798,32 @@ CHUNK_FINE_STEPS = 1 << 18
 CHUNK_SAMPLES = 8192
 
 
+@dataclass(frozen=True)
+class Sensors:
+    """The simulated sensors of a :class:`SimStream`: white noise per sample of the gyro (rad/s),
+    the accelerometer (m/s²) and the magnetometer (T); a constant gyro bias added to the
+    scenario's (rad/s); the Earth field in ENU (T); the magnetometer's own rate (Hz; NaN rows
+    between its samples; None: one with every IMU sample)."""
+
+    gyro_noise: float = 0.01
+    acc_noise: float = 0.05
+    mag_noise: float = 0.5e-6
+    gyro_bias: object = (0.0, 0.0, 0.0)
+    mag_field: np.ndarray = field(default_factory=lambda: MAG_FIELD_ENU)
+    mag_rate: float | None = None
+
+
+#: The keywords of :class:`SimStream` and :func:`simulate` that describe the sensors.
+SENSOR_ARGS = frozenset(f.name for f in fields(Sensors))
+
+
 class SimStream:
     """A synthetic recording of ``duration`` s at ``rate`` Hz generated chunk by chunk in bounded
     memory. ``q0`` is the initial attitude (default: random, uniform on S³; level with a random
-    heading for ``sweep``); ``gyro_bias`` a constant bias added to the scenario's; ``mag_field``
-    the Earth field in ENU (T); ``mag_rate`` (Hz) makes the magnetometer slower (NaN rows
-    between its samples); ``scenario_args`` the scenario's own parameters
-    (``SCENARIOS[name].params``); ``chunk``: samples per chunk, default ~2¹⁸ steps of the rate
+    heading for ``sweep``); the other keywords are the sensors' (the fields of :class:`Sensors`:
+    noise, a constant gyro bias added to the scenario's, the Earth field, the magnetometer's
+    rate) and the scenario's own parameters (``SCENARIOS[name].params``); ``chunk``: samples per
+    chunk, default ~2¹⁸ steps of the rate
     grid and at most :data:`CHUNK_SAMPLES`. Iterating yields :class:`SimData` chunks in time
     order (dropped samples removed, so a chunk may be empty) whose concatenation is
     :func:`simulate`'s result, whatever the chunk size. Every chunk shares :attr:`meta`, which
@@ -819,16 +838,14 @@ class SimStream:
         rate: float = 100.0,
         seed: int = 0,
         substeps: int = 100,
-        gyro_noise: float = 0.01,
-        acc_noise: float = 0.05,
-        mag_noise: float = 0.5e-6,
-        gyro_bias: object = (0.0, 0.0, 0.0),
-        mag_field: np.ndarray = MAG_FIELD_ENU,
-        mag_rate: float | None = None,
         q0: np.ndarray | None = None,
         chunk: int | None = None,
-        **scenario_args: Any,
+        **kwargs: Any,
     ) -> None:
+        sensors = Sensors(**{k: kwargs.pop(k) for k in list(kwargs) if k in SENSOR_ARGS})
+        scenario_args = kwargs
+        gyro_noise, acc_noise, mag_noise = sensors.gyro_noise, sensors.acc_noise, sensors.mag_noise
+        gyro_bias, mag_field, mag_rate = sensors.gyro_bias, sensors.mag_field, sensors.mag_rate
         if scenario not in SCENARIOS:
             raise ValueError(f"unknown scenario {scenario!r}; known: {', '.join(SCENARIOS)}")
         sc = SCENARIOS[scenario]

@@ -152,8 +152,9 @@ class StreamOutput:
     """The estimate after one IMU sample, ready to publish (all finite)."""
 
     stamp: float  #: s, the IMU sample's stamp
-    quat_wxyz: np.ndarray  #: (4,) sensor → world (``world_frame``, yaw offset applied), w ≥ 0
-    orientation_cov: np.ndarray  #: (3, 3) rad², about the world axes
+    #: (4,) [w, x, y, z] sensor → world (``world_frame``, yaw offset applied), w ≥ 0
+    quat: np.ndarray
+    cov: np.ndarray  #: (3, 3) orientation covariance, rad², about the world axes
     #: (3,) rad/s per ``angular_velocity_source``; None: the input had no valid gyro reading
     angular_velocity: np.ndarray | None
     #: (3, 3) rad²/s² replacing the input's covariance (source ``estimate``), else None
@@ -164,7 +165,7 @@ class StreamOutput:
     linear_acceleration: np.ndarray | None
     omega: np.ndarray  #: (3,) estimated body rate, rad/s
     bias: np.ndarray  #: (3,) estimated gyro bias, rad/s
-    bias_stddev: np.ndarray  #: (3,) rad/s
+    bias_std: np.ndarray  #: (3,) its standard deviation, rad/s
     heading_initialized: bool  #: the magnetometer has fixed the heading
     #: published with the heading lost in a gap (yaw variance of an unknown angle)
     yaw_lost: bool = False
@@ -178,15 +179,15 @@ class StreamOutputs:
 
     index: np.ndarray  #: (M,) int, the IMU message (row of the input arrays) of each output
     stamp: np.ndarray  #: (M,) s
-    quat_wxyz: np.ndarray  #: (M, 4)
-    orientation_cov: np.ndarray  #: (M, 3, 3)
+    quat: np.ndarray  #: (M, 4)
+    cov: np.ndarray  #: (M, 3, 3)
     angular_velocity: np.ndarray  #: (M, 3)
     angular_velocity_cov: np.ndarray  #: (M, 3, 3)
     angular_velocity_cov_add: np.ndarray  #: (M, 3, 3)
     linear_acceleration: np.ndarray  #: (M, 3)
     omega: np.ndarray  #: (M, 3)
     bias: np.ndarray  #: (M, 3)
-    bias_stddev: np.ndarray  #: (M, 3)
+    bias_std: np.ndarray  #: (M, 3)
     heading_initialized: np.ndarray  #: (M,) bool
     #: (M,) bool, published with the heading lost in a gap (yaw variance raised to
     #: :data:`~mkf_ros.core.state.YAW_VAR_UNKNOWN` until the magnetometer fixes it)
@@ -561,12 +562,12 @@ class StreamAdapter:
         o = self._out_flat.copy()  # the fields below are views of this copy
         flags = int(self._out_present[0])
         return StreamOutput(
-            stamp=stamp, quat_wxyz=o[_Q], orientation_cov=o[_COV].reshape(3, 3),
+            stamp=stamp, quat=o[_Q], cov=o[_COV].reshape(3, 3),
             angular_velocity=o[_W] if flags & sk.OF_W else None,
             angular_velocity_cov=o[_WCOV].reshape(3, 3) if flags & sk.OF_WCOV else None,
             angular_velocity_cov_add=np.diag(o[_WADD]) if flags & sk.OF_WADD else None,
             linear_acceleration=o[_LIN] if flags & sk.OF_LIN else None,
-            omega=o[_OMEGA], bias=o[_BIAS], bias_stddev=o[_BSTD],
+            omega=o[_OMEGA], bias=o[_BIAS], bias_std=o[_BSTD],
             heading_initialized=bool(flags & sk.OF_HEADING),
             yaw_lost=bool(flags & sk.OF_YAW_LOST), slot=int(self._out_slot[0]))
 
@@ -661,7 +662,7 @@ class StreamAdapter:
         if self._recording:  # (set_params builds a new configuration)
             record(self.filter.kernel_arrays().cfg).record_posterior = True
         while True:
-            k, why = sk.run_events(kernel_table(), *self.filter.kernel_arrays(), self._npar,
+            k, why = sk.run_events(kernel_table(), self.filter.kernel_arrays(), self._npar,
                                    self._ts, self._acnt, self._rec, self._rn, ev, out, k0,
                                    k1)
             if self._rn[1]:
@@ -700,9 +701,9 @@ def _outputs(out: np.ndarray, stamps: np.ndarray) -> StreamOutputs:
     wadd[:, (0, 1, 2), (0, 1, 2)] = out["wadd"]
     wadd[(flags & sk.OF_WADD) == 0] = math.nan
     return StreamOutputs(
-        index=idx, stamp=stamps[idx], quat_wxyz=out["q"], orientation_cov=out["cov"],
+        index=idx, stamp=stamps[idx], quat=out["q"], cov=out["cov"],
         angular_velocity=out["w"], angular_velocity_cov=out["wcov"],
         angular_velocity_cov_add=wadd, linear_acceleration=out["lin"],
-        omega=out["omega"], bias=out["bias"], bias_stddev=out["bstd"],
+        omega=out["omega"], bias=out["bias"], bias_std=out["bstd"],
         heading_initialized=(flags & sk.OF_HEADING) > 0,
         yaw_lost=(flags & sk.OF_YAW_LOST) > 0, slot=out["slot"])

@@ -32,10 +32,11 @@ import time
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
-from mkf_ros import parallel
+from mkf_ros import files, parallel
 from mkf_ros.study import config as cfg
 from mkf_ros.study import sim
 from mkf_ros.study.config import Cell
@@ -88,21 +89,7 @@ class RunReport:
     parent_s: float = 0.0  # time the parent spent writing results (serial part of the run)
 
 
-# --------------------------------------------------------------------------- atomic files
-def atomic_write_bytes(path: Path, data: bytes) -> None:
-    """Write ``data`` to ``path`` via a temporary file and a rename (never half a file)."""
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    with open(tmp, "wb") as f:
-        f.write(data)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
-
-
-def atomic_write_text(path: Path, text: str) -> None:
-    atomic_write_bytes(path, text.encode())
-
-
+# --------------------------------------------------------------------------- signals
 @contextlib.contextmanager
 def deferred_sigint() -> Iterator[None]:
     """Hold Ctrl-C while results are written; raise it afterwards (main thread only)."""
@@ -139,10 +126,9 @@ def _sigint_noted() -> Iterator[list[int]]:
 
 
 def _save_npz(path: Path, **arrays: np.ndarray) -> None:
-    tmp = path.with_name(f".{path.stem}.{os.getpid()}.tmp.npz")
-    # numpy's stub types **kwds as if a key could be its `allow_pickle: bool` keyword
-    np.savez(tmp, **arrays)  # type: ignore[arg-type]
-    os.replace(tmp, path)
+    with files.atomic_path(path) as tmp:
+        # numpy's stub types **kwds as if a key could be its `allow_pickle: bool` keyword
+        np.savez(tmp, **arrays)  # type: ignore[arg-type]
 
 
 # --------------------------------------------------------------------------- folder and meta
@@ -157,7 +143,7 @@ def prepare_folder(out: Path, seed: int, n_s: int, cap: int) -> dict:
     except OSError as e:
         raise StudyError(f"cannot write to output folder {str(out)!r}: "
                          f"{e.strerror or e}") from None
-    for stale in list(out.glob(".*.tmp")) + list((out / PARTS).glob(".*.tmp.npz")):
+    for stale in [*out.glob(f".*{files.TMP_MARK}*"), *(out / PARTS).glob(f".*{files.TMP_MARK}*")]:
         stale.unlink(missing_ok=True)  # left by a killed run; never a result
     meta_path = out / META_NAME
     want = {"seed": int(seed), "n_s": int(n_s), "conv_cap": int(cap)}
@@ -173,7 +159,7 @@ def prepare_folder(out: Path, seed: int, n_s: int, cap: int) -> dict:
             raise StudyError(f"{str(out)!r} holds a study with {diff}; use another --out")
         return meta
     meta = dict(want, runs=[])
-    atomic_write_text(meta_path, json.dumps(meta, indent=1))
+    files.write_text(meta_path, json.dumps(meta, indent=1))
     return meta
 
 
@@ -294,7 +280,7 @@ def write_rows(out: Path, rows: dict[str, dict[str, str]]) -> None:
     w = csv.DictWriter(_Sink(), fieldnames=CSV_FIELDS, lineterminator="\n")
     w.writeheader()
     w.writerows(ordered)
-    atomic_write_text(Path(out) / CSV_NAME, "".join(lines))
+    files.write_text(Path(out) / CSV_NAME, "".join(lines))
 
 
 # --------------------------------------------------------------------------- work
@@ -389,57 +375,95 @@ def run_study(
     """
     out = Path(out)
     meta = prepare_folder(out, seed, n_s, cap)
-    t_start = time.perf_counter()
-    rows = read_rows(out)
-    parts = Parts(out)
-    report = RunReport()
-    selected = {c.key: c for c in cells}
-    report.already = sum(1 for k in selected if k in rows)
-    # cells whose parts are complete but whose row is missing (killed between the two writes)
-    for c in selected.values():
-        if c.key not in rows and parts.complete(c.key, n_s):
-            rows[c.key] = cell_row(c, parts.arrays(c, n_s))
-            report.finished.append(c)
-    if report.finished:
-        write_rows(out, rows)
-    units = plan(list(selected.values()), n_s, seed, cap, parts, rows)
-    pending = {c.key for u in units for c in u.cells}
-
-    bar = None
+    run = _StudyRun(out, n_s, {c.key: c for c in cells}, on_unit)
+    run.resume()
+    units = plan(list(run.selected.values()), n_s, seed, cap, run.parts, run.rows)
+    run.pending = {c.key for u in units for c in u.cells}
     if progress and units:
+        run.open_bar(sum(u.cost for u in units))
+    try:
+        run.execute(units, workers, executor)
+    except KeyboardInterrupt:
+        run.report.interrupted = True
+    finally:
+        run.close(meta, {"workers": workers, "units": len(units), "command": command})
+    return run.report
+
+
+@dataclass
+class _StudyRun:
+    """:func:`run_study`'s state: the selected cells, their rows and parts, the report, the
+    cells still pending, the progress bar; its steps."""
+
+    out: Path
+    n_s: int
+    selected: dict[str, Cell]
+    on_unit: Callable[[Unit], None] | None
+    rows: dict = field(init=False)
+    parts: Parts = field(init=False)
+    report: RunReport = field(default_factory=RunReport)
+    pending: set[str] = field(default_factory=set)
+    bar: Any = None
+    lost: list[tuple[Unit, BaseException]] = field(default_factory=list)
+    t_start: float = field(default_factory=time.perf_counter)
+
+    def __post_init__(self) -> None:
+        self.rows = read_rows(self.out)
+        self.parts = Parts(self.out)
+
+    def resume(self) -> None:
+        """The rows of cells whose parts are complete but whose row is missing (a run killed
+        between the two writes)."""
+        self.report.already = sum(1 for k in self.selected if k in self.rows)
+        for c in self.selected.values():
+            if c.key not in self.rows and self.parts.complete(c.key, self.n_s):
+                self.rows[c.key] = cell_row(c, self.parts.arrays(c, self.n_s))
+                self.report.finished.append(c)
+        if self.report.finished:
+            write_rows(self.out, self.rows)
+
+    def open_bar(self, total: float) -> None:
         from tqdm import tqdm
-        bar = tqdm(total=sum(u.cost for u in units), unit="", unit_scale=False,
-                   bar_format="{desc} {percentage:3.0f}%|{bar}| [{elapsed}<{remaining}]"
-                              " {postfix}", desc="mkf study", dynamic_ncols=True)
-        bar.set_postfix_str(f"cells {len(rows.keys() & selected.keys())}/{len(selected)}")
 
-    def finish(unit: Unit, res: dict[str, np.ndarray], cpu: float) -> None:
+        self.bar = tqdm(total=total, unit="", unit_scale=False,
+                        bar_format="{desc} {percentage:3.0f}%|{bar}| [{elapsed}<{remaining}]"
+                                   " {postfix}", desc="mkf study", dynamic_ncols=True)
+        self._bar_cells()
+
+    def _bar_cells(self) -> None:
+        self.bar.set_postfix_str(f"cells {len(self.rows.keys() & self.selected.keys())}/"
+                                 f"{len(self.selected)}")
+
+    def finish(self, unit: Unit, res: dict[str, np.ndarray], cpu: float) -> None:
+        """A unit's results in: its part file, and the rows of the cells it completed."""
         t_parent = time.perf_counter()
-        report.cpu_s += cpu
-        report.unit_cpu_s.append((unit, cpu))
+        self.report.cpu_s += cpu
+        self.report.unit_cpu_s.append((unit, cpu))
         with deferred_sigint():  # the part file and the CSV rows are written as a whole
-            parts.write(unit, res)
-            new = [c for c in unit.cells if c.key in pending and parts.complete(c.key, n_s)]
+            self.parts.write(unit, res)
+            new = [c for c in unit.cells
+                   if c.key in self.pending and self.parts.complete(c.key, self.n_s)]
             for c in new:
-                rows[c.key] = cell_row(c, parts.arrays(c, n_s))
-                pending.discard(c.key)
-                report.finished.append(c)
+                self.rows[c.key] = cell_row(c, self.parts.arrays(c, self.n_s))
+                self.pending.discard(c.key)
+                self.report.finished.append(c)
             if new:
-                write_rows(out, rows)
-        report.parent_s += time.perf_counter() - t_parent
-        if bar is not None:
-            bar.update(unit.cost)
-            bar.set_postfix_str(f"cells {len(rows.keys() & selected.keys())}/{len(selected)}")
-        if on_unit is not None:
-            on_unit(unit)
+                write_rows(self.out, self.rows)
+        self.report.parent_s += time.perf_counter() - t_parent
+        if self.bar is not None:
+            self.bar.update(unit.cost)
+            self._bar_cells()
+        if self.on_unit is not None:
+            self.on_unit(unit)
 
-    lost: list[tuple[Unit, BaseException]] = []
-
-    def failed(unit: Unit, e: BaseException) -> bool:
-        lost.append((unit, e))
+    def failed(self, unit: Unit, e: BaseException) -> bool:
+        self.lost.append((unit, e))
         return False  # submit no more; the running units still finish and are kept
 
-    try:
+    def execute(self, units: list[Unit], workers: int, executor: cf.Executor | None) -> None:
+        """Run ``units`` on ``executor`` (default: ``workers`` local processes, the kernels
+        warmed before forking); a unit lost with its worker is a :class:`StudyError` once the
+        running ones finished."""
         ex = executor
         if units and ex is None:
             with _sigint_noted() as noted:
@@ -454,34 +478,35 @@ def run_study(
         if units and ex is not None:
             try:
                 parallel.run_in_order(ex, _timed_unit, units, 2 * max(1, workers),
-                                      lambda u, r: finish(*r), failed)
+                                      lambda u, r: self.finish(*r), self.failed)
             except BaseException:
                 if executor is None:
                     parallel.stop_now(ex)
                 raise
             if executor is None:
                 ex.shutdown(wait=True)
-        if lost:
-            bug = next((e for _, e in lost if not parallel.is_worker_loss(e)), None)
+        if self.lost:
+            bug = next((e for _, e in self.lost if not parallel.is_worker_loss(e)), None)
             if bug is not None:
                 raise bug
-            e = lost[0][1]
-            raise StudyError(f"{len(lost)} work unit(s) lost with their worker "
+            e = self.lost[0][1]
+            raise StudyError(f"{len(self.lost)} work unit(s) lost with their worker "
                              f"({type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''})"
                              "; the finished units are kept - run the same command again to "
                              "resume")
-    except KeyboardInterrupt:
-        report.interrupted = True
-    finally:
-        if bar is not None:
-            bar.close()
-        report.elapsed_s = time.perf_counter() - t_start
-        report.pending = len(pending)
+
+    def close(self, meta: dict, run: dict[str, Any]) -> None:
+        """The bar closed, the report completed and the run logged in ``study.json``
+        (``run``: its workers, units and command)."""
+        if self.bar is not None:
+            self.bar.close()
+        report = self.report
+        report.elapsed_s = time.perf_counter() - self.t_start
+        report.pending = len(self.pending)
         meta.setdefault("runs", []).append({
             "started": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
             "elapsed_s": round(report.elapsed_s, 1), "cpu_s": round(report.cpu_s, 1),
-            "workers": workers, "units": len(units), "cells_finished": len(report.finished),
-            "cells_selected": len(selected), "interrupted": report.interrupted,
-            "command": command})
-        atomic_write_text(out / META_NAME, json.dumps(meta, indent=1))
-    return report
+            "workers": run["workers"], "units": run["units"],
+            "cells_finished": len(report.finished), "cells_selected": len(self.selected),
+            "interrupted": report.interrupted, "command": run["command"]})
+        files.write_text(self.out / META_NAME, json.dumps(meta, indent=1))

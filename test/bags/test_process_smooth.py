@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 import mkf_ros
-from mkf_ros.bags import BagReader, cdr, mcap, process
+from mkf_ros.bags import BagReader, cdr, mcap, smoothing
 from mkf_ros.bags.process import process_bag
 from mkf_ros.bags.synth import write_bag
 from mkf_ros.core.smoother import forward_params
@@ -79,7 +79,8 @@ def test_smoothed_output_is_estimate_smooth_and_beats_the_filter(tmp_path: Path,
     assert s.scores.rmse["total"] == pytest.approx(err_s, abs=6e-4)  # scored: what is written
     # the other fields are the filter's
     assert s.outputs is not None and c.outputs is not None
-    for f in ("angvel", "angvel_cov", "linacc", "linacc_cov", "index"):
+    for f in ("angular_velocity", "angular_velocity_covariance", "linear_acceleration",
+              "linear_acceleration_covariance", "index"):
         assert np.array_equal(getattr(s.outputs, f), getattr(c.outputs, f)), f
 
 
@@ -123,16 +124,16 @@ def test_many_windows_give_the_output_of_one(dropouts: Path, tmp_path: Path,
     assert gap in bounds and len(bounds) >= 5
     assert np.isfinite(mag[bounds, 0]).any()  # a window that starts at a magnetometer sample
     held: list[tuple[int, int, int]] = []  # (slots, smoothed rows, messages) waiting
-    ready = process._Smoothing.ready
+    ready = smoothing.Smoothing.ready
 
-    def spy(self: process._Smoothing, chunk: process._Chunk | None,
-            final: bool) -> list[process._Chunk]:
+    def spy(self: smoothing.Smoothing, chunk: smoothing.Chunk | None,
+            final: bool) -> list[smoothing.Chunk]:
         done = ready(self, chunk, final)
         held.append((len(self.wins.rec), len(self.quat),
                      sum(len(c.out_log) for c in self.pending)))
         return done
 
-    monkeypatch.setattr(process._Smoothing, "ready", spy)
+    monkeypatch.setattr(smoothing.Smoothing, "ready", spy)
     many = process_bag(dropouts, tmp_path / "many", window=1, smooth=True, smooth_window=W,
                        smooth_overlap=150, **kw)  # type: ignore[arg-type]
     span = W + 150
@@ -265,7 +266,7 @@ def test_two_way_without_disk_space_fails_with_one_line(tmp_path: Path, dropouts
     def full(*a: object, **k: object) -> None:
         raise OSError(errno.ENOSPC, "No space left on device")
 
-    monkeypatch.setattr(process._Capture, "SLOTS", 64)  # spill in the middle of the pass
+    monkeypatch.setattr(smoothing.Capture, "SLOTS", 64)  # spill in the middle of the pass
     real_open = open
     calls = {"n": 0}
 
@@ -282,14 +283,14 @@ def test_two_way_without_disk_space_fails_with_one_line(tmp_path: Path, dropouts
         def close(self) -> None:
             self.f.close()  # type: ignore[attr-defined]
 
-    monkeypatch.setattr(process, "open", lambda *a, **k: Full(real_open(*a, **k)),
+    monkeypatch.setattr(smoothing, "open", lambda *a, **k: Full(real_open(*a, **k)),
                         raising=False)
     with pytest.raises(BagError, match=r"--smooth two-way: cannot write its temporary files "
                        r".*0\.2 KB per IMU step.*No space left on device"):
         process_bag(dropouts, tmp_path / "o", smooth="two-way")
     assert calls["n"] == 2 and list(tmp_path.iterdir()) == []
-    monkeypatch.setattr(process._TwoWay, "reverse", full)
-    monkeypatch.setattr(process, "open", real_open, raising=False)
+    monkeypatch.setattr(smoothing.TwoWay, "reverse", full)
+    monkeypatch.setattr(smoothing, "open", real_open, raising=False)
     with pytest.raises(BagError, match=r"No space left on device"):
         process_bag(dropouts, tmp_path / "o", smooth="two-way")
     assert list(tmp_path.iterdir()) == []

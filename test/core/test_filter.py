@@ -139,7 +139,7 @@ def test_kernel_interface_reads_what_the_properties_say() -> None:
     np.testing.assert_array_equal([kf.rate(st, i) for i in range(3)], f.omega)
     np.testing.assert_array_equal([kf.bias(st, i) for i in range(3)], f.bias)
     np.testing.assert_allclose(np.sqrt([kf.bias_variance(cfg, st, i) for i in range(3)]),
-                               f.bias_stddev, rtol=1e-15)
+                               f.bias_std, rtol=1e-15)
     np.testing.assert_array_equal(
         [[kf.rate_covariance(st, i, j) for j in range(3)] for i in range(3)],
         f.state_covariance[3:6, 3:6])

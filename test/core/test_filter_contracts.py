@@ -182,7 +182,7 @@ def test_the_node_and_the_library_share_one_limit() -> None:
     s = StreamAdapter()
     res = s.process(100.0 + SIM.t[:n], g, a)
     assert s.counters["gyr_invalid"] == 1 and s.counters["acc_invalid"] == 1
-    assert np.all(np.isfinite(res.quat_wxyz))
+    assert np.all(np.isfinite(res.quat))
     r = mkf_ros.estimate(g, a, dt=0.01)
     assert r.counters["gyr_invalid"] == 1 and r.counters["acc_invalid"] == 1
 
@@ -210,8 +210,8 @@ def test_node_never_publishes_nan_with_a_very_precise_rest_detector(algorithm: s
     res = s.process(100.0 + sim.t, sim.gyr, sim.acc)
     assert s.counters["rest_updates"] > 0
     assert len(res.index) == sim.t.size
-    for name in ("quat_wxyz", "orientation_cov", "angular_velocity", "angular_velocity_cov_add",
-                 "omega", "bias", "bias_stddev"):
+    for name in ("quat", "cov", "angular_velocity", "angular_velocity_cov_add",
+                 "omega", "bias", "bias_std"):
         assert np.all(np.isfinite(getattr(res, name))), name
     assert np.all(np.diagonal(res.angular_velocity_cov_add, axis1=1, axis2=2) >= 0)
 

@@ -209,7 +209,7 @@ s = StreamAdapter(algorithm="mekf", use_mag=False)
 for k in range(20):
     o = s.on_imu(1.0 + 0.01 * k, np.array([0.0, 0.0, 0.1]), np.array([0.0, 0.0, 9.81]))
 print(kernel_cache_dir())
-print(*o.quat_wxyz)
+print(*o.quat)
 """
 
 

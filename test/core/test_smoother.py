@@ -39,7 +39,7 @@ def _rts_backward(Pa: list, Pp: list, As: list, dt: float, Qs: list, xa: list,
         Qp = Phi @ Qs[k] @ Phi.T
         dx = xs[0] - xp[k + 1]
         assert rts_linear(nx, Pa[k], Pp[k + 1].copy(), tuple(map(tuple, As[k])), dt, Qp,
-                          Ps[0], dx, C, G, X, Po, dxo)
+                          Ps[0], dx, C, (G, X), Po, dxo)
         xs.insert(0, xa[k] + dxo)
         Ps.insert(0, Po.copy())
     return xs, Ps
@@ -368,7 +368,7 @@ def test_smooth_stream_holds_one_window() -> None:
         reads.append((a, b))
         return dts[a:b], d.gyr[a:b], d.acc[a:b], np.full((b - a, 3), np.nan)
 
-    got = [(pos, len(sr.valid)) for pos, _, sr in
+    got = [(pos, len(sr.initialized)) for pos, _, sr in
            smooth_stream(AttitudeFilter(), len(dts), read, 100, 60)]  # type: ignore[arg-type]
     assert all(b - a <= 160 for a, b in reads)
     assert [a for a, _ in reads] == [0, *(b for _, b in reads[:-1])] and reads[-1][1] == len(dts)

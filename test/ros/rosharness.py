@@ -257,9 +257,9 @@ def assert_message_is(m: Imu, inp: Imu, ref: Any) -> None:
     assert (m.header.stamp.sec, m.header.stamp.nanosec, m.header.frame_id) == (
         inp.header.stamp.sec, inp.header.stamp.nanosec, inp.header.frame_id)
     o = m.orientation
-    np.testing.assert_array_equal([o.w, o.x, o.y, o.z], ref.quat_wxyz)
+    np.testing.assert_array_equal([o.w, o.x, o.y, o.z], ref.quat)
     np.testing.assert_array_equal(np.asarray(m.orientation_covariance),
-                                  np.asarray(ref.orientation_cov).reshape(9))
+                                  np.asarray(ref.cov).reshape(9))
     for field in ("angular_velocity", "linear_acceleration"):
         a, b = getattr(m, field), getattr(inp, field)
         assert (a.x, a.y, a.z) == (b.x, b.y, b.z), field

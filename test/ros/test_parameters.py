@@ -254,9 +254,9 @@ def test_switch_continuity(harness, switch: dict[str, Any]) -> None:
     cov = np.array([np.reshape(m.orientation_covariance, (3, 3)) for m in h.out])
     # the reference: the messages sent, in the node's arrival order, without the switch
     ref_out = reference_outputs(StreamAdapter(base), msgs, kinds)
-    q_ref_before = ref_out[k_switch - 1].quat_wxyz
-    c_ref_before = ref_out[k_switch - 1].orientation_cov
-    q_ref_after = ref_out[k_switch].quat_wxyz
+    q_ref_before = ref_out[k_switch - 1].quat
+    c_ref_before = ref_out[k_switch - 1].cov
+    q_ref_after = ref_out[k_switch].quat
 
     def angle(a: np.ndarray, b: np.ndarray) -> float:
         return math.degrees(angle_between(np.asarray(a, float), np.asarray(b, float)))

@@ -113,7 +113,7 @@ def test_encode_values_equals_encode(source: str, missing: str | None) -> None:
         assert enc_values.encode_values(h, s_values.output_values, flags, 0.02,
                                         0.3 * (k % 2)) == want
         last = s_values.last_output()
-        for f in ("quat_wxyz", "orientation_cov", "angular_velocity", "angular_velocity_cov",
+        for f in ("quat", "cov", "angular_velocity", "angular_velocity_cov",
                   "angular_velocity_cov_add", "linear_acceleration", "bias", "omega"):
             np.testing.assert_array_equal(getattr(last, f), getattr(out, f), f)
         assert (last.stamp, last.yaw_lost, last.slot) == (out.stamp, out.yaw_lost, out.slot)

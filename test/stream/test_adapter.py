@@ -58,7 +58,7 @@ def run_async(rec, delay: float, stamped_on_arrival: bool = False,
         if kind == 0:
             o = s.on_imu(T0 + rec.t[k], rec.gyr[k], rec.acc[k])
             if o is not None:
-                qs.append(o.quat_wxyz)
+                qs.append(o.quat)
                 ks.append(k)
         else:
             s.on_mag(T0 + (t if stamped_on_arrival else rec.t[k]), rec.mag[k])
@@ -115,7 +115,7 @@ def test_magnetometer_before_first_imu_sets_heading() -> None:
     assert out is not None and out.heading_initialized
     assert s.all_counters()["mag_fused"] == 1
     # the field's horizontal part points north-east in the body: body x is 45° off north
-    r = rotmat_np(out.quat_wxyz)
+    r = rotmat_np(out.quat)
     m_w = r @ np.array([20e-6, 20e-6, -40e-6])
     assert abs(math.atan2(m_w[0], m_w[1])) < 1e-6  # field horizontally along world north (ENU y)
 
@@ -198,7 +198,7 @@ def test_hard_iron_bias_is_subtracted() -> None:
     s.on_mag(T0, np.array([0.0, 20e-6, -40e-6]) + bias)
     out = s.on_imu(T0, Z, G)
     assert out is not None
-    yaw = 2 * math.atan2(out.quat_wxyz[3], out.quat_wxyz[0])
+    yaw = 2 * math.atan2(out.quat[3], out.quat[0])
     assert abs(yaw) < 1e-6  # field along body y = north: heading zero
 
 
@@ -209,7 +209,7 @@ def test_first_sample_initialises_and_stamps_pass_through() -> None:
     s = StreamAdapter()
     out = s.on_imu(T0, [0.1, 0.2, 0.3], G)
     assert out is not None and out.stamp == T0
-    np.testing.assert_allclose(out.quat_wxyz, [1, 0, 0, 0], atol=1e-12)
+    np.testing.assert_allclose(out.quat, [1, 0, 0, 0], atol=1e-12)
     np.testing.assert_allclose(out.angular_velocity, [0.1, 0.2, 0.3])
     np.testing.assert_allclose(out.linear_acceleration, G)
 
@@ -234,7 +234,7 @@ def test_jump_back_beyond_threshold_resets() -> None:
     c = s.all_counters()
     assert c["resets_time_jump"] == 1 and c["resets"] == 1
     assert out is not None and out.stamp == T0 - 5.0
-    np.testing.assert_allclose(out.quat_wxyz, [1, 0, 0, 0], atol=1e-12)  # re-initialised
+    np.testing.assert_allclose(out.quat, [1, 0, 0, 0], atol=1e-12)  # re-initialised
     assert s.on_imu(T0 - 4.99, Z, G) is not None
 
 
@@ -254,7 +254,7 @@ def test_gap_realigns_and_keeps_publishing() -> None:
     out = s.on_imu(T0 + 0.09 + 2.0, Z, tilted)
     assert s.all_counters()["gaps"] == 1
     assert out is not None
-    roll = 2 * math.atan2(out.quat_wxyz[1], out.quat_wxyz[0])
+    roll = 2 * math.atan2(out.quat[1], out.quat[0])
     assert roll == pytest.approx(0.3, abs=1e-6)  # taken from this sample, not integrated
 
 
@@ -270,26 +270,26 @@ def test_gap_makes_the_published_yaw_uncertain(use_mag: bool) -> None:
             s.on_mag(T0 + 0.01 * k, mag)
     # one second of a field whose disturbance (mag_disturbance, 10 %) is correlated over
     # mag_disturbance_time (3 s): σ ≈ 0.1 · √3 rad ≈ 10° (measured 11.7°), far from 104°
-    assert math.degrees(math.sqrt(out.orientation_cov[2, 2])) < 15.0
+    assert math.degrees(math.sqrt(out.cov[2, 2])) < 15.0
     out = s.on_imu(T0 + 5.0, Z, G)  # 4 s without data
-    assert out.orientation_cov[2, 2] == pytest.approx(math.pi ** 2 / 3, rel=1e-3)
+    assert out.cov[2, 2] == pytest.approx(math.pi ** 2 / 3, rel=1e-3)
     # one sample's tilt, trusted to three times the expected acceleration (acc_disturbance)
-    assert math.degrees(math.sqrt(out.orientation_cov[0, 0])) < 12.0
+    assert math.degrees(math.sqrt(out.cov[0, 0])) < 12.0
     out = feed(s, 10, t0=T0 + 5.01)[-1]
-    assert out.orientation_cov[2, 2] == pytest.approx(math.pi ** 2 / 3, rel=1e-3)
+    assert out.cov[2, 2] == pytest.approx(math.pi ** 2 / 3, rel=1e-3)
     if use_mag:
         s.on_mag(T0 + 5.1, mag)
         out = s.on_imu(T0 + 5.11, Z, G)
         # one sample's worth: the field's relative error (mag_disturbance 0.1, mag_noise 0.02)
         # over its horizontal part (dip 63°): √(0.1² + 0.02²) / cos(dip) = 0.228 rad
         sd = math.hypot(0.1, 0.02) / (20e-6 / math.hypot(20e-6, 40e-6))
-        assert math.sqrt(out.orientation_cov[2, 2]) == pytest.approx(sd, rel=0.05)
+        assert math.sqrt(out.cov[2, 2]) == pytest.approx(sd, rel=0.05)
     s.reset()
     out = feed(s, 2, t0=T0 + 10.0)[-1]
     if use_mag:  # a fresh start: the heading is unknown until the magnetometer fixes it
-        assert out.orientation_cov[2, 2] == pytest.approx(math.pi ** 2 / 3, rel=1e-3)
+        assert out.cov[2, 2] == pytest.approx(math.pi ** 2 / 3, rel=1e-3)
     else:  # the start-up heading defines yaw
-        assert out.orientation_cov[2, 2] < 0.01
+        assert out.cov[2, 2] < 0.01
 
 
 def test_bad_stamps_dropped_constant_dt_ignores_them() -> None:
@@ -300,7 +300,7 @@ def test_bad_stamps_dropped_constant_dt_ignores_them() -> None:
     s = StreamAdapter(constant_dt=0.01)
     outs = [s.on_imu(0.0, [0, 0, 1.0], G) for _ in range(101)]  # unstamped driver
     assert all(o is not None for o in outs)
-    yaw = 2 * math.atan2(outs[-1].quat_wxyz[3], outs[-1].quat_wxyz[0])
+    yaw = 2 * math.atan2(outs[-1].quat[3], outs[-1].quat[0])
     assert yaw == pytest.approx(1.0, abs=0.02)  # 100 steps × 0.01 s × 1 rad/s
 
 
@@ -310,7 +310,7 @@ def test_reset_reinitialises_from_next_sample() -> None:
     s.reset("service")
     assert not s.initialized and s.last_reset_reason == "service"
     out = s.on_imu(T0 + 5.0, Z, G)
-    np.testing.assert_allclose(out.quat_wxyz, [1, 0, 0, 0], atol=1e-12)
+    np.testing.assert_allclose(out.quat, [1, 0, 0, 0], atol=1e-12)
 
 
 # ---------------------------------------------------------------- bad input
@@ -351,13 +351,13 @@ def test_fuzz_never_raises_never_nan() -> None:
                 s.on_mag(t + rng.normal(0, 0.05), vs[2] * 1e-5)
             out = s.on_imu(t, vs[0], vs[1])
             if out is not None:
-                for v in (out.quat_wxyz, out.orientation_cov, out.angular_velocity,
+                for v in (out.quat, out.cov, out.angular_velocity,
                           out.linear_acceleration):
                     if v is not None:
                         assert np.isfinite(v).all()
-                assert abs(np.linalg.norm(out.quat_wxyz) - 1) < 1e-9
-                assert out.quat_wxyz[0] >= 0
-                assert np.all(np.linalg.eigvalsh(out.orientation_cov) > 0)
+                assert abs(np.linalg.norm(out.quat) - 1) < 1e-9
+                assert out.quat[0] >= 0
+                assert np.all(np.linalg.eigvalsh(out.cov) > 0)
         assert set(s.all_counters()) == set(COUNTER_REASONS)
 
 
@@ -373,12 +373,12 @@ def test_yaw_offset_and_declination_rotate_about_world_up() -> None:
         a, b = feed(ref, 1, t0=T0 + 0.2, gyr=gyr, acc=acc)[0], None
         feed(off, 20, gyr=gyr, acc=acc)
         b = feed(off, 1, t0=T0 + 0.2, gyr=gyr, acc=acc)[0]
-        d = qmul_np(b.quat_wxyz, qconj_np(a.quat_wxyz))  # world-side difference
+        d = qmul_np(b.quat, qconj_np(a.quat))  # world-side difference
         axis = np.asarray(up, float)
         angle = 2 * math.atan2(float(d[1:] @ axis), d[0])
         assert angle == pytest.approx(0.5 - 0.2, abs=1e-9), frame
         r = rotmat_np(d)
-        np.testing.assert_allclose(b.orientation_cov, r @ a.orientation_cov @ r.T, atol=1e-15)
+        np.testing.assert_allclose(b.cov, r @ a.cov @ r.T, atol=1e-15)
 
 
 def test_world_frames_differ_exactly_by_the_frame_change(rec) -> None:
@@ -397,9 +397,9 @@ def test_world_frames_differ_exactly_by_the_frame_change(rec) -> None:
         qf = FROM_ENU[frame]
         r = rotmat_np(qf)
         for a, b in zip(outs["enu"], outs[frame], strict=True):
-            want = qmul_np(qf, a.quat_wxyz)
-            np.testing.assert_allclose(b.quat_wxyz, want * np.sign(want[0]), atol=1e-12)
-            np.testing.assert_allclose(b.orientation_cov, r @ a.orientation_cov @ r.T,
+            want = qmul_np(qf, a.quat)
+            np.testing.assert_allclose(b.quat, want * np.sign(want[0]), atol=1e-12)
+            np.testing.assert_allclose(b.cov, r @ a.cov @ r.T,
                                        rtol=1e-12, atol=1e-13)
 
 
@@ -407,7 +407,7 @@ def test_orientation_stddev_override_and_gravity_removal() -> None:
     s = StreamAdapter(orientation_stddev=0.1, remove_gravity_vector=True)
     tilted = [0.0, 9.80665 * math.sin(0.3), 9.80665 * math.cos(0.3)]
     out = feed(s, 5, acc=tilted)[-1]
-    np.testing.assert_allclose(out.orientation_cov, 0.01 * np.eye(3))
+    np.testing.assert_allclose(out.cov, 0.01 * np.eye(3))
     np.testing.assert_allclose(out.linear_acceleration, 0.0, atol=1e-6)
 
 
@@ -420,7 +420,7 @@ def test_angular_velocity_sources() -> None:
     s.set_params(angular_velocity_source="bias_corrected")
     out = feed(s, 1, t0=T0 + 0.3, gyr=gyr)[0]
     np.testing.assert_allclose(out.angular_velocity, np.array(gyr) - out.bias)
-    np.testing.assert_allclose(np.diag(out.angular_velocity_cov_add), out.bias_stddev ** 2)
+    np.testing.assert_allclose(np.diag(out.angular_velocity_cov_add), out.bias_std ** 2)
     s.set_params(angular_velocity_source="estimate")
     out = feed(s, 1, t0=T0 + 0.31, gyr=gyr)[0]
     np.testing.assert_allclose(out.angular_velocity, out.omega)
@@ -464,7 +464,7 @@ def test_algorithm_switch_keeps_estimate() -> None:
     a = feed(s, 50, gyr=[0.2, -0.1, 0.4], acc=[1.0, 2.0, 9.0])[-1]
     s.set_params(algorithm="mukf", chart="mrp", chart_update=False)
     b = feed(s, 1, t0=T0 + 0.5, gyr=[0.2, -0.1, 0.4], acc=[1.0, 2.0, 9.0])[0]
-    step = 2 * math.acos(min(1.0, abs(float(a.quat_wxyz @ b.quat_wxyz))))
+    step = 2 * math.acos(min(1.0, abs(float(a.quat @ b.quat))))
     assert math.degrees(step) < 0.5  # one 10 ms step at ≤ 0.46 rad/s is 0.26°
 
 
@@ -674,8 +674,8 @@ def test_split_input_detects_rest_as_the_combined_stream(offset: float) -> None:
     assert abs(rs.bias[-1][2] - bias[2]) < 5e-4
     common = np.intersect1d(rs.index, rc.index)
     assert len(common) >= len(t) - 1  # every gyro message answered (but one before any acc)
-    e = orientation_errors(rs.quat_wxyz[np.searchsorted(rs.index, common)],
-                           rc.quat_wxyz[np.searchsorted(rc.index, common)])
+    e = orientation_errors(rs.quat[np.searchsorted(rs.index, common)],
+                           rc.quat[np.searchsorted(rc.index, common)])
     # the first tilt corrections differ (a quarter of the accelerometer samples), then agree;
     # the unobservable yaw drifts with a bias learned from a first rest that starts a few
     # samples apart (the first rest raises the bias variance, rest_bias_range): measured
