@@ -864,6 +864,6 @@ def write_report(out: Path | str, docs: Path | str | None = None) -> list[Path]:
             if p is not None:
                 files.write_bytes(docs / FIG_DIR / p.name, p.read_bytes())
         files.write_text(docs / "README.md", text)
-        runner.atomic_write_bytes(docs / runner.CSV_NAME, (out / runner.CSV_NAME).read_bytes())
+        files.write_bytes(docs / runner.CSV_NAME, (out / runner.CSV_NAME).read_bytes())
         written += [docs / "README.md", docs / runner.CSV_NAME]
     return written
