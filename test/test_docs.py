@@ -79,6 +79,8 @@ def test_no_dates_or_work_diary_outside_the_changelog() -> None:
                            check=True).stdout.split()
     bad = []
     for name in files:
+        if name == "test/test_docs.py":  # (the patterns themselves)
+            continue
         path = ROOT / name
         if path.suffix not in (".py", ".md", ".txt", ".yaml", ".toml", ".cfg", ".ini", ".xml",
                                "") or not path.is_file():
