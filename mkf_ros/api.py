@@ -207,7 +207,7 @@ def compile_entries(part: str) -> None:
                  (kf.from_canonical_entry, (arrays.cfg, arrays.st))]
     elif part == "stream":
         s = StreamAdapter()
-        calls = [(sk.run_events, (table, arrays, s._npar, s._ts, s._acnt, s._rec, s._rn,
+        calls = [(sk.run_events, (table, tuple(arrays), s._npar, s._ts, s._acnt, s._rec, s._rn,
                                   s._ev[sk.EV_IMU], s._out, 0, 1)),
                  (sk.covariance_rows, (np.zeros((1, 9)), 0.0, np.zeros((0, 9)))),
                  (sk.published_batch, (s._npar, np.zeros((1, 4)), np.zeros((1, 3, 3)),

@@ -684,7 +684,7 @@ class StreamAdapter:
         if self._recording:  # (set_params builds a new configuration)
             record(self.filter.kernel_arrays().cfg).record_posterior = True
         while True:
-            k, why = sk.run_events(kernel_table(), self.filter.kernel_arrays(), self._npar,
+            k, why = sk.run_events(kernel_table(), tuple(self.filter.kernel_arrays()), self._npar,
                                    self._ts, self._acnt, self._rec, self._rn, ev, out, k0,
                                    k1)
             if self._rn[1]:

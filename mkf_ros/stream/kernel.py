@@ -762,9 +762,10 @@ def run_events(table: np.ndarray, filt: tuple, npar: np.ndarray, ts: np.ndarray,
                acnt: np.ndarray, rec: np.ndarray, rn: np.ndarray, ev: np.ndarray,
                out: np.ndarray, k0: int, k1: int) -> tuple[int, int]:
     """Events ``k0 … k1-1`` in order (the filter's compiled kernels,
-    :func:`~mkf_ros.core.filter.kernel_table`, and its record arrays ``(cfg, st, cnt, work)``,
-    :meth:`~mkf_ros.core.filter.AttitudeFilter.kernel_arrays`; the adapter's, the events and
-    the outputs); returns ``(k, R_DONE)`` at the end, or the index
+    :func:`~mkf_ros.core.filter.kernel_table`, and its record arrays ``(cfg, st, cnt, work)``
+    as a plain tuple: :meth:`~mkf_ros.core.filter.AttitudeFilter.kernel_arrays`, whose
+    NamedTuple numba's dispatcher types more slowly at every call; the adapter's, the events
+    and the outputs); returns ``(k, R_DONE)`` at the end, or the index
     and reason of an event that needs a reset (``R_TIME_JUMP``: call again from ``k`` with
     the time state's ``resume`` set; ``R_NONFINITE``: the event is done, call again from
     ``k + 1``; ``R_FULL``: the smoother's recording reached its limit, call again from ``k``
