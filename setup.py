@@ -31,7 +31,7 @@ def read_version() -> str:
 
 
 class BuildPyWithKernels(build_py):
-    """``build_py`` plus the install-time kernel compile (``mkf_ros.core._jit.precompile``,
+    """``build_py`` plus the install-time kernel compile (``mkf_ros.kernels.precompile``,
     about a minute on 2 cores): the numba kernels are compiled into the built package
     (``mkf_ros/_kernels/``) so that the first start of the installed node loads them instead
     of compiling. pip's isolated build environment gets numba and NumPy from pyproject.toml's
@@ -44,7 +44,8 @@ class BuildPyWithKernels(build_py):
                 or os.environ.get("MKF_ROS_NO_PRECOMPILE") == "1"):
             return  # (an editable checkout precompiles into its own tree: ./run setup)
         lib = os.path.abspath(self.build_lib)
-        code = "import mkf_ros.core._jit as j; j.precompile(j.PACKAGED_CACHE_ROOT)"
+        code = ("import mkf_ros.kernels as k, mkf_ros.core._jit as j; "
+                "k.precompile(j.PACKAGED_CACHE_ROOT)")
         path = os.pathsep.join(filter(None, [lib, os.environ.get("PYTHONPATH")]))
         env = dict(os.environ, PYTHONPATH=path,
                    MKF_ROS_CACHE_DIR=os.path.join(lib, package_name, "_kernels"))

@@ -4,7 +4,7 @@
 
 Copies the package (without its compiled kernels, ``mkf_ros/_kernels``) to a temporary
 directory and runs the install-time compile there as ``pip install`` and ``colcon build`` do
-(``mkf_ros.core._jit.precompile`` into the copy's ``_kernels``). Prints the wall time, the CPU
+(``mkf_ros.kernels.precompile`` into the copy's ``_kernels``). Prints the wall time, the CPU
 time of every compiling process, and the peak resident memory, both of the largest process
 and of all of them together (sampled from /proc every 20 ms). Then, in a fresh process on the
 compiled cache, the time ``mkf_ros.warmup()`` takes and how many numba compiler passes it still
@@ -32,7 +32,8 @@ _COMPILE = """
 import json, sys
 from pathlib import Path
 import mkf_ros.core._jit as j
-j.precompile(j.PACKAGED_CACHE_ROOT, jobs=int(sys.argv[1]) or None,
+import mkf_ros.kernels as k
+k.precompile(j.PACKAGED_CACHE_ROOT, jobs=int(sys.argv[1]) or None,
              report=lambda r: print("TASK " + json.dumps(r), flush=True))
 """
 
@@ -121,12 +122,12 @@ def compile_copy(jobs: int) -> dict:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--jobs", type=int, default=0,
-                    help="compiling processes (default: the install's, mkf_ros.core._jit."
+                    help="compiling processes (default: the install's, mkf_ros.kernels."
                          "compile_jobs)")
     ap.add_argument("--tasks", action="store_true", help="print every compile task's figures")
     args = ap.parse_args()
     r = compile_copy(args.jobs)
-    from mkf_ros.core._jit import compile_jobs
+    from mkf_ros.kernels import compile_jobs
 
     jobs = args.jobs or compile_jobs()
     print(f"\ninstall-time compile of every kernel, empty cache, {jobs} process(es) at a time, "

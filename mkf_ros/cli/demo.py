@@ -178,7 +178,7 @@ class _Demo:
         return self._run_nodes(est_cmd, ply_cmd, env)
 
     def _warm(self) -> None:
-        from mkf_ros.api import FIRST_COMPILE_TIME, warmup
+        from mkf_ros.kernels import FIRST_COMPILE_TIME, warmup
 
         t0 = time.monotonic()
         self.say("  loading the filter kernels (compiled at install time; where that step did "

@@ -147,7 +147,7 @@ class EstimatorNode(Node):
         with self._lock:
             self.stream = StreamAdapter({k: v for k, v in values.items() if k in BY_NAME})
         if self._warm:
-            from mkf_ros.api import FIRST_COMPILE_TIME, warmup
+            from mkf_ros.kernels import FIRST_COMPILE_TIME, warmup
 
             log.info("loading the filter kernels (compiled at install time; where that step "
                      f"did not run, the first start compiles them: {FIRST_COMPILE_TIME})...")

@@ -79,6 +79,7 @@ from mkf_ros.stream import rep145
 
 # constants of the rules above, defined with the rules in stream/kernel.py
 from mkf_ros.stream.kernel import MAX_BACKWARDS as MAX_BACKWARDS
+from mkf_ros.stream.rep145 import covariance_out as covariance_out
 
 #: Reasons a sample (or part of one) was dropped, rejected or caused a reset; see module doc.
 COUNTER_REASONS: dict[str, str] = {
@@ -241,22 +242,6 @@ def orientation_note(topic: str) -> str:
             "orientation is ignored; the estimate comes from its gyro and accelerometer")
 
 
-def covariance_out(input_cov: Any, stddev: float, add: Any = None) -> np.ndarray:
-    """Published 3×3 covariances (9 values, row major) from the input's (REP-145): one
-    (9 values) or a stack (M, 9), with ``add`` as one (3×3) or a stack (M, 3, 3).
-
-    An unknown input covariance (all zeros) is filled with ``stddev²`` on the diagonal when
-    ``stddev > 0`` and otherwise stays unknown; ``add`` is added to a known one. A
-    covariance with NaN/Inf or the "not reported" marker (-1 first) counts as unknown.
-    """
-    c = np.array(input_cov, dtype=float)
-    rows = c.reshape(-1, 9)  # a view: ``c`` is filled through it
-    sk.covariance_rows(rows, float(stddev), _NO_ADD if add is None else
-                       np.ascontiguousarray(add, dtype=float).reshape(-1, 9))
-    return c.reshape(-1) if c.ndim < 2 or c.shape == (3, 3) else rows
-
-
-_NO_ADD = np.zeros((0, 9))
 _NAN3 = np.full(3, math.nan)
 
 
