@@ -81,12 +81,16 @@ setup(
     ],
     install_requires=[
         "setuptools",
-        "numpy>=1.24",
-        "numba>=0.59",
+        # two supported sets, both tested in CI (.ci/run): Ubuntu 24.04's packages, which
+        # rosdep installs for ROS 2 Jazzy (requirements/ubuntu-noble.txt: numba 0.58.1,
+        # NumPy 1.26.4, ...), and the current releases (requirements/dev.txt: numba 0.68,
+        # NumPy 2.4); docs/estimator.md § Start-up
+        "numpy>=1.26.4",
+        "numba>=0.58.1",
         "rosbags>=0.11,<0.12",  # mkf_ros.bags.writer extends its storage writers' internals
-        "matplotlib>=3.7",
+        "matplotlib>=3.6.3",
         "tqdm>=4.60",
-        "pyyaml",
+        "pyyaml>=6.0.1",
     ],
     extras_require={
         # `mkf study/process --scheduler tcp://HOST:8786`: work units on a Dask cluster
