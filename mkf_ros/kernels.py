@@ -9,9 +9,9 @@ what is compiled and when:
 * at start-up, :func:`warmup` loads them (well under a second), or compiles them where the
   install-time compile did not run (:data:`FIRST_COMPILE_TIME`).
 
-The install-time compile runs :data:`COMPILE_GROUPS` in processes of their own, side by side
+The install-time compile runs :func:`compile_tasks` in processes of their own, side by side
 (:func:`compile_jobs` at a time), then a check in a fresh process: :func:`warmup` on the
-compiled cache, which loads everything and compiles whatever the groups missed. Its cost on
+compiled cache, which loads everything and compiles whatever the tasks missed. Its cost on
 both supported numba versions is in docs/estimator.md § Start-up
 (``./run bench compile_time``).
 
@@ -132,26 +132,28 @@ def _units() -> dict[str, _jit.Unit]:
     return {f"{u.__module__}.{u.__qualname__}": u for u in _jit.UNITS}
 
 
-#: The install-time compile's processes: each a list of tasks, ``"unit:MODULE.NAME"`` (a
-#: :class:`~mkf_ros.core._jit.Unit`) or ``"entries:PART"`` (the compiled loops of a
-#: :data:`WARMUP_PARTS` part, :func:`_entry_calls`), compiled one after the other so that the
-#: kernels they share are compiled once. Two groups of about equal cost; the MUKF's and the
-#: baselines' updates share little with the rest.
-COMPILE_GROUPS: tuple[tuple[str, ...], ...] = (
-    ("unit:mkf_ros.core.sensor.step", "unit:mkf_ros.core.sensor.start",
-     "unit:mkf_ros.core.sensor.acc_recovery", "unit:mkf_ros.core.sensor.mag_recovery",
-     "unit:mkf_ros.core.filter.output", "entries:filter", "entries:stream"),
-    ("unit:mkf_ros.core.sensor.mukf_update", "unit:mkf_ros.core.sensor.baseline_step",
-     "unit:mkf_ros.core.baseline_glue.export", "unit:mkf_ros.core.baseline_glue.restore",
-     "entries:estimate"),
-)
+#: The compiled loops of each :data:`WARMUP_PARTS` part and their compile CPU time on the
+#: reference machine (``./run bench compile_time --tasks``; orders the tasks, the largest first).
+_ENTRY_COSTS = {"estimate": 26.0, "filter": 2.0, "stream": 17.5}
 #: The last step of the install-time compile, in a fresh process on the compiled cache.
 CHECK = "check"
 
 
+def compile_tasks() -> list[str]:
+    """The install-time compile's tasks, independent of each other, the largest first (so that
+    the processes end together): every :class:`~mkf_ros.core._jit.Unit`
+    (``"unit:MODULE.NAME"``) and the compiled loops that take them (``"entries:PART"``,
+    :func:`_entry_calls`). Each runs in a fresh process: sharing one across tasks saves no time
+    (a kernel two tasks call is loaded from the cache by the second) and keeps every compiled
+    library in memory."""
+    costs = {f"unit:{name}": u.cost for name, u in _units().items()}
+    costs.update({f"entries:{part}": c for part, c in _ENTRY_COSTS.items()})
+    return sorted(costs, key=lambda t: -costs[t])
+
+
 def run_compile_task(task: str) -> tuple[str, float, float, int]:
-    """One task (see :data:`COMPILE_GROUPS`, or :data:`CHECK`: :func:`warmup` and the
-    simulator's kernel) in this process: ``(task, wall s, CPU s, peak RSS of this process in
+    """One task of :func:`compile_tasks` (or :data:`CHECK`: :func:`warmup` and the simulator's
+    kernel) in this process: ``(task, wall s, CPU s, peak RSS of this process in
     KiB)``."""
     t0, c0 = time.perf_counter(), time.process_time()
     kind, _, name = task.partition(":")
@@ -174,14 +176,9 @@ def run_compile_task(task: str) -> tuple[str, float, float, int]:
             resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)
 
 
-def run_compile_group(tasks: Sequence[str]) -> list[tuple[str, float, float, int]]:
-    """:func:`run_compile_task` of each task, in order, in this process."""
-    return [run_compile_task(t) for t in tasks]
-
-
 def compile_jobs() -> int:
     """Processes of the install-time compile: ``$MKF_ROS_COMPILE_JOBS``, else the CPUs this
-    process may use, at most the number of :data:`COMPILE_GROUPS`."""
+    process may use, at most 2 (each takes up to ~0.7 GB)."""
     env = os.environ.get("MKF_ROS_COMPILE_JOBS", "")
     if env.strip().isdigit() and int(env) > 0:
         return int(env)
@@ -189,13 +186,13 @@ def compile_jobs() -> int:
         n = len(os.sched_getaffinity(0))
     except AttributeError:  # pragma: no cover (not Linux)
         n = os.cpu_count() or 1
-    return max(1, min(len(COMPILE_GROUPS), n))
+    return max(1, min(2, n))
 
 
 def precompile(root: Path, jobs: int | None = None,
                report: Callable[[tuple[str, float, float, int]], object] | None = None) -> None:
     """Compile every kernel into ``root/numba-<hash>/`` (the install-time step; see the module
-    docstring), dropping other kernel versions there: :data:`COMPILE_GROUPS`, each in a fresh
+    docstring), dropping other kernel versions there: :func:`compile_tasks`, each in a fresh
     process whose cache is ``root``, ``jobs`` at a time (:func:`compile_jobs`), then
     :data:`CHECK` in another. ``report`` receives each task's result (:func:`run_compile_task`)."""
     import concurrent.futures
@@ -205,14 +202,13 @@ def precompile(root: Path, jobs: int | None = None,
     saved = {k: os.environ.get(k) for k in ("MKF_ROS_CACHE_DIR", "PYTHONWARNINGS")}
     os.environ.update(MKF_ROS_CACHE_DIR=str(root), PYTHONWARNINGS="ignore")
     try:
-        for phase, workers in ((COMPILE_GROUPS, jobs), (((CHECK,),), 1)):
+        for phase, workers in ((compile_tasks(), jobs), ([CHECK], 1)):
             with concurrent.futures.ProcessPoolExecutor(
                     max_workers=workers, mp_context=multiprocessing.get_context("spawn"),
                     max_tasks_per_child=1) as pool:
-                for results in pool.map(run_compile_group, phase):
-                    for result in results:
-                        if report is not None:
-                            report(result)
+                for result in pool.map(run_compile_task, phase):
+                    if report is not None:
+                        report(result)
     finally:
         for k, v in saved.items():
             if v is None:
