@@ -335,6 +335,35 @@ def test_install_requires_has_no_ros_wheels() -> None:
     assert "tests_require" not in _setup_kwargs(), "drop tests_require (setuptools warns, colcon)"
 
 
+def _pins(path: Path) -> dict[str, str]:
+    """``name == version`` pins of a requirements file and the files it includes (-r)."""
+    pins: dict[str, str] = {}
+    for line in path.read_text().splitlines():
+        line = line.split("#", 1)[0].strip()
+        if line.startswith("-r "):
+            pins.update(_pins(path.parent / line[3:].strip()))
+        elif "==" in line:
+            name, version = line.split("==", 1)
+            pins[name.split("[", 1)[0].strip().lower().replace("_", "-")] = version.strip()
+    return pins
+
+
+@pytest.mark.parametrize("pinned", ["dev.txt", "ubuntu-noble.txt"])
+def test_every_supported_set_satisfies_install_requires(pinned: str) -> None:
+    """Both sets CI builds (the current releases; Ubuntu 24.04's, what rosdep installs for
+    Jazzy) are inside setup.py's declared ranges, and pin every runtime requirement."""
+    from packaging.requirements import Requirement
+
+    pins = _pins(REPO / "requirements" / pinned)
+    reqs = [Requirement(r) for r in _setup_kwargs()["install_requires"]]  # type: ignore[union-attr]
+    missing = [r.name for r in reqs if r.name.lower() not in pins]
+    outside = [f"{r.name}=={pins[r.name.lower()]} (needs {r.specifier})" for r in reqs
+               if r.name.lower() in pins and pins[r.name.lower()] not in r.specifier]
+    assert not missing and not outside, (missing, outside)
+    if pinned == "ubuntu-noble.txt":  # Ubuntu 24.04's own versions
+        assert (pins["numba"], pins["numpy"]) == ("0.58.1", "1.26.4")
+
+
 # ---------------------------------------------------------------- environment
 
 
