@@ -207,11 +207,26 @@ class _Dispatcher(CPUDispatcher):
     """numba's dispatcher, compiling one version per argument *types* for calls from compiled
     code too: numba compiles a separate version of a function for each constant (literal)
     argument of a compiled caller (``f(x, True)`` and ``f(x, False)``: two versions; measured:
-    up to 10 of one small kernel, a quarter of the compile time)."""
+    up to 10 of one small kernel, a quarter of the compile time). Its cache is set up on the
+    first compile or load."""
 
     def get_call_template(self, args: Any, kws: Any) -> Any:
         return super().get_call_template(tuple(types.unliteral(a) for a in args),
                                          {k: types.unliteral(v) for k, v in kws.items()})
+
+    _cache_wanted = False
+
+    def enable_caching(self) -> None:
+        """Caching from the first compile or load on (:meth:`compile`), not from the
+        decoration: numba's cache asks for its directory when it is set up, and importing
+        the kernels touches no disk."""
+        self._cache_wanted = True
+
+    def compile(self, sig: Any) -> Any:
+        if self._cache_wanted:
+            self._cache_wanted = False
+            super().enable_caching()
+        return super().compile(sig)
 
 
 _OPTIONS = {"nopython": True, "nogil": True, "error_model": "numpy"}
