@@ -26,6 +26,7 @@ import resource
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -90,7 +91,7 @@ def warm_all() -> str:
 
 
 # --- the install-time compile ----------------------------------------------------------------
-def _entry_calls(part: str) -> list[tuple[Callable, tuple]]:
+def _entry_calls(part: str) -> list[tuple[Any, tuple]]:
     """The compiled loops of ``part`` (:data:`WARMUP_PARTS`) with arguments of the types the
     front ends call them with. They take the filter's compile units as an array of addresses,
     so they compile without them (a zero table: they are compiled here, never run)."""
