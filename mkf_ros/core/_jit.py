@@ -37,6 +37,7 @@ import os
 import shutil
 import sys
 import tempfile
+import threading
 import warnings
 from collections.abc import Callable
 from pathlib import Path
@@ -203,6 +204,9 @@ _NUMBA_VERSION = tuple(int(x) for x in numba.__version__.split(".")[:2])
 JIT_DISABLED = bool(vars(numba.config)["DISABLE_JIT"])
 
 
+_CACHE_SETUP = threading.Lock()
+
+
 class _Dispatcher(CPUDispatcher):
     """numba's dispatcher, compiling one version per argument *types* for calls from compiled
     code too: numba compiles a separate version of a function for each constant (literal)
@@ -223,9 +227,11 @@ class _Dispatcher(CPUDispatcher):
         self._cache_wanted = True
 
     def compile(self, sig: Any) -> Any:
-        if self._cache_wanted:
-            self._cache_wanted = False
-            super().enable_caching()
+        if self._cache_wanted:  # set up once, before any thread compiles or loads (the
+            with _CACHE_SETUP:  # two-way smoother's passes call the same kernels at once)
+                if self._cache_wanted:
+                    super().enable_caching()
+                    self._cache_wanted = False
         return super().compile(sig)
 
 
