@@ -26,6 +26,7 @@ from mkf_ros.stream import rep145
 from mkf_ros.stream.adapter import StreamOutput, covariance_out
 
 _HEAD = struct.Struct("<iII")  # header.stamp.sec, header.stamp.nanosec, frame_id length
+_STAMP = struct.Struct("<iI")  # header.stamp
 _LE = cdr.CDR_LE[:2]
 IMU_DOUBLES = cdr.IMU.doubles
 MAG_DOUBLES = cdr.MAGNETIC_FIELD.doubles
@@ -51,6 +52,13 @@ class RawHeader:
         self.frame_id = buf[end - n:end - 1].decode("utf-8", "replace")
         self.prefix = buf[:off]  # encapsulation + header + padding, reused for the output
         self.d = np.frombuffer(buf, "<f8", n_doubles, off)
+
+    def restamp(self, sec: int, nanosec: int) -> None:
+        """Replace the header stamp (here and in :attr:`prefix`, the output's header)."""
+        self.sec, self.nanosec = sec, nanosec
+        self.stamp = sec + nanosec * 1e-9
+        at = cdr.HEADER_BYTES
+        self.prefix = self.prefix[:at] + _STAMP.pack(sec, nanosec) + self.prefix[at + 8:]
 
 
 def parse(buf: bytes, n_doubles: int) -> RawHeader | None:

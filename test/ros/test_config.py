@@ -92,7 +92,7 @@ def test_launch_file_starts_the_estimator_on_its_topics(ros_context, monkeypatch
     (node,) = [e for e in entities if type(e).__name__ == "Node"]
     kw = node.kwargs
     setup = (REPO / "setup.py").read_text()
-    entry = f'"{kw["executable"]} = mkf_ros.ros.estimator_node:main"'
+    entry = f'"{kw["executable"]} = mkf_ros.ros.estimator_main:main"'
     assert kw["package"] == "mkf_ros" and entry in setup
     # the default parameter file is the installed config/estimator.yaml (setup.py's data_files)
     assert declared["params_file"] == str(tmp_path / "mkf_ros" / "config" / "estimator.yaml")

@@ -202,8 +202,8 @@ def test_debug_topics(harness) -> None:
     rpy, bias = [], []
     h.cli.create_subscription(Vector3Stamped, "imu/rpy/filtered", rpy.append, 50)
     h.cli.create_subscription(Vector3Stamped, "imu/gyro_bias", bias.append, 50)
-    assert h.spin_until(lambda: h.est._rpy_pub.get_subscription_count() > 0
-                        and h.est._bias_pub.get_subscription_count() > 0)
+    assert h.spin_until(lambda: h.est._debug["rpy"].get_subscription_count() > 0
+                        and h.est._debug["bias"].get_subscription_count() > 0)
     roll = 0.3
     h.send_imu([T0 + 0.01 * k for k in range(5)],
                acc=(0.0, 9.80665 * math.sin(roll), 9.80665 * math.cos(roll)))
