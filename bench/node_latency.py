@@ -203,9 +203,18 @@ def role_record(out: str) -> None:
 
 # --------------------------------------------------------------------------- orchestration
 def cpu_seconds(pid: int) -> float:
-    """utime + stime of a process (all its threads), from /proc."""
-    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / CLK_TCK
+    """CPU time of a process, all its threads: the scheduler's run time of each thread
+    (/proc/PID/task/*/schedstat, ns), or utime + stime (/proc/PID/stat, clock ticks) where
+    schedstat is missing."""
+    total = 0
+    try:
+        for task in Path(f"/proc/{pid}/task").iterdir():
+            with contextlib.suppress(FileNotFoundError):  # a thread that just ended
+                total += int((task / "schedstat").read_text().split()[0])
+        return total * 1e-9
+    except (FileNotFoundError, ValueError):
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / CLK_TCK
 
 
 def subject_cmd(subject: str, args: argparse.Namespace) -> list[str]:
@@ -226,9 +235,18 @@ def subject_cmd(subject: str, args: argparse.Namespace) -> list[str]:
                 else [sys.executable, "-m", "mkf_ros.ros.estimator_main"])
         base.append(f"--executor={args.executor}")
         params.update({"use_mag": "true", "algorithm": args.algorithm})
+    elif args.standin_cmd:
+        base = shlex.split(args.standin_cmd)
+        params.update({"use_mag": "true", "algorithm": args.algorithm})
     else:
         base = [sys.executable, str(HERE), "_standin"]
     return base + ["--ros-args"] + [x for k, v in params.items() for x in ("-p", f"{k}:={v}")]
+
+
+#: ``--pin``: the subject on CPU 1, its publisher and recorder on CPU 0 (Popen arguments; set
+#: in the child before it starts, so every thread it creates inherits it)
+_pinned: dict[int, dict[str, Any]] = {
+    cpu: {"preexec_fn": lambda cpu=cpu: os.sched_setaffinity(0, {cpu})} for cpu in (0, 1)}
 
 
 class Rig:
@@ -239,13 +257,16 @@ class Rig:
         env = dict(os.environ, ROS_DOMAIN_ID=str(domain))
         self.log = tmp / f"{subject}.log"
         self.rec_file = tmp / f"{subject}-rec.npy"
-        self.proc = subprocess.Popen(subject_cmd(subject, args), env=env,
+        pin = _pinned if args.pin else {}
+        self.proc = subprocess.Popen(subject_cmd(subject, args), env=env, **pin.get(1, {}),
                                      stdout=open(self.log, "w"),  # noqa: SIM115
                                      stderr=subprocess.STDOUT)
         self.recorder = subprocess.Popen(
             [sys.executable, str(HERE), "_record", "--out", str(self.rec_file)], env=env,
+            **pin.get(0, {}),
             stdout=subprocess.PIPE, text=True)
         self.env = env
+        self.pin = pin
         self.pub: subprocess.Popen[str] | None = None
         self.phases: list[dict[str, Any]] = []
 
@@ -258,7 +279,8 @@ class Rig:
                 raise RuntimeError(f"{self.subject} did not start:\n{self.log.read_text()}")
             time.sleep(0.2)
         self.pub = subprocess.Popen([sys.executable, str(HERE), "_publish"], env=self.env,
-                                    stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+                                    stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
+                                    **self.pin.get(0, {}))
         assert self._line() == "ready"
 
     def _line(self) -> str:
@@ -274,18 +296,26 @@ class Rig:
         stdin.write(text + "\n")
         stdin.flush()
 
-    def phase(self, rate: float, seconds: float, mag_rate: float, keep: bool = True) -> None:
-        """Publish at ``rate`` for ``seconds``; record the subject's CPU over the window."""
+    def start(self, rate: float, seconds: float, mag_rate: float) -> None:
+        """Start publishing at ``rate`` for ``seconds``; the CPU window opens."""
         self._send(f"run {rate} {seconds} {mag_rate}")
         assert self._line() == "start"
-        cpu0, w0 = cpu_seconds(self.proc.pid), time.monotonic()
+        self._rate = rate
+        self._cpu0, self._w0 = cpu_seconds(self.proc.pid), time.monotonic()
+
+    def finish(self, keep: bool = True) -> None:
+        """Wait for the end of the phase; record the subject's CPU over the window."""
         line = self._line()
         cpu1, w1 = cpu_seconds(self.proc.pid), time.monotonic()
         assert line.startswith("end "), line
         info = json.loads(line[4:])
-        info.update(rate=rate, cpu=(cpu1 - cpu0) / (w1 - w0) * 100.0)
+        info.update(rate=self._rate, cpu=(cpu1 - self._cpu0) / (w1 - self._w0) * 100.0)
         if keep:
             self.phases.append(info)
+
+    def phase(self, rate: float, seconds: float, mag_rate: float, keep: bool = True) -> None:
+        self.start(rate, seconds, mag_rate)
+        self.finish(keep)
 
     def close(self) -> Any:
         import numpy as np
@@ -372,6 +402,12 @@ def run(args: argparse.Namespace) -> int:
                 order = list(rigs.values())
                 if rep % 2:
                     order.reverse()
+                if args.concurrent:  # the same machine state for both, at the same time
+                    for rig in order:
+                        rig.start(rate, args.seconds, args.mag_rate)
+                    for rig in order:
+                        rig.finish()
+                    continue
                 for rig in order:
                     rig.phase(rate, args.seconds, args.mag_rate)
             print(f"  repetition {rep + 1} done", flush=True)
@@ -405,9 +441,17 @@ def main() -> int:
     ap.add_argument("--nice", type=int, default=0,
                     help="niceness of every process (negative needs root)")
     ap.add_argument("--executor", choices=("events", "single"), default="events")
+    ap.add_argument("--concurrent", action="store_true",
+                    help="run the two subjects' phases at the same time (each in its own "
+                    "domain) instead of one after the other: both see the same machine load")
+    ap.add_argument("--pin", action="store_true",
+                    help="pin each subject to CPU 1 and its publisher and recorder to CPU 0 "
+                    "(threads included: set before they start)")
     ap.add_argument("--estimator-cmd", help="run this command as the estimator instead of the "
                     "installed one (e.g. another checkout's .venv/bin/estimator); the ROS "
                     "arguments are appended")
+    ap.add_argument("--standin-cmd", help="run this command as the stand-in (an A/B comparison "
+                    "of two estimators: the ratio is estimator / this); ROS arguments appended")
     ap.add_argument("_role", nargs="?", help=argparse.SUPPRESS)
     ap.add_argument("--out", help=argparse.SUPPRESS)
     args, _ = ap.parse_known_args()

@@ -60,7 +60,7 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.publisher import Publisher
 from rclpy.qos_overriding_options import QoSOverridingOptions
-from rclpy.serialization import deserialize_message
+from rclpy.serialization import deserialize_message, serialize_message
 from rclpy.timer import Timer
 from sensor_msgs.msg import Imu, MagneticField
 from std_msgs.msg import Bool, Header
@@ -87,6 +87,7 @@ from mkf_ros.stream.adapter import (
     carries_orientation,
     orientation_note,
 )
+from mkf_ros.stream.kernel import OF_WADD
 
 _REST_UPDATES = COUNTER_NAMES.index("rest_updates")
 
@@ -179,7 +180,7 @@ class EstimatorNode(Node):
         self._last_exception = ""
         self._last_imu_wall: float | None = None
         self._last_mag_wall: float | None = None
-        self._frame_id = ""
+        self._last_imu_data: bytes | None = None  # the latest IMU message (frame_id)
         self._warned: set[str] = set()
         #: messages whose zero header stamp was replaced by the receive time, by input
         self.stamped_on_receipt = {"imu": 0, "acc": 0, "mag": 0}
@@ -355,48 +356,65 @@ class EstimatorNode(Node):
         return sec, nsec
 
     def _on_imu(self, data: bytes) -> None:
-        """Serialized Imu in (``raw=True``), serialized Imu out: no message objects on the
-        fast path (see :mod:`mkf_ros.ros.rawmsg`)."""
+        """Serialized Imu in (``raw=True``), serialized Imu out: no message objects and no
+        numpy on the fast path (see :mod:`mkf_ros.ros.rawmsg`)."""
         if not self._active:
             return  # a managed node that is not active takes no input
         self.received_imu += 1
         try:
             self._last_imu_wall = time.monotonic()
-            h = rawmsg.parse(data, rawmsg.IMU_DOUBLES)
-            if h is None:  # not little-endian CDR: message objects
+            m = rawmsg.unpack_imu(data)
+            if m is None:  # not little-endian CDR: message objects
                 self._on_imu_msg(deserialize_message(data, Imu))
                 return
-            if h.stamp == 0.0:
-                h.restamp(*self._receive_time("imu", self._sub_imu.topic_name))
+            sec, nsec, off, d = m
+            prefix = None
+            if sec == 0 and nsec == 0:
+                sec, nsec = self._receive_time("imu", self._sub_imu.topic_name)
+                prefix = rawmsg.restamped_prefix(data, off, sec, nsec)
             if self._ori_checks:
-                self._check_orientation(h.d[rawmsg.Q:rawmsg.Q + 4], h.d[rawmsg.QC])
-            gyr, acc = rawmsg.imu_views(h)  # copied into the adapter's event record
-            p = self._p
-            extras = (self._tf is not None and p["publish_tf"]) or (
-                self._debug and p["publish_debug_topics"])
-            with self._lock:
-                calib = self._calib
-                if calib is not None and (calib.window is not None or calib.offset_set):
-                    gyr = calib.gyro_input(h.stamp, gyr, acc, self.stream.split)
-                rest0 = self.stream.filter.counters[_REST_UPDATES] if extras else 0
-                # no StreamOutput on this path: the output record straight into the bytes
-                flags = self.stream.step_imu(h.stamp, gyr, acc)
-                if not flags:
-                    return
-                payload = self._encoder.encode_values(
-                    h, self.stream.output_values, flags, p["angular_velocity_stddev"],
-                    p["linear_acceleration_stddev"])
-                if extras:
-                    out = self.stream.last_output()
-                    at_rest = bool(self.stream.filter.counters[_REST_UPDATES] > rest0)
-            self._frame_id = h.frame_id
-            self._pub.publish(payload)
-            self._published += 1
-            if extras:
-                self._extras(Header(stamp=Time(sec=h.sec, nanosec=h.nanosec),
-                                    frame_id=h.frame_id), out, p, acc, at_rest)
+                self._check_orientation(d[rawmsg.Q:rawmsg.Q + 4], d[rawmsg.QC])
+            self._last_imu_data = data
+            self._imu_step(data, sec, nsec, off, d, prefix)
         except Exception as e:
             self._count_exception(e, "imu callback")
+
+    def _imu_step(self, data: bytes, sec: int, nsec: int, off: int, d: tuple[float, ...],
+                  prefix: bytes | None) -> None:
+        """One IMU message through the filter and out (:meth:`_on_imu`)."""
+        stamp = sec + nsec * 1e-9
+        gyr, acc = rawmsg.imu_readings(d)
+        p = self._p
+        extras = (self._tf is not None and p["publish_tf"]) or (
+            self._debug and p["publish_debug_topics"])
+        with self._lock:
+            stream, calib = self.stream, self._calib
+            if calib is not None and (calib.window is not None or calib.offset_set):
+                gyr = calib.gyro_input(stamp, gyr, acc, stream.split)
+            rest0 = stream.filter.counters[_REST_UPDATES] if extras else 0
+            rawmsg.pack_imu_event(stream.imu_event_bytes, stamp, gyr, acc)
+            flags = stream.run_imu_event()
+            if not flags:
+                return
+            if flags & OF_WADD:  # the bias-corrected rate: its covariance changes every sample
+                h = rawmsg.RawHeader(data, rawmsg.IMU_DOUBLES)
+                if prefix is not None:
+                    h.restamp(sec, nsec)
+                payload = self._encoder.encode_values(
+                    h, stream.output_values, flags, p["angular_velocity_stddev"],
+                    p["linear_acceleration_stddev"])
+            else:
+                payload = self._encoder.encode_record(
+                    data, off, d, stream.output_bytes, flags, p["angular_velocity_stddev"],
+                    p["linear_acceleration_stddev"], prefix)
+            if extras:
+                out = stream.last_output()
+                at_rest = bool(stream.filter.counters[_REST_UPDATES] > rest0)
+        self._pub.publish(payload)
+        self._published += 1
+        if extras:
+            self._extras(Header(stamp=Time(sec=sec, nanosec=nsec),
+                                frame_id=rawmsg.frame_id(data)), out, p, acc, at_rest)
 
     def _on_imu_msg(self, msg: Imu) -> None:
         """The same with message objects (inputs that are not little-endian CDR)."""
@@ -418,7 +436,7 @@ class EstimatorNode(Node):
             at_rest = bool(self.stream.filter.counters[_REST_UPDATES] > rest0)
             convert.fill_imu(self._out, msg, out, p["angular_velocity_stddev"],
                              p["linear_acceleration_stddev"])
-        self._frame_id = msg.header.frame_id
+        self._last_imu_data = serialize_message(msg.header)  # its frame_id, for diagnostics
         self._pub.publish(self._out)
         self._published += 1
         self._extras(msg.header, out, p, acc, at_rest)
@@ -605,7 +623,7 @@ class EstimatorNode(Node):
                 cov=f.covariance if f.initialized else None, bias=f.bias,
                 bias_stddev=f.bias_stddev, acc_norm=s.acc_norm, mag_norm=s.mag_norm,
                 mag_offset=s.mag_offset, dt_stats=s.pop_dt_stats(),
-                last_reset_reason=s.last_reset_reason, frame_id=self._frame_id,
+                last_reset_reason=s.last_reset_reason, frame_id=self._frame_id(),
                 extra=extra, input_problems=self._input_problems())
 
     def _check_silence(self, now: float) -> None:
@@ -624,6 +642,11 @@ class EstimatorNode(Node):
                                 "compatible?)")
 
     # --- helpers -------------------------------------------------------------------------------
+    def _frame_id(self) -> str:
+        """The frame_id of the latest IMU message (decoded when asked, not per message)."""
+        data = self._last_imu_data
+        return "" if data is None else rawmsg.frame_id(data)
+
     def _warn_once(self, key: str, text: str) -> None:
         if key not in self._warned:
             self._warned.add(key)

@@ -8,6 +8,13 @@ estimate. Only little-endian plain CDR (encapsulation ``00 01``, what every ROS 
 x86/ARM sends) is handled here; anything else returns None and the node falls back to
 ``rclpy.serialization`` and message objects.
 
+The node's per-message path uses no numpy either (each numpy call costs microseconds when
+the caches are cold, as they are between two messages): :func:`unpack_imu` reads the message
+with one :mod:`struct` call, :func:`pack_imu_event` writes the readings into the adapter's
+event record (:attr:`StreamAdapter.imu_event_bytes
+<mkf_ros.stream.adapter.StreamAdapter.imu_event_bytes>`) and :meth:`ImuEncoder.encode_record`
+builds the output from the adapter's output record with another.
+
 The layout (header, padding, the float64 fields and their order) is the one
 :mod:`mkf_ros.bags.cdr` decodes bags with: :data:`mkf_ros.bags.cdr.IMU` and
 :data:`~mkf_ros.bags.cdr.MAGNETIC_FIELD`.
@@ -15,6 +22,7 @@ The layout (header, padding, the float64 fields and their order) is the one
 
 from __future__ import annotations
 
+import math
 import struct
 from typing import Any
 
@@ -27,6 +35,8 @@ from mkf_ros.stream.adapter import StreamOutput, covariance_out
 
 _HEAD = struct.Struct("<iII")  # header.stamp.sec, header.stamp.nanosec, frame_id length
 _STAMP = struct.Struct("<iI")  # header.stamp
+_NAN3 = (math.nan,) * 3
+_ZERO3 = (0.0, 0.0, 0.0)
 _LE = cdr.CDR_LE[:2]
 IMU_DOUBLES = cdr.IMU.doubles
 MAG_DOUBLES = cdr.MAGNETIC_FIELD.doubles
@@ -39,7 +49,7 @@ Q, QC, W, WC, A, AC = (cdr.IMU.offsets()[f][0] for f in (
 class RawHeader:
     """The parsed header of a serialized message and a view of its doubles."""
 
-    __slots__ = ("d", "frame_id", "nanosec", "prefix", "sec", "stamp")
+    __slots__ = ("buf", "d", "frame_id", "nanosec", "off", "prefix", "sec", "stamp")
 
     def __init__(self, buf: bytes, n_doubles: int) -> None:
         sec, nsec, n = _HEAD.unpack_from(buf, cdr.HEADER_BYTES)
@@ -50,6 +60,7 @@ class RawHeader:
         self.sec, self.nanosec = sec, nsec
         self.stamp = sec + nsec * 1e-9
         self.frame_id = buf[end - n:end - 1].decode("utf-8", "replace")
+        self.buf, self.off = buf, off
         self.prefix = buf[:off]  # encapsulation + header + padding, reused for the output
         self.d = np.frombuffer(buf, "<f8", n_doubles, off)
 
@@ -90,13 +101,89 @@ def imu_views(h: RawHeader) -> tuple[np.ndarray | None, np.ndarray | None]:
             rep145.input_vector(d[A:A + 3], d[AC], copy=False))
 
 
+def _changing_fields(flags: int) -> tuple[np.ndarray, np.ndarray]:
+    """The output doubles that change from sample to sample (the estimate; the rates and the
+    acceleration when present; the rate covariance when it is the filter's) and where they
+    are in the output record: ``(dst, src)`` for ``out[dst] = values[src]``."""
+    dst = [np.arange(Q, Q + 4), np.arange(QC, QC + 9)]
+    src = [_XYZW, np.arange(_OCOV.start, _OCOV.stop)]
+    for flag, at, n, field in ((sk.OF_W, W, 3, _OW), (sk.OF_WCOV, WC, 9, _OWCOV),
+                               (sk.OF_LIN, A, 3, _OLIN)):
+        if flags & flag:
+            dst.append(np.arange(at, at + n))
+            src.append(np.arange(field.start, field.stop))
+    return np.concatenate(dst), np.concatenate(src)
+
+
+_DOUBLES = struct.Struct(f"<{IMU_DOUBLES}d")  # the Imu message after its header
+# the adapter's records as bytes: the fields read and written here, from their dtypes
+_EV = sk.EVENT.fields
+assert (_EV["stamp"][1], _EV["v"][1], _EV["a"][1]) == (0, 8, 32), "EVENT layout changed"
+_EVENT = struct.Struct("<7d")  # stamp, v (gyro), a (accelerometer)
+_OF = sk.OUTPUT.fields
+assert (_OF["present"][1], _OF["q"][1], _OF["cov"][1]) == (0, 8, 40), "OUTPUT layout changed"
+_OUT_HEAD = struct.Struct("<q13d")  # present (flags), q [w, x, y, z], cov (row major)
+_OUT_W, _OUT_WCOV, _OUT_LIN = (_OF[f][1] for f in ("w", "wcov", "lin"))
+_VEC3, _VEC9 = struct.Struct("<3d"), struct.Struct("<9d")
+
+
+def unpack_imu(buf: bytes) -> tuple[int, int, int, tuple[float, ...]] | None:
+    """``(sec, nanosec, offset of the doubles, the 37 doubles)`` of a serialized Imu (one
+    :mod:`struct` call); None for anything but little-endian plain CDR; ValueError when
+    truncated."""
+    if buf[:2] != _LE:
+        return None
+    sec, nsec, n = _HEAD.unpack_from(buf, cdr.HEADER_BYTES)
+    off = cdr.HEADER_BYTES + cdr.body_offset(n - 1)
+    if n == 0 or len(buf) < off + 8 * IMU_DOUBLES:
+        raise ValueError(f"truncated message ({len(buf)} bytes)")
+    return sec, nsec, off, _DOUBLES.unpack_from(buf, off)
+
+
+def imu_readings(d: tuple[float, ...]) -> tuple[Any, Any]:
+    """``(gyr, acc)`` of :func:`unpack_imu`'s doubles, 3 floats each; a field whose
+    covariance[0] is -1 is None (:func:`mkf_ros.stream.rep145.input_vector`)."""
+    return (rep145.input_vector(d[W:W + 3], d[WC], copy=False),
+            rep145.input_vector(d[A:A + 3], d[AC], copy=False))
+
+
+def pack_imu_event(event: memoryview, stamp: float, gyr: Any, acc: Any) -> None:
+    """The stamp and the readings (3 numbers each; None: not reported, NaN) into the bytes of
+    the adapter's IMU event record
+    (:attr:`~mkf_ros.stream.adapter.StreamAdapter.imu_event_bytes`)."""
+    _EVENT.pack_into(event, 0, stamp, *(_NAN3 if gyr is None else gyr),
+                     *(_NAN3 if acc is None else acc))
+
+
+def frame_id(buf: bytes) -> str:
+    """The header's frame_id of a serialized message."""
+    n = _HEAD.unpack_from(buf, cdr.HEADER_BYTES)[2]
+    at = cdr.HEADER_BYTES + _HEAD.size
+    return buf[at:at + max(n - 1, 0)].decode("utf-8", "replace")
+
+
+def restamped_prefix(buf: bytes, off: int, sec: int, nanosec: int) -> bytes:
+    """The header bytes of ``buf`` (up to the doubles at ``off``) with another stamp."""
+    at = cdr.HEADER_BYTES
+    return buf[:at] + _STAMP.pack(sec, nanosec) + buf[at + 8:off]
+
+
 class ImuEncoder:
     """Builds the serialized ``imu/data`` message from the input's bytes and an estimate,
-    with the same rules as :func:`mkf_ros.ros.convert.fill_imu`."""
+    with the same rules as :func:`mkf_ros.ros.convert.fill_imu`.
+
+    Per message (:meth:`encode_values`) only the fields that change from sample to sample
+    are written: drivers send the same covariances every time, so the covariance fields of
+    the output (REP-145's rules, :mod:`mkf_ros.stream.rep145`) are worked out once per input
+    covariances, parameters and present fields, and kept."""
 
     def __init__(self) -> None:
         self._out = np.zeros(IMU_DOUBLES, dtype="<f8")
         self._cache: dict[tuple[bytes, float], np.ndarray] = {}
+        self._layout: tuple[Any, ...] | None = None  # the key of the kept fields
+        self._record_layout: tuple[Any, ...] | None = None  # encode_record's
+        self._kept: tuple[tuple[float, ...], tuple[float, ...]] = ((), ())
+        self._dst = self._src = np.zeros(0, dtype=np.intp)
 
     def _cov(self, cov_in: np.ndarray, stddev: float, add: np.ndarray | None) -> np.ndarray:
         if add is not None:
@@ -124,6 +211,63 @@ class ImuEncoder:
         :meth:`StreamAdapter.step_imu <mkf_ros.stream.adapter.StreamAdapter.step_imu>`
         (``values``: :attr:`~mkf_ros.stream.adapter.StreamAdapter.output_values`, ``flags``
         its return), without a :class:`StreamOutput`: the node's per-message path."""
+        if flags & sk.OF_WADD:  # bias_corrected: the covariance changes with every sample
+            self._layout = None
+            return self._encode_all(h, values, flags, angular_velocity_stddev,
+                                    linear_acceleration_stddev)
+        b, at = h.buf, h.off
+        key = (flags, angular_velocity_stddev, linear_acceleration_stddev,
+               b[at + 8 * WC:at + 8 * WC + 72], b[at + 8 * AC:at + 8 * AC + 72])
+        if key != self._layout:  # new covariances or fields: everything, and what changes
+            self._layout = key
+            self._dst, self._src = _changing_fields(flags)
+            return self._encode_all(h, values, flags, angular_velocity_stddev,
+                                    linear_acceleration_stddev)
+        o = self._out
+        o[self._dst] = values[self._src]
+        return h.prefix + o.tobytes()
+
+    def encode_record(self, buf: bytes, off: int, d: tuple[float, ...], record: memoryview,
+                      flags: int, angular_velocity_stddev: float,
+                      linear_acceleration_stddev: float, prefix: bytes | None = None) -> bytes:
+        """The bytes :meth:`encode_values` builds, from the input message ``buf`` (its
+        doubles ``d`` at ``off``, :func:`unpack_imu`) and the adapter's output record as bytes
+        (:attr:`~mkf_ros.stream.adapter.StreamAdapter.output_bytes`) with :mod:`struct`; the
+        covariances that do not change from sample to sample (the input's, REP-145's rules)
+        are worked out once per input covariances and kept. Not for ``OF_WADD`` (the
+        bias-corrected rate's covariance changes every sample: :meth:`encode_values`).
+        ``prefix``: the output's header bytes, if not the input's."""
+        key = (flags, angular_velocity_stddev, linear_acceleration_stddev,
+               buf[off + 8 * WC:off + 8 * WC + 72], buf[off + 8 * AC:off + 8 * AC + 72])
+        if key != self._record_layout:
+            self._record_layout = key
+            self._kept = self._kept_covariances(d, flags, angular_velocity_stddev,
+                                                linear_acceleration_stddev)
+        wcov, lincov = self._kept
+        r = _OUT_HEAD.unpack_from(record, 0)
+        has_w = flags & sk.OF_W
+        w = _VEC3.unpack_from(record, _OUT_W) if has_w else _ZERO3
+        if has_w and flags & sk.OF_WCOV:  # the filter's rate covariance
+            wcov = _VEC9.unpack_from(record, _OUT_WCOV)
+        lin = _VEC3.unpack_from(record, _OUT_LIN) if flags & sk.OF_LIN else _ZERO3
+        return (buf[:off] if prefix is None else prefix) + _DOUBLES.pack(
+            r[2], r[3], r[4], r[1], *r[5:14], *w, *wcov, *lin, *lincov)
+
+    def _kept_covariances(self, d: tuple[float, ...], flags: int,
+                          angular_velocity_stddev: float, linear_acceleration_stddev: float
+                          ) -> tuple[tuple[float, ...], tuple[float, ...]]:
+        """The published rate and acceleration covariances from the input's (REP-145:
+        :func:`mkf_ros.stream.rep145.published_covariance`)."""
+        w = _ZERO3 if flags & sk.OF_W else None
+        lin = _ZERO3 if flags & sk.OF_LIN else None
+        wcov = rep145.published_covariance(w, None, np.array(d[WC:WC + 9]),
+                                           angular_velocity_stddev, fill=self._cov)
+        lincov = rep145.published_covariance(lin, None, np.array(d[AC:AC + 9]),
+                                             linear_acceleration_stddev, fill=self._cov)
+        return tuple(map(float, wcov)), tuple(map(float, lincov))
+
+    def _encode_all(self, h: RawHeader, values: np.ndarray, flags: int,
+                    angular_velocity_stddev: float, linear_acceleration_stddev: float) -> bytes:
         return self._encode(
             h, values[_XYZW], values[_OCOV], values[_OW] if flags & sk.OF_W else None,
             values[_OWCOV] if flags & sk.OF_WCOV else None,

@@ -344,6 +344,8 @@ class StreamAdapter:
         #: starts anew there: a pass over the recording reversed starts anew too)
         self.reset_slots: list[int] = []
         self._out_flat = self._out.view(np.float64)
+        self._out_bytes = memoryview(self._out.view(np.uint8)).toreadonly()
+        self._ev_imu_bytes = memoryview(self._ev_imu_seq.view(np.uint8))
         self._derive()
 
     # --- parameters ------------------------------------------------------------------------
@@ -544,8 +546,27 @@ class StreamAdapter:
         v[:] = _vec(gyr, "gyr")
         a[:] = _vec(acc, "acc")
         stamp_v[0] = float(stamp)
+        return self.run_imu_event()
+
+    @property
+    def imu_event_bytes(self) -> memoryview:
+        """The bytes of :meth:`step_imu`'s event record (:data:`~mkf_ros.stream.kernel.EVENT`:
+        ``stamp`` s, ``v`` the gyro, ``a`` the accelerometer, float64, all NaN = not
+        reported), writable: a front end that has the readings as bytes writes them here and
+        calls :meth:`run_imu_event` (the node's per-message path, without numpy)."""
+        return self._ev_imu_bytes
+
+    def run_imu_event(self) -> int:
+        """:meth:`step_imu` of the sample already in :attr:`imu_event_bytes` (the same rules:
+        the record is what :meth:`step_imu` writes)."""
         self._run(self._ev_imu_seq, self._out, 0, 1)
         return int(self._out_present[0])
+
+    @property
+    def output_bytes(self) -> memoryview:
+        """The latest IMU sample's output record (:data:`~mkf_ros.stream.kernel.OUTPUT`) as
+        read-only bytes, updated in place like :attr:`output_values`."""
+        return self._out_bytes
 
     @property
     def output_values(self) -> np.ndarray:

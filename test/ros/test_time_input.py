@@ -158,7 +158,7 @@ def test_magnetometer_never_gates_the_imu(harness) -> None:
 def test_never_dies_on_a_message(harness) -> None:
     """An exception inside the processing is counted and reported; the node goes on."""
     h = harness({"diagnostics_period": 0.2})
-    real = h.est.stream.step_imu  # the node's per-message path
+    real = h.est.stream.run_imu_event  # the node's per-message path
     calls = {"n": 0}
 
     def flaky(*a):
@@ -167,7 +167,7 @@ def test_never_dies_on_a_message(harness) -> None:
             raise RuntimeError("boom")
         return real(*a)
 
-    h.est.stream.step_imu = flaky
+    h.est.stream.run_imu_event = flaky
     h.send_imu([T0 + 0.01 * k for k in range(6)])
     assert len(h.out) == 5 and h.est._exceptions == 1
     assert h.spin_until(lambda: any(s.level == b"\x02" for d in h.diag for s in d.status), 3.0)
