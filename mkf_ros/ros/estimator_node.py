@@ -317,6 +317,8 @@ class EstimatorNode(Node):
         """What the node parameters change outside the adapter: the diagnostics timer, the TF
         broadcaster, the debug publishers."""
         self._p = p = self.stream.params
+        self._extras_on = False
+        self._stddevs = (p["angular_velocity_stddev"], p["linear_acceleration_stddev"])
         if not self._configured:
             return  # applied by the lifecycle's configure
         if changes is None or "diagnostics_period" in changes:
@@ -337,6 +339,10 @@ class EstimatorNode(Node):
                 "steady": self.create_publisher(Bool, "imu/steady_state", 10),
             }
         self._raw_rpy = None  # rebuilt from the current parameters when next needed
+        # read per message: whether TF or debug topics go out, the REP-145 fill values
+        self._extras_on = bool((p["publish_tf"] and self._tf is not None)
+                               or (p["publish_debug_topics"] and self._debug))
+        self._stddevs = (p["angular_velocity_stddev"], p["linear_acceleration_stddev"])
 
     def _make_timer(self) -> None:
         if self._timer is not None:
@@ -367,7 +373,7 @@ class EstimatorNode(Node):
             if m is None:  # not little-endian CDR: message objects
                 self._on_imu_msg(deserialize_message(data, Imu))
                 return
-            sec, nsec, off, d = m
+            sec, nsec, off, d, gyr, acc = m
             prefix = None
             if sec == 0 and nsec == 0:
                 sec, nsec = self._receive_time("imu", self._sub_imu.topic_name)
@@ -375,46 +381,41 @@ class EstimatorNode(Node):
             if self._ori_checks:
                 self._check_orientation(d[rawmsg.Q:rawmsg.Q + 4], d[rawmsg.QC])
             self._last_imu_data = data
-            self._imu_step(data, sec, nsec, off, d, prefix)
+            stamp = sec + nsec * 1e-9
+            extras = self._extras_on
+            with self._lock:
+                stream, calib = self.stream, self._calib
+                if calib is not None and (calib.window is not None or calib.offset_set):
+                    gyr = calib.gyro_input(stamp, gyr, acc, stream.split)
+                rest0 = stream.filter.counters[_REST_UPDATES] if extras else 0
+                rawmsg.pack_imu_event(stream.imu_event_bytes, stamp, gyr, acc)
+                flags = stream.run_imu_event()
+                if not flags:
+                    return
+                payload = self._encode(data, off, d, flags, sec, nsec, prefix)
+                if extras:
+                    out = stream.last_output()
+                    at_rest = bool(stream.filter.counters[_REST_UPDATES] > rest0)
+            self._pub.publish(payload)
+            self._published += 1
+            if extras:
+                self._extras(Header(stamp=Time(sec=sec, nanosec=nsec),
+                                    frame_id=rawmsg.frame_id(data)), out, self._p, acc, at_rest)
         except Exception as e:
             self._count_exception(e, "imu callback")
 
-    def _imu_step(self, data: bytes, sec: int, nsec: int, off: int, d: tuple[float, ...],
-                  prefix: bytes | None) -> None:
-        """One IMU message through the filter and out (:meth:`_on_imu`)."""
-        stamp = sec + nsec * 1e-9
-        gyr, acc = rawmsg.imu_readings(d)
-        p = self._p
-        extras = (self._tf is not None and p["publish_tf"]) or (
-            self._debug and p["publish_debug_topics"])
-        with self._lock:
-            stream, calib = self.stream, self._calib
-            if calib is not None and (calib.window is not None or calib.offset_set):
-                gyr = calib.gyro_input(stamp, gyr, acc, stream.split)
-            rest0 = stream.filter.counters[_REST_UPDATES] if extras else 0
-            rawmsg.pack_imu_event(stream.imu_event_bytes, stamp, gyr, acc)
-            flags = stream.run_imu_event()
-            if not flags:
-                return
-            if flags & OF_WADD:  # the bias-corrected rate: its covariance changes every sample
-                h = rawmsg.RawHeader(data, rawmsg.IMU_DOUBLES)
-                if prefix is not None:
-                    h.restamp(sec, nsec)
-                payload = self._encoder.encode_values(
-                    h, stream.output_values, flags, p["angular_velocity_stddev"],
-                    p["linear_acceleration_stddev"])
-            else:
-                payload = self._encoder.encode_record(
-                    data, off, d, stream.output_bytes, flags, p["angular_velocity_stddev"],
-                    p["linear_acceleration_stddev"], prefix)
-            if extras:
-                out = stream.last_output()
-                at_rest = bool(stream.filter.counters[_REST_UPDATES] > rest0)
-        self._pub.publish(payload)
-        self._published += 1
-        if extras:
-            self._extras(Header(stamp=Time(sec=sec, nanosec=nsec),
-                                frame_id=rawmsg.frame_id(data)), out, p, acc, at_rest)
+    def _encode(self, data: bytes, off: int, d: tuple[float, ...], flags: int, sec: int,
+                nsec: int, prefix: bytes | None) -> bytes:
+        """``imu/data``'s bytes for the estimate in the adapter's output record (lock held)."""
+        av_sd, la_sd = self._stddevs
+        if flags & OF_WADD:  # the bias-corrected rate: its covariance changes every sample
+            h = rawmsg.RawHeader(data, rawmsg.IMU_DOUBLES)
+            if prefix is not None:
+                h.restamp(sec, nsec)
+            return self._encoder.encode_values(h, self.stream.output_values, flags, av_sd,
+                                               la_sd)
+        return self._encoder.encode_record(data, off, d, self.stream.output_bytes, flags,
+                                           av_sd, la_sd, prefix)
 
     def _on_imu_msg(self, msg: Imu) -> None:
         """The same with message objects (inputs that are not little-endian CDR)."""

@@ -36,7 +36,6 @@ from mkf_ros.stream.adapter import StreamOutput, covariance_out
 _HEAD = struct.Struct("<iII")  # header.stamp.sec, header.stamp.nanosec, frame_id length
 _STAMP = struct.Struct("<iI")  # header.stamp
 _NAN3 = (math.nan,) * 3
-_ZERO3 = (0.0, 0.0, 0.0)
 _LE = cdr.CDR_LE[:2]
 IMU_DOUBLES = cdr.IMU.doubles
 MAG_DOUBLES = cdr.MAGNETIC_FIELD.doubles
@@ -121,30 +120,34 @@ _EV = sk.EVENT.fields
 assert (_EV["stamp"][1], _EV["v"][1], _EV["a"][1]) == (0, 8, 32), "EVENT layout changed"
 _EVENT = struct.Struct("<7d")  # stamp, v (gyro), a (accelerometer)
 _OF = sk.OUTPUT.fields
-assert (_OF["present"][1], _OF["q"][1], _OF["cov"][1]) == (0, 8, 40), "OUTPUT layout changed"
-_OUT_HEAD = struct.Struct("<q13d")  # present (flags), q [w, x, y, z], cov (row major)
-_OUT_W, _OUT_WCOV, _OUT_LIN = (_OF[f][1] for f in ("w", "wcov", "lin"))
-_VEC3, _VEC9 = struct.Struct("<3d"), struct.Struct("<9d")
+assert all(_OF[f][0].base == np.float64 for f in ("q", "cov", "w", "wcov", "lin"))
+# the output record's fields as byte ranges: q is [w, x, y, z], the message's [x, y, z, w]
+_REC_W0, _REC_XYZ = slice(_OF["q"][1], _OF["q"][1] + 8), slice(_OF["q"][1] + 8, _OF["q"][1] + 32)
+_REC_COV, _REC_W, _REC_WCOV, _REC_LIN = (
+    slice(_OF[f][1], _OF[f][1] + _OF[f][0].itemsize) for f in ("cov", "w", "wcov", "lin"))
+_ZERO3_BYTES = bytes(24)
 
 
-def unpack_imu(buf: bytes) -> tuple[int, int, int, tuple[float, ...]] | None:
-    """``(sec, nanosec, offset of the doubles, the 37 doubles)`` of a serialized Imu (one
-    :mod:`struct` call); None for anything but little-endian plain CDR; ValueError when
-    truncated."""
+def unpack_imu(buf: bytes) -> tuple[int, int, int, tuple[float, ...], Any, Any] | None:
+    """``(sec, nanosec, offset of the doubles, the 37 doubles, gyr, acc)`` of a serialized Imu
+    (one :mod:`struct` call): ``gyr`` and ``acc`` 3 floats each, None for a field whose
+    covariance[0] is -1 (:func:`mkf_ros.stream.rep145.not_reported`); None for anything but
+    little-endian plain CDR; ValueError when truncated."""
     if buf[:2] != _LE:
         return None
     sec, nsec, n = _HEAD.unpack_from(buf, cdr.HEADER_BYTES)
-    off = cdr.HEADER_BYTES + cdr.body_offset(n - 1)
+    off = _BODY.get(n)
+    if off is None:
+        off = _BODY[n] = cdr.HEADER_BYTES + cdr.body_offset(n - 1)
     if n == 0 or len(buf) < off + 8 * IMU_DOUBLES:
         raise ValueError(f"truncated message ({len(buf)} bytes)")
-    return sec, nsec, off, _DOUBLES.unpack_from(buf, off)
+    d = _DOUBLES.unpack_from(buf, off)
+    return (sec, nsec, off, d, None if rep145.not_reported(d[WC]) else d[W:W + 3],
+            None if rep145.not_reported(d[AC]) else d[A:A + 3])
 
 
-def imu_readings(d: tuple[float, ...]) -> tuple[Any, Any]:
-    """``(gyr, acc)`` of :func:`unpack_imu`'s doubles, 3 floats each; a field whose
-    covariance[0] is -1 is None (:func:`mkf_ros.stream.rep145.input_vector`)."""
-    return (rep145.input_vector(d[W:W + 3], d[WC], copy=False),
-            rep145.input_vector(d[A:A + 3], d[AC], copy=False))
+#: the offset of the doubles by frame_id length (NUL included)
+_BODY: dict[int, int] = {}
 
 
 def pack_imu_event(event: memoryview, stamp: float, gyr: Any, acc: Any) -> None:
@@ -182,7 +185,7 @@ class ImuEncoder:
         self._cache: dict[tuple[bytes, float], np.ndarray] = {}
         self._layout: tuple[Any, ...] | None = None  # the key of the kept fields
         self._record_layout: tuple[Any, ...] | None = None  # encode_record's
-        self._kept: tuple[tuple[float, ...], tuple[float, ...]] = ((), ())
+        self._kept: tuple[bytes, bytes] = (b"", b"")
         self._dst = self._src = np.zeros(0, dtype=np.intp)
 
     def _cov(self, cov_in: np.ndarray, stddev: float, add: np.ndarray | None) -> np.ndarray:
@@ -232,39 +235,43 @@ class ImuEncoder:
                       linear_acceleration_stddev: float, prefix: bytes | None = None) -> bytes:
         """The bytes :meth:`encode_values` builds, from the input message ``buf`` (its
         doubles ``d`` at ``off``, :func:`unpack_imu`) and the adapter's output record as bytes
-        (:attr:`~mkf_ros.stream.adapter.StreamAdapter.output_bytes`) with :mod:`struct`; the
-        covariances that do not change from sample to sample (the input's, REP-145's rules)
-        are worked out once per input covariances and kept. Not for ``OF_WADD`` (the
-        bias-corrected rate's covariance changes every sample: :meth:`encode_values`).
-        ``prefix``: the output's header bytes, if not the input's."""
-        key = (flags, angular_velocity_stddev, linear_acceleration_stddev,
-               buf[off + 8 * WC:off + 8 * WC + 72], buf[off + 8 * AC:off + 8 * AC + 72])
-        if key != self._record_layout:
-            self._record_layout = key
+        (:attr:`~mkf_ros.stream.adapter.StreamAdapter.output_bytes`): the record's float64
+        fields copied as bytes (no number is converted), and the covariances that do not
+        change from sample to sample (the input's, REP-145's rules) worked out once per input
+        covariances and kept. Not for ``OF_WADD`` (the bias-corrected rate's covariance
+        changes every sample: :meth:`encode_values`). ``prefix``: the output's header bytes,
+        if not the input's."""
+        wc, ac = off + 8 * WC, off + 8 * AC
+        key = self._record_layout
+        if (key is None or key[0] != flags or key[1] != angular_velocity_stddev
+                or key[2] != linear_acceleration_stddev or not buf.startswith(key[3], wc)
+                or not buf.startswith(key[4], ac)):
+            self._record_layout = (flags, angular_velocity_stddev, linear_acceleration_stddev,
+                                   buf[wc:wc + 72], buf[ac:ac + 72])
             self._kept = self._kept_covariances(d, flags, angular_velocity_stddev,
                                                 linear_acceleration_stddev)
         wcov, lincov = self._kept
-        r = _OUT_HEAD.unpack_from(record, 0)
         has_w = flags & sk.OF_W
-        w = _VEC3.unpack_from(record, _OUT_W) if has_w else _ZERO3
-        if has_w and flags & sk.OF_WCOV:  # the filter's rate covariance
-            wcov = _VEC9.unpack_from(record, _OUT_WCOV)
-        lin = _VEC3.unpack_from(record, _OUT_LIN) if flags & sk.OF_LIN else _ZERO3
-        return (buf[:off] if prefix is None else prefix) + _DOUBLES.pack(
-            r[2], r[3], r[4], r[1], *r[5:14], *w, *wcov, *lin, *lincov)
+        return b"".join((
+            buf[:off] if prefix is None else prefix,
+            record[_REC_XYZ], record[_REC_W0], record[_REC_COV],  # x, y, z, w; covariance
+            record[_REC_W] if has_w else _ZERO3_BYTES,
+            record[_REC_WCOV] if has_w and flags & sk.OF_WCOV else wcov,
+            record[_REC_LIN] if flags & sk.OF_LIN else _ZERO3_BYTES, lincov))
 
     def _kept_covariances(self, d: tuple[float, ...], flags: int,
                           angular_velocity_stddev: float, linear_acceleration_stddev: float
-                          ) -> tuple[tuple[float, ...], tuple[float, ...]]:
+                          ) -> tuple[bytes, bytes]:
         """The published rate and acceleration covariances from the input's (REP-145:
-        :func:`mkf_ros.stream.rep145.published_covariance`)."""
-        w = _ZERO3 if flags & sk.OF_W else None
-        lin = _ZERO3 if flags & sk.OF_LIN else None
+        :func:`mkf_ros.stream.rep145.published_covariance`), as bytes."""
+        w = () if flags & sk.OF_W else None  # present or not: the rule needs no value
+        lin = () if flags & sk.OF_LIN else None
         wcov = rep145.published_covariance(w, None, np.array(d[WC:WC + 9]),
                                            angular_velocity_stddev, fill=self._cov)
         lincov = rep145.published_covariance(lin, None, np.array(d[AC:AC + 9]),
                                              linear_acceleration_stddev, fill=self._cov)
-        return tuple(map(float, wcov)), tuple(map(float, lincov))
+        return (np.ascontiguousarray(wcov, dtype="<f8").tobytes(),
+                np.ascontiguousarray(lincov, dtype="<f8").tobytes())
 
     def _encode_all(self, h: RawHeader, values: np.ndarray, flags: int,
                     angular_velocity_stddev: float, linear_acceleration_stddev: float) -> bytes:

@@ -54,6 +54,7 @@ estimator's output rather than raw data?).
 from __future__ import annotations
 
 import math
+import struct
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any
@@ -257,6 +258,8 @@ def covariance_out(input_cov: Any, stddev: float, add: Any = None) -> np.ndarray
 
 
 _NO_ADD = np.zeros((0, 9))
+_PRESENT = struct.Struct("<q").unpack_from  # the output record's flags (its first field)
+assert sk.OUTPUT.fields["present"][1] == 0
 _NAN3 = np.full(3, math.nan)
 
 
@@ -560,7 +563,7 @@ class StreamAdapter:
         """:meth:`step_imu` of the sample already in :attr:`imu_event_bytes` (the same rules:
         the record is what :meth:`step_imu` writes)."""
         self._run(self._ev_imu_seq, self._out, 0, 1)
-        return int(self._out_present[0])
+        return _PRESENT(self._out_bytes)[0]  # the flags, without a numpy scalar
 
     @property
     def output_bytes(self) -> memoryview:
@@ -685,7 +688,7 @@ class StreamAdapter:
             k, why = sk.run_events(kernel_table(), *self.filter.kernel_arrays(), self._npar,
                                    self._ts, self._acnt, self._rec, self._rn, ev, out, k0,
                                    k1)
-            if self._rn[1]:
+            if self._recording and self._rn[1]:
                 raise RuntimeError("smoother recording out of room (record_into: leave a slot "
                                    "per event)")
             if why == sk.R_DONE:

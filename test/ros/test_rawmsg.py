@@ -123,8 +123,9 @@ def test_encode_values_equals_encode(source: str, missing: str | None) -> None:
 @pytest.mark.parametrize("missing", [None, "gyr", "acc", "both"])
 def test_the_node_byte_path_equals_encode(source: str, missing: str | None) -> None:
     """The node's per-message path without numpy (unpack_imu, pack_imu_event,
-    run_imu_event, encode_record) builds the same bytes as on_imu + encode, message after
-    message, as the input covariances and the present fields change."""
+    run_imu_event, encode_record; the not-reported fields None as imu_arrays has them) builds
+    the same bytes as on_imu + encode, message after message, as the input covariances and
+    the present fields change."""
     rng = np.random.default_rng(7)
     enc, enc_record = rawmsg.ImuEncoder(), rawmsg.ImuEncoder()
     kw: dict = dict(angular_velocity_source=source, estimate_gyro_bias=True,
@@ -142,10 +143,10 @@ def test_the_node_byte_path_equals_encode(source: str, missing: str | None) -> N
         data = serialize_message(m)
         h = rawmsg.parse(data, rawmsg.IMU_DOUBLES)
         out = s.on_imu(h.stamp, *rawmsg.imu_arrays(h))
-        sec, nsec, off, d = rawmsg.unpack_imu(data)
+        sec, nsec, off, d, gyr, acc = rawmsg.unpack_imu(data)
         assert (sec, nsec) == (m.header.stamp.sec, m.header.stamp.nanosec)
-        rawmsg.pack_imu_event(s_bytes.imu_event_bytes, sec + nsec * 1e-9,
-                              *rawmsg.imu_readings(d))
+        rawmsg.pack_imu_event(s_bytes.imu_event_bytes, sec + nsec * 1e-9, gyr, acc)
+        assert (gyr is None, acc is None) == tuple(x is None for x in rawmsg.imu_arrays(h))
         flags = s_bytes.run_imu_event()
         assert (out is None) == (flags == 0)
         if out is None:
