@@ -465,10 +465,11 @@ class AttitudeFilter:
         ``dt`` (s) is the time since the previous sample: finite and ``≥ 0``. ``dt = 0`` is a
         sample at the same instant: no prediction, its readings are fused as further
         measurements at that instant (Madgwick's correction is a rate: it has no effect over
-        no time). Readings as for :func:`mkf_ros.estimate` (all NaN: missing; partly
-        non-finite, a zero vector or beyond the plausibility limits: invalid, skipped and
-        counted). An invalid ``dt`` or a sample of the wrong shape raises ValueError naming
-        the argument and leaves the filter exactly as it was."""
+        no time); so is a ``dt`` below :data:`~mkf_ros.core.state.DT_MIN` (1 ns); one above
+        ``max_dt`` is a gap (docs/math.md §9.5). Readings as for :func:`mkf_ros.estimate`
+        (all NaN: missing; partly non-finite, a zero vector or beyond the plausibility
+        limits: invalid, skipped and counted). An invalid ``dt`` or a sample of the wrong
+        shape raises ValueError naming the argument and leaves the filter exactly as it was."""
         d = _dt(dt)
         g, a, m = _vec(gyr, "gyr"), _vec(acc, "acc"), _vec(mag, "mag")
         sensor_step(kernel_table(), self._cfg, self._st, self._counters, self._work, d, g, a, m)

@@ -319,6 +319,19 @@ def none_above33_t(C: tuple, t: float) -> bool:
 
 
 @jit_inline
+def psd33_t(C: tuple) -> bool:
+    """Whether the symmetric 3×3 ``C`` is positive semidefinite: every principal minor ≥ 0
+    (Sylvester's criterion for semidefiniteness), as computed."""
+    a, b, c = C[0][0], C[1][1], C[2][2]
+    d, e, f = C[0][1], C[0][2], C[1][2]
+    if a < 0.0 or b < 0.0 or c < 0.0:
+        return False
+    if a * b < d * d or a * c < e * e or b * c < f * f:
+        return False
+    return a * (b * c - f * f) - d * (d * c - f * e) + e * (d * f - b * e) >= 0.0
+
+
+@jit_inline
 def scale_direction(P: np.ndarray, n: int, u: tuple, s: float) -> None:
     """``P ← D P Dᵀ`` with ``D = I + (s − 1) u uᵀ`` on rows and columns 0–2 of the leading
     ``n × n`` block (``u`` unit): the variance along ``u`` times ``s²``, every correlation
@@ -353,11 +366,15 @@ def cap_eigenvalues33_t(C: tuple, cap: float) -> tuple:
     that the result is positive semidefinite by construction. A subtraction
     ``C − (λ − cap) v vᵀ`` or a congruence along ``v`` is not: at λ ≈ 10⁹ the rounding of
     either left eigenvalues of −10⁻⁸. ``C`` itself when no eigenvalue exceeds ``cap`` (the
-    trace bounds them, or :func:`none_above33_t`: the quick case)."""
-    if none_above33_t(C, cap):
+    trace bounds them, or :func:`none_above33_t`: the quick case) and it is positive
+    semidefinite (:func:`psd33_t`). A symmetric ``C`` that is not (a state covariance whose
+    attitude block is rounded indefinite next to a rate variance 10⁹ times larger) is rebuilt
+    alike, its negative eigenvalues set to 0."""
+    psd = psd33_t(C)
+    if psd and none_above33_t(C, cap):
         return C
     lam, v = largest_eigh33_t(C)
-    if not lam > cap:
+    if psd and not lam > cap:
         return C
     # an orthonormal basis (e, h) of the plane orthogonal to v; C e and C h (C symmetric)
     e = orthogonal_unit_t(v)
@@ -381,7 +398,7 @@ def cap_eigenvalues33_t(C: tuple, cap: float) -> tuple:
         x, y = 1.0, 0.0
     u = (x * e[0] + y * h[0], x * e[1] + y * h[1], x * e[2] + y * h[2])
     w = cross_t(v, u)
-    l1 = cap
+    l1 = min(max(lam, 0.0), cap)
     l2 = min(max(l2, 0.0), cap)
     l3 = min(max(l3, 0.0), cap)
     c00 = l1 * v[0] * v[0] + l2 * u[0] * u[0] + l3 * w[0] * w[0]

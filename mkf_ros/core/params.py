@@ -326,7 +326,8 @@ PARAMS: tuple[Param, ...] = (
        "(+ magnetometer) sample; 'paper': identity with P0 = 100 I as in the paper's study",
        choices=("align", "paper"), group="time"),
     _P("max_dt", float, 0.5, "A gap between samples longer than this re-aligns roll and pitch "
-       "(and heading with a magnetometer) instead of integrating the rate across it",
+       "(and heading with a magnetometer) instead of integrating the rate across it (a step "
+       "below 1e-9 s is a repeated instant)",
        unit="s", range=(1e-4, 3600.0), group="time"),
     # ============================================================================================
     # scope "node": the streaming front end (mkf_ros.stream) and the ROS node only. Names follow
@@ -334,7 +335,8 @@ PARAMS: tuple[Param, ...] = (
     # ============================================================================================
     # --- node: input and time -------------------------------------------------------------------
     _P("constant_dt", float, 0.0, "Time step used for every IMU sample instead of the header "
-       "stamps; 0 = use the stamps (imu_filter_madgwick name)", unit="s", range=(0.0, 10.0),
+       "stamps; 0 = use the stamps (imu_filter_madgwick name); below 1e-9 s a step is a "
+       "repeated instant (no prediction)", unit="s", range=(0.0, 10.0),
        scope="node", group="node: input and time"),
     _P("time_jump_threshold", float, 1.0, "An IMU stamp this much older than the previous one "
        "(bag loop, clock reset) resets the filter; smaller steps back are dropped as out of "

@@ -113,6 +113,7 @@ from mkf_ros.core.state import (
     recentre,
     record_posterior,
     set_world_attitude_cov,
+    step_dt,
 )
 
 #: How far (relative) an attitude variance may exceed the cap before it is scaled back to it
@@ -1303,7 +1304,9 @@ def step(c: np.record, s: np.record, k: np.record, w: np.record, u: Units, dt: f
     may be NaN (missing). ``dt`` is the time since the previous sample; ``u`` the compiled
     :data:`Units`. The steps: the readings; gaps and initialisation; the
     heading; the gyro; the accelerometer; rest; the magnetometer; the filter's update;
-    bookkeeping."""
+    bookkeeping. A ``dt`` below :data:`~mkf_ros.core.state.DT_MIN` is 0
+    (:func:`~mkf_ros.core.state.step_dt`, docs/math.md §9.5)."""
+    dt = step_dt(dt)
     k.samples += 1
     gs, as_, ms, m, m_norm = _read(c, k, gyr, acc, mag)
     has_g, has_a, has_m = gs == VALID, as_ == VALID, ms == VALID

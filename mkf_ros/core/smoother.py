@@ -67,6 +67,7 @@ from mkf_ros.core.state import (
     new_records,
     record,
     record_posterior,
+    step_dt,
 )
 
 #: Kinds of a :data:`RECORD` slot: no estimate at this sample (before the first alignment);
@@ -219,7 +220,7 @@ def recorded_step(kern: Kernels, c: np.record, s: np.record, k: np.record, w: np
         u[7 + i] = mag[i]
     run_step(kern, c, s, k, w, dt, gyr, acc, mag)
     if w.rec_set and k.gaps == gaps and m >= 1 and rec[m - 1].kind != NONE:
-        _store(rec[m - 1], nx, w.rec_q, w.rec_w, w.rec_b, w.rec_P, TRANS, dt)
+        _store(rec[m - 1], nx, w.rec_q, w.rec_w, w.rec_b, w.rec_P, TRANS, step_dt(dt))
     if s.initialized:
         record_posterior(c, s, w)  # the final state (moved onto q̂ for the MUKF)
         _store(rec[m], nx, w.rec_q, w.rec_w, w.rec_b, w.rec_P, END, 0.0)

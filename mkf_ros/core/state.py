@@ -247,6 +247,20 @@ MAX_MAG = 1e100
 #: The smallest magnitude of an accelerometer or magnetometer vector: below it (a zero vector,
 #: or one whose square underflows) the direction is undefined and the reading invalid.
 MIN_VECTOR = 1e-150
+#: The shortest time step (s) the filter integrates: a ``dt`` below it (1 ns, the resolution of a
+#: ROS stamp) is treated as 0, a sample at the same instant (docs/math.md §9.5). Shorter steps
+#: have no physical meaning, and the correlation factors ``T/Δt`` of a denormal or 1e-200 s step
+#: overflow the variances they scale.
+DT_MIN = 1e-9
+
+
+@jit
+def step_dt(dt: float) -> float:
+    """The time step the filter integrates for a given ``dt ≥ 0``: 0 below :data:`DT_MIN`
+    (docs/math.md §9.5), else ``dt``."""
+    return dt if dt >= DT_MIN else 0.0
+
+
 #: :func:`classify_reading`'s classes.
 VALID, MISSING, INVALID = 0, 1, 2
 

@@ -329,15 +329,9 @@ class StreamAdapter:
         # (the per-message path reads and writes them through field views: a numpy record's
         # attribute access costs microseconds)
         self._ev = {kind: new_records(sk.EVENT) for kind in (sk.EV_IMU, sk.EV_MAG, sk.EV_ACC)}
-        self._ev_views = {kind: (ev["stamp"], ev["v"][0], ev["a"][0])
-                          for kind, ev in self._ev.items()}
         for kind, ev in self._ev.items():
             ev["kind"] = kind
         self._out = new_records(sk.OUTPUT)
-        self._out_present = self._out["present"]
-        self._out_slot = self._out["slot"]
-        self._ev_imu = self._ev_views[sk.EV_IMU]
-        self._ev_imu_seq = self._ev[sk.EV_IMU]
         # the smoother's recording (record_into): slots, [slots filled, out of room]
         self._rec = new_records(smoother.RECORD, 0)
         self._rn = np.zeros(4, dtype=np.int64)
@@ -346,10 +340,39 @@ class StreamAdapter:
         #: while recording: the number of the first slot after each reset (the filter's chain
         #: starts anew there: a pass over the recording reversed starts anew too)
         self.reset_slots: list[int] = []
+        self._bind_views()
+        self._derive()
+
+    def _bind_views(self) -> None:
+        """The field views of the event and output records that the per-message path reads
+        and writes (a numpy record's attribute access costs microseconds). Views, so never
+        copied or pickled: :meth:`__getstate__` leaves them out and a copy binds its own."""
+        self._ev_views = {kind: (ev["stamp"], ev["v"][0], ev["a"][0])
+                          for kind, ev in self._ev.items()}
+        self._out_present = self._out["present"]
+        self._out_slot = self._out["slot"]
+        self._ev_imu = self._ev_views[sk.EV_IMU]
+        self._ev_imu_seq = self._ev[sk.EV_IMU]
         self._out_flat = self._out.view(np.float64)
         self._out_bytes = memoryview(self._out.view(np.uint8)).toreadonly()
         self._ev_imu_bytes = memoryview(self._ev_imu_seq.view(np.uint8))
-        self._derive()
+
+    _VIEWS = ("_ev_views", "_out_present", "_out_slot", "_ev_imu", "_ev_imu_seq", "_out_flat",
+              "_out_bytes", "_ev_imu_bytes")
+
+    def __getstate__(self) -> dict[str, Any]:
+        """The state of :func:`copy.deepcopy` and :mod:`pickle`: every record, without the
+        views into them (a copy rebinds its own: copied apart from their records, the views
+        would feed a twin's input to nothing). TypeError while recording for the smoother
+        (:meth:`record_into`): its slots and ``on_full`` belong to the pass in progress."""
+        if self._recording:
+            raise TypeError("a StreamAdapter recording for the smoother cannot be copied or "
+                            "pickled: call record_into(None) first")
+        return {k: v for k, v in self.__dict__.items() if k not in self._VIEWS}
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.__dict__.update(state)
+        self._bind_views()
 
     # --- parameters ------------------------------------------------------------------------
     def validate(self, changes: Mapping[str, Any]) -> dict[str, Any]:

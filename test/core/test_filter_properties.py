@@ -57,6 +57,11 @@ garbage = st.lists(st.sampled_from([*_BAD, np.inf, -np.inf]), min_size=3,
 _INVALID = [np.nan, 1e150, -1e200, 1e308, 1e-200]
 invalid_rows = st.lists(st.sampled_from(_INVALID), min_size=3, max_size=3).map(np.array)
 bad_dts = st.sampled_from([np.nan, np.inf, -np.inf, -1e-3, -100.0])
+#: steps the API accepts at either end of the clock: a repeated instant, denormal and tiny steps
+#: (below DT_MIN, 1 ns: treated as 0), the shortest integrated step, and gaps up to the largest
+#: double
+TINY_DTS = [0.0, 5e-324, 1e-310, 1e-300, 1e-200, 1e-100, 1e-15, 1e-12, 0.999e-9, 1e-9, 1e-7]
+HUGE_DTS = [0.2, 2.0, 3600.0, 1e6, 1e100, 1e300, 1.7e308]
 
 
 def check_outputs(f: AttitudeFilter, where: str) -> None:
@@ -102,9 +107,9 @@ def hostile_streams(draw: st.DrawFn) -> list[tuple]:
             g, a, m = (bad if which == "g" else g, bad if which == "a" else a,
                        bad if which == "m" else m)
         elif kind == "dt0":
-            dt = 0.0
+            dt = draw(st.sampled_from(TINY_DTS))
         elif kind == "gap":
-            dt = draw(st.sampled_from([0.2, 2.0, 3600.0]))
+            dt = draw(st.sampled_from(HUGE_DTS))
         elif kind == "bad_dt":
             dt = draw(bad_dts)
         steps.append((kind, dt, g, a, m))
@@ -125,6 +130,69 @@ def test_step_keeps_its_contract_on_hostile_streams(cfg: dict, stream: list[tupl
             continue
         f.step(dt if i else 0.0, g, a, m)
         check_outputs(f, f"step {i} ({kind})")
+
+
+#: every algorithm × chart (the baselines have none) × 6D/9D
+EVERY_FILTER = [(a, c, m) for a in ALGORITHMS
+                for c in (BY_NAME["chart"].choices if a in ("mekf", "mukf") else ("rp",))
+                for m in (False, True)]
+
+
+def _dt_stream(n: int = 200) -> list[float]:
+    """``n`` steps of 0.01 s with every accepted extreme step, and a refused one (NaN), after
+    each of which the filter runs 10 valid steps."""
+    dts = [0.01] * n
+    for i, dt in enumerate([*TINY_DTS, *HUGE_DTS, np.nan, -1e-3]):
+        dts[15 + 9 * i] = dt
+    return dts
+
+
+@pytest.mark.parametrize(("algorithm", "chart", "use_mag"), EVERY_FILTER)
+def test_every_accepted_dt_keeps_the_contract(algorithm: str, chart: str, use_mag: bool) -> None:
+    """A repeated instant, denormal, tiny and huge steps between valid ones, through
+    :meth:`AttitudeFilter.step` and the batch loop (:meth:`AttitudeFilter.run`, behind
+    :func:`mkf_ros.estimate`): every output finite, a unit quaternion and a symmetric PSD
+    covariance, and both paths bit-identical; a refused step changes nothing. (A single step
+    of 5e-324 s left the MEKF's covariance NaN for good: its correlation factors ``T/Δt``
+    overflowed; now a step below ``DT_MIN`` = 1 ns is a repeated instant.)"""
+    dts = _dt_stream()
+    f = AttitudeFilter(algorithm=algorithm, chart=chart, use_mag=use_mag)
+    b = AttitudeFilter(algorithm=algorithm, chart=chart, use_mag=use_mag)
+    ok = [k for k, dt in enumerate(dts) if np.isfinite(dt) and dt >= 0]
+    mag = SIM.mag if use_mag else np.full_like(SIM.mag, np.nan)
+    for k, dt in enumerate(dts):
+        if k not in ok:
+            before = snapshot(f)
+            with pytest.raises(ValueError, match=r"^dt must be"):
+                f.step(dt, SIM.gyr[k], SIM.acc[k], mag[k])
+            assert snapshot(f) == before
+            continue
+        f.step(dt if k else 0.0, SIM.gyr[k], SIM.acc[k], mag[k])
+        check_outputs(f, f"step {k} (dt {dt!r})")
+    steps = np.array([dts[k] if k else 0.0 for k in ok])
+    out = b.run(steps, SIM.gyr[ok], SIM.acc[ok], mag[ok])
+    assert np.all(np.isfinite(out.quat)) and np.all(np.isfinite(out.cov))
+    assert np.all(np.linalg.eigvalsh(out.cov).min(axis=1)
+                  >= -1e-15 * np.abs(out.cov).max(axis=(1, 2)))
+    np.testing.assert_array_equal(out.quat[-1], f.quaternion)
+    np.testing.assert_array_equal(out.cov[-1], f.covariance)
+
+
+@pytest.mark.parametrize(("algorithm", "chart", "use_mag"), EVERY_FILTER)
+def test_estimate_takes_denormal_and_huge_time_steps(algorithm: str, chart: str,
+                                                     use_mag: bool) -> None:
+    """:func:`mkf_ros.estimate` with timestamps whose steps are denormal and tiny at the start
+    (where a double can hold them) and huge later: every row finite, unit, symmetric PSD."""
+    t = np.concatenate([np.cumsum([0.0, *TINY_DTS[1:]]), 0.01 * np.arange(1, 41)])
+    t = np.concatenate([t, t[-1] + np.cumsum([1e6, *[0.01] * 20, 1e9, *[0.01] * 20])])
+    n = len(t)
+    r = mkf_ros.estimate(SIM.gyr[:n], SIM.acc[:n], SIM.mag[:n] if use_mag else None,
+                         timestamps=t, algorithm=algorithm, chart=chart)
+    assert np.all(np.isfinite(r.quat)) and np.all(np.isfinite(r.cov))
+    np.testing.assert_allclose(np.linalg.norm(r.quat, axis=1), 1.0, atol=1e-9)
+    np.testing.assert_array_equal(r.cov, np.swapaxes(r.cov, 1, 2))
+    assert np.all(np.linalg.eigvalsh(r.cov).min(axis=1)
+                  >= -1e-15 * np.abs(r.cov).max(axis=(1, 2)))
 
 
 @examples(60)
@@ -274,3 +342,29 @@ def test_refused_readings_leave_no_trace(cfg: dict, seed: int, start: int, lengt
 
     after = slice(start + length, None)
     assert _tilt_from_clean(run(bad)[after], run({})[after]).max() < 2.0
+
+
+def _fields(f: AttitudeFilter) -> list[bytes]:
+    """Every field of the filter's records (a copy need not copy their padding bytes)."""
+    return [a[n].tobytes() for a in f.kernel_arrays() for n in a.dtype.names]
+
+
+@pytest.mark.parametrize("how", ["deepcopy", "pickle"])
+@pytest.mark.parametrize("algorithm", ALGORITHMS)
+def test_a_copied_filter_is_the_same_filter(algorithm: str, how: str) -> None:
+    """:func:`copy.deepcopy` or :mod:`pickle` of a filter mid-stream (to send it to a worker
+    process, or to fork it and try a parameter) gives a twin that, fed the same samples
+    interleaved with the original, gives bit-identical estimates."""
+    import copy
+    import pickle
+
+    f = AttitudeFilter(algorithm=algorithm, use_mag=True)
+    for k in range(200):
+        f.step(0.01 if k else 0.0, SIM.gyr[k], SIM.acc[k], SIM.mag[k])
+    g = copy.deepcopy(f) if how == "deepcopy" else pickle.loads(pickle.dumps(f))
+    for k in range(200, 700):
+        for x in (f, g):
+            x.step(0.01, SIM.gyr[k], SIM.acc[k], SIM.mag[k])
+        assert _fields(f) == _fields(g), f"sample {k}"
+        np.testing.assert_array_equal(f.quaternion, g.quaternion)
+        np.testing.assert_array_equal(f.covariance, g.covariance)
