@@ -13,15 +13,18 @@ Two subjects, each in a ROS domain of its own with its own publisher and recorde
 The publisher sends serialized ``sensor_msgs/Imu`` at each rate (header stamp = wall clock at
 publish) plus ``MagneticField`` at ``--mag-rate``; the recorder takes ``imu/data`` raw. The
 phases are interleaved — for each repetition, each rate, the two subjects one after the
-other (the order alternating) — so that the machine's load falls on both alike. Per phase:
+other (the order alternating) — so that the machine's load falls on both alike; each subject
+runs on CPU 1, its publisher and recorder on CPU 0 (``--no-pin``: where the scheduler puts
+them, which moves the figures by up to a factor of two from run to run). Per phase:
 messages lost (IMU published − ``imu/data`` received), latency publish → subject → recorder,
-and the CPU of the subject process (utime + stime from /proc, threads included, over the
-publishing window and a 0.3 s tail). The table gives each subject's mean CPU and the ratio
+and the CPU of the subject process (the scheduler's run time of all its threads, from /proc,
+over the publishing window and a 0.3 s tail). The table gives each subject's mean CPU and the ratio
 estimator / stand-in (the mean of the per-repetition ratios, and their range).
 
     ./run bench node_latency                        # 1 and 4 kHz, 3 repetitions of 5 s
-    ./run bench node_latency --rates 1000 --reps 5 --seconds 10
+    ./run bench node_latency --rates 1000 --reps 10 --seconds 3
     ./run bench node_latency --subjects estimator --rates 200 1000 2000 3000 4000
+    ./run bench node_latency --estimator-cmd "OTHER/.venv/bin/estimator"   # another build
 """
 
 from __future__ import annotations
@@ -243,10 +246,13 @@ def subject_cmd(subject: str, args: argparse.Namespace) -> list[str]:
     return base + ["--ros-args"] + [x for k, v in params.items() for x in ("-p", f"{k}:={v}")]
 
 
-#: ``--pin``: the subject on CPU 1, its publisher and recorder on CPU 0 (Popen arguments; set
-#: in the child before it starts, so every thread it creates inherits it)
+#: ``--pin``: the subject on the second CPU this process may use, its publisher and recorder
+#: on the first (Popen arguments; set in the child before it starts, so every thread it
+#: creates inherits it)
+_CPUS = sorted(os.sched_getaffinity(0))[:2]
 _pinned: dict[int, dict[str, Any]] = {
-    cpu: {"preexec_fn": lambda cpu=cpu: os.sched_setaffinity(0, {cpu})} for cpu in (0, 1)}
+    i: {"preexec_fn": lambda cpu=cpu: os.sched_setaffinity(0, {cpu})}
+    for i, cpu in enumerate(_CPUS)} if len(_CPUS) == 2 else {}
 
 
 class Rig:
@@ -373,11 +379,19 @@ def print_table(args: argparse.Namespace, results: dict[str, dict[float, dict[st
                   f"| {r['med']:.2f} | {r['p99']:.2f} | {runs} | {r['cpu']:.1f} |")
     if len(args.subjects) == 2:
         print()
-        print("| IMU rate (Hz) | estimator / stand-in CPU: mean of the runs' ratios | range |")
-        print("|---|---|---|")
+        print("| IMU rate (Hz) | estimator / stand-in CPU: mean of the runs' ratios | range "
+              "| ratio of the mean CPUs |")
+        print("|---|---|---|---|")
         for rate in args.rates:
             rs = per_rep[rate]
-            print(f"| {rate:.0f} | **{sum(rs) / len(rs):.2f}** | {min(rs):.2f} – {max(rs):.2f} |")
+            whole = results["estimator"][rate]["cpu"] / results["stand-in"][rate]["cpu"]
+            print(f"| {rate:.0f} | **{sum(rs) / len(rs):.2f}** | {min(rs):.2f} – {max(rs):.2f} "
+                  f"| {whole:.2f} |")
+    for subject in args.subjects:
+        ok = [r for r in args.rates if results[subject][r]["lost"] == 0
+              and results[subject][r]["achieved"] >= 0.98 * r and results[subject][r]["p99"] < 20]
+        print(f"{subject}: highest rate sustained (0 lost, p99 < 20 ms): "
+              + (f"{max(ok):.0f} Hz" if ok else "none"))
 
 
 def run(args: argparse.Namespace) -> int:
@@ -444,9 +458,11 @@ def main() -> int:
     ap.add_argument("--concurrent", action="store_true",
                     help="run the two subjects' phases at the same time (each in its own "
                     "domain) instead of one after the other: both see the same machine load")
-    ap.add_argument("--pin", action="store_true",
+    ap.add_argument("--pin", action=argparse.BooleanOptionalAction,
+                    default=len(os.sched_getaffinity(0)) >= 2,
                     help="pin each subject to CPU 1 and its publisher and recorder to CPU 0 "
-                    "(threads included: set before they start)")
+                    "(default with 2 CPUs or more: without it, which core each process lands "
+                    "on moves a subject's CPU per message by a factor of two)")
     ap.add_argument("--estimator-cmd", help="run this command as the estimator instead of the "
                     "installed one (e.g. another checkout's .venv/bin/estimator); the ROS "
                     "arguments are appended")
