@@ -373,12 +373,13 @@ class EstimatorNode(Node):
             if m is None:  # not little-endian CDR: message objects
                 self._on_imu_msg(deserialize_message(data, Imu))
                 return
-            sec, nsec, off, d, gyr, acc = m
+            sec, nsec, off, gyr, acc = m
             prefix = None
             if sec == 0 and nsec == 0:
                 sec, nsec = self._receive_time("imu", self._sub_imu.topic_name)
                 prefix = rawmsg.restamped_prefix(data, off, sec, nsec)
             if self._ori_checks:
+                d = rawmsg.doubles(data, off)
                 self._check_orientation(d[rawmsg.Q:rawmsg.Q + 4], d[rawmsg.QC])
             self._last_imu_data = data
             stamp = sec + nsec * 1e-9
@@ -392,7 +393,7 @@ class EstimatorNode(Node):
                 flags = stream.run_imu_event()
                 if not flags:
                     return
-                payload = self._encode(data, off, d, flags, sec, nsec, prefix)
+                payload = self._encode(data, off, flags, sec, nsec, prefix)
                 if extras:
                     out = stream.last_output()
                     at_rest = bool(stream.filter.counters[_REST_UPDATES] > rest0)
@@ -404,8 +405,8 @@ class EstimatorNode(Node):
         except Exception as e:
             self._count_exception(e, "imu callback")
 
-    def _encode(self, data: bytes, off: int, d: tuple[float, ...], flags: int, sec: int,
-                nsec: int, prefix: bytes | None) -> bytes:
+    def _encode(self, data: bytes, off: int, flags: int, sec: int, nsec: int,
+                prefix: bytes | None) -> bytes:
         """``imu/data``'s bytes for the estimate in the adapter's output record (lock held)."""
         av_sd, la_sd = self._stddevs
         if flags & OF_WADD:  # the bias-corrected rate: its covariance changes every sample
@@ -414,8 +415,8 @@ class EstimatorNode(Node):
                 h.restamp(sec, nsec)
             return self._encoder.encode_values(h, self.stream.output_values, flags, av_sd,
                                                la_sd)
-        return self._encoder.encode_record(data, off, d, self.stream.output_bytes, flags,
-                                           av_sd, la_sd, prefix)
+        return self._encoder.encode_record(data, off, self.stream.output_bytes, flags, av_sd,
+                                           la_sd, prefix)
 
     def _on_imu_msg(self, msg: Imu) -> None:
         """The same with message objects (inputs that are not little-endian CDR)."""

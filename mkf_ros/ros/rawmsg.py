@@ -115,6 +115,8 @@ def _changing_fields(flags: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 _DOUBLES = struct.Struct(f"<{IMU_DOUBLES}d")  # the Imu message after its header
+_VEC4 = struct.Struct("<4d")
+assert (WC, AC) == (W + 3, A + 3)  # each vector followed by its covariance
 # the adapter's records as bytes: the fields read and written here, from their dtypes
 _EV = sk.EVENT.fields
 assert (_EV["stamp"][1], _EV["v"][1], _EV["a"][1]) == (0, 8, 32), "EVENT layout changed"
@@ -128,12 +130,12 @@ _REC_COV, _REC_W, _REC_WCOV, _REC_LIN = (
 _ZERO3_BYTES = bytes(24)
 
 
-def unpack_imu(buf: bytes) -> tuple[int, int, int, tuple[float, ...], Any, Any] | None:
-    """``(sec, nanosec, offset of the doubles, the 37 doubles, gyr, acc)`` of a serialized Imu
-    (one :mod:`struct` call): ``gyr`` and ``acc`` 3 floats each, None for a field whose
-    covariance[0] is -1 (:func:`mkf_ros.stream.rep145.not_reported`); None for anything but
-    little-endian plain CDR; ValueError when truncated."""
-    if buf[:2] != _LE:
+def unpack_imu(buf: bytes) -> tuple[int, int, int, Any, Any] | None:
+    """``(sec, nanosec, offset of the doubles, gyr, acc)`` of a serialized Imu: ``gyr`` and
+    ``acc`` 3 floats each, None for a field whose covariance[0] is -1
+    (:func:`mkf_ros.stream.rep145.not_reported`); None for anything but little-endian plain
+    CDR; ValueError when truncated. Reads only these (two :mod:`struct` calls)."""
+    if not buf.startswith(_LE):
         return None
     sec, nsec, n = _HEAD.unpack_from(buf, cdr.HEADER_BYTES)
     off = _BODY.get(n)
@@ -141,9 +143,15 @@ def unpack_imu(buf: bytes) -> tuple[int, int, int, tuple[float, ...], Any, Any] 
         off = _BODY[n] = cdr.HEADER_BYTES + cdr.body_offset(n - 1)
     if n == 0 or len(buf) < off + 8 * IMU_DOUBLES:
         raise ValueError(f"truncated message ({len(buf)} bytes)")
-    d = _DOUBLES.unpack_from(buf, off)
-    return (sec, nsec, off, d, None if rep145.not_reported(d[WC]) else d[W:W + 3],
-            None if rep145.not_reported(d[AC]) else d[A:A + 3])
+    g = _VEC4.unpack_from(buf, off + 8 * W)  # angular_velocity, then its covariance[0]
+    a = _VEC4.unpack_from(buf, off + 8 * A)
+    return (sec, nsec, off, None if rep145.not_reported(g[3]) else g[:3],
+            None if rep145.not_reported(a[3]) else a[:3])
+
+
+def doubles(buf: bytes, off: int) -> tuple[float, ...]:
+    """The 37 doubles of a serialized Imu whose doubles start at ``off``."""
+    return _DOUBLES.unpack_from(buf, off)
 
 
 #: the offset of the doubles by frame_id length (NUL included)
@@ -230,11 +238,11 @@ class ImuEncoder:
         o[self._dst] = values[self._src]
         return h.prefix + o.tobytes()
 
-    def encode_record(self, buf: bytes, off: int, d: tuple[float, ...], record: memoryview,
+    def encode_record(self, buf: bytes, off: int, record: memoryview,
                       flags: int, angular_velocity_stddev: float,
                       linear_acceleration_stddev: float, prefix: bytes | None = None) -> bytes:
         """The bytes :meth:`encode_values` builds, from the input message ``buf`` (its
-        doubles ``d`` at ``off``, :func:`unpack_imu`) and the adapter's output record as bytes
+        doubles at ``off``, :func:`unpack_imu`) and the adapter's output record as bytes
         (:attr:`~mkf_ros.stream.adapter.StreamAdapter.output_bytes`): the record's float64
         fields copied as bytes (no number is converted), and the covariances that do not
         change from sample to sample (the input's, REP-145's rules) worked out once per input
@@ -248,7 +256,8 @@ class ImuEncoder:
                 or not buf.startswith(key[4], ac)):
             self._record_layout = (flags, angular_velocity_stddev, linear_acceleration_stddev,
                                    buf[wc:wc + 72], buf[ac:ac + 72])
-            self._kept = self._kept_covariances(d, flags, angular_velocity_stddev,
+            self._kept = self._kept_covariances(doubles(buf, off), flags,
+                                                angular_velocity_stddev,
                                                 linear_acceleration_stddev)
         wcov, lincov = self._kept
         has_w = flags & sk.OF_W
