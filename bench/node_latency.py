@@ -338,22 +338,53 @@ class Rig:
 
 
 def summarise(phases: list[dict[str, Any]], rows: Any, rate: float) -> dict[str, Any]:
-    """Loss, latency and CPU of a subject's phases at ``rate``."""
+    """Loss, latency and CPU of a subject's phases at ``rate``. A stamp received twice (another
+    node in the subject's domain answering our messages) is counted in ``foreign`` and only
+    its first arrival kept."""
     import numpy as np
 
     sel_ph = [p for p in phases if p["rate"] == rate]
-    lat, lost, sent = [], 0, 0
+    lat, lost, sent, foreign = [], 0, 0, 0
     for p in sel_ph:
-        sel = (rows[:, 0] >= p["start_ns"]) & (rows[:, 0] <= p["end_ns"])
-        lost += p["n_imu"] - int(sel.sum())
+        sel = rows[(rows[:, 0] >= p["start_ns"]) & (rows[:, 0] <= p["end_ns"])]
+        _, first = np.unique(sel[:, 0], return_index=True)
+        foreign += len(sel) - len(first)
+        sel = sel[first]
+        lost += p["n_imu"] - len(sel)
         sent += p["n_imu"]
-        lat.append((rows[sel, 1] - rows[sel, 0]) / 1e6)
+        lat.append((sel[:, 1] - sel[:, 0]) / 1e6)
     lat_all = np.concatenate(lat) if lat else np.zeros(0)
     cpus = [p["cpu"] for p in sel_ph]
-    return dict(sent=sent, lost=lost, cpus=cpus, cpu=float(np.mean(cpus)),
+    return dict(sent=sent, lost=lost, cpus=cpus, cpu=float(np.mean(cpus)), foreign=foreign,
                 achieved=min(p["achieved"] for p in sel_ph),
                 med=float(np.median(lat_all)) if lat_all.size else float("nan"),
                 p99=float(np.percentile(lat_all, 99)) if lat_all.size else float("nan"))
+
+
+def quiet_domains(n: int) -> list[int]:
+    """``n`` ROS domains (1–101) in which no other node is seen for a second: another run on
+    this machine in the same domain would feed the subjects its messages, and answer ours."""
+    import rclpy
+    from rclpy.context import Context
+    from rclpy.node import Node
+
+    out: list[int] = []
+    for domain in random.sample(range(1, 102), 101):
+        ctx = Context()
+        rclpy.init(context=ctx, domain_id=domain)
+        try:
+            probe = Node("bench_domain_probe", context=ctx)
+            time.sleep(1.0)
+            busy = [name for name, _ in probe.get_node_names_and_namespaces()
+                    if name != "bench_domain_probe"]
+            probe.destroy_node()
+        finally:
+            rclpy.try_shutdown(context=ctx)
+        if not busy:
+            out.append(domain)
+            if len(out) == n:
+                return out
+    raise RuntimeError("no quiet ROS domain on this machine")
 
 
 def check_standin_qos() -> None:
@@ -377,6 +408,9 @@ def print_table(args: argparse.Namespace, results: dict[str, dict[float, dict[st
             runs = ", ".join(f"{c:.1f}" for c in r["cpus"])
             print(f"| {rate:.0f} | {subject} | {r['achieved']:.0f} | {r['sent']} | {r['lost']} "
                   f"| {r['med']:.2f} | {r['p99']:.2f} | {runs} | {r['cpu']:.1f} |")
+            if r["foreign"]:
+                print(f"(! {r['foreign']} messages of {subject} received twice: another node "
+                      "in its domain; its CPU figures are not clean)")
     if len(args.subjects) == 2:
         print()
         print("| IMU rate (Hz) | estimator / stand-in CPU: mean of the runs' ratios | range "
@@ -399,7 +433,7 @@ def run(args: argparse.Namespace) -> int:
         os.nice(args.nice)  # inherited by every child process
     check_standin_qos()
     tmp = Path(tempfile.mkdtemp(prefix="mkf_ros-bench-"))
-    domains = random.sample(range(1, 102), len(args.subjects))
+    domains = quiet_domains(len(args.subjects))
     print(f"ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST, domains {domains}; {os.cpu_count()} "
           f"cores, load average {os.getloadavg()[0]:.1f}, nice {args.nice}; estimator: "
           f"{args.algorithm}, use_mag, {args.executor} executor; input QoS {args.qos} depth "
