@@ -25,6 +25,7 @@ estimator / stand-in (the mean of the per-repetition ratios, and their range).
     ./run bench node_latency --rates 1000 --reps 10 --seconds 3
     ./run bench node_latency --subjects estimator --rates 200 1000 2000 3000 4000
     ./run bench node_latency --estimator-cmd "OTHER/.venv/bin/estimator"   # another build
+    ./run bench node_latency --callback             # the callback's parts, one process
 """
 
 from __future__ import annotations
@@ -32,6 +33,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
+import math
 import os
 import random
 import shlex
@@ -170,6 +172,69 @@ def role_publish() -> None:
         time.sleep(TAIL)
         print("end " + json.dumps(dict(start_ns=t_start_ns, end_ns=t_end_ns, n_imu=n,
                                        n_mag=n_mag, achieved=n / elapsed)), flush=True)
+    node.destroy_node()
+    rclpy.try_shutdown()
+
+
+def role_callback(seconds: float) -> None:
+    """In one process, caches warm, no subscriber: CPU per IMU message (1 kHz of a simulated
+    rotation with a 100 Hz magnetometer, ``seconds`` long, best of three passes) of the
+    stand-in's callback (``publish``), of the estimator's and of each part of it."""
+    import numpy as np
+    import rclpy
+    from rclpy.parameter import Parameter
+
+    from mkf_ros.ros import rawmsg
+    from mkf_ros.ros.estimator_node import EstimatorNode
+
+    rclpy.init()
+    node = EstimatorNode(argv=[], parameter_overrides=[Parameter("use_mag", value=True)])
+    n = int(1000 * seconds)
+    imus, mags = _serialized_stream(n)
+    t0 = time.time_ns()
+    imu = [_stamped(b, t0 + k * 1_000_000) for k, b in enumerate(imus)]
+    mag = {k: _stamped(mags[k], t0 + k * 1_000_000) for k in range(5, n, 10)}
+    pub, stream, enc = node._pub, node.stream, node._encoder
+
+    def passes(fn: Any) -> float:
+        best = math.inf
+        for _ in range(3):
+            stream.reset("benchmark pass")
+            c0 = time.process_time()
+            for k, data in enumerate(imu):
+                fn(data)
+                if k in mag:
+                    node._on_mag(mag[k])
+            best = min(best, time.process_time() - c0)
+        return best / n * 1e6
+
+    parts = np.zeros(4)
+    clock = time.perf_counter_ns
+
+    def timed(data: bytes) -> None:  # the callback's steps, each timed (lock and checks left out)
+        a = clock()
+        sec, nsec, off, gyr, acc = rawmsg.unpack_imu(data)  # type: ignore[misc]
+        b = clock()
+        rawmsg.pack_imu_event(stream.imu_event_bytes, sec + nsec * 1e-9, gyr, acc)
+        flags = stream.run_imu_event()
+        c = clock()
+        payload = enc.encode_record(data, off, stream.output_bytes, flags, 0.0, 0.0)
+        d = clock()
+        pub.publish(payload)
+        parts[:] += (b - a, c - b, d - c, clock() - d)
+
+    rows = [("the stand-in's callback: publish the input bytes", passes(pub.publish)),
+            ("the estimator's callback (EstimatorNode._on_imu)", passes(node._on_imu))]
+    passes(timed)
+    labels = ("read the message (rawmsg.unpack_imu)",
+              "the filter (pack_imu_event + StreamAdapter.run_imu_event)",
+              "build imu/data (ImuEncoder.encode_record)", "publish")
+    rows += [(f"  of which: {lab}", t / (3 * n) / 1e3) for lab, t in zip(labels, parts,
+                                                                       strict=True)]
+    print("| per IMU message (1 kHz, 100 Hz magnetometer, warm caches) | CPU (µs) |")
+    print("|---|---:|")
+    for lab, us in rows:
+        print(f"| {lab} | {us:.1f} |")
     node.destroy_node()
     rclpy.try_shutdown()
 
@@ -489,6 +554,9 @@ def main() -> int:
     ap.add_argument("--nice", type=int, default=0,
                     help="niceness of every process (negative needs root)")
     ap.add_argument("--executor", choices=("events", "single"), default="events")
+    ap.add_argument("--callback", action="store_true",
+                    help="instead: the CPU per message of the estimator's callback and its "
+                    "parts, in one process with warm caches (no DDS)")
     ap.add_argument("--concurrent", action="store_true",
                     help="run the two subjects' phases at the same time (each in its own "
                     "domain) instead of one after the other: both see the same machine load")
@@ -513,6 +581,10 @@ def main() -> int:
         return 0
     if args._role == "_standin":
         role_standin()
+        return 0
+    if args.callback:
+        os.environ.setdefault("ROS_DOMAIN_ID", str(quiet_domains(1)[0]))
+        role_callback(args.seconds)
         return 0
     return run(args)
 

@@ -119,15 +119,18 @@ _VEC4 = struct.Struct("<4d")
 assert (WC, AC) == (W + 3, A + 3)  # each vector followed by its covariance
 # the adapter's records as bytes: the fields read and written here, from their dtypes
 _EV = sk.EVENT.fields
+assert _EV is not None
 assert (_EV["stamp"][1], _EV["v"][1], _EV["a"][1]) == (0, 8, 32), "EVENT layout changed"
 _EVENT = struct.Struct("<7d")  # stamp, v (gyro), a (accelerometer)
 _OF = sk.OUTPUT.fields
+assert _OF is not None
 assert all(_OF[f][0].base == np.float64 for f in ("q", "cov", "w", "wcov", "lin"))
 # the output record's fields as byte ranges: q is [w, x, y, z], the message's [x, y, z, w]
 _REC_W0, _REC_XYZ = slice(_OF["q"][1], _OF["q"][1] + 8), slice(_OF["q"][1] + 8, _OF["q"][1] + 32)
 _REC_COV, _REC_W, _REC_WCOV, _REC_LIN = (
     slice(_OF[f][1], _OF[f][1] + _OF[f][0].itemsize) for f in ("cov", "w", "wcov", "lin"))
 _ZERO3_BYTES = bytes(24)
+_ANY3 = np.zeros(3)  # a value present (the covariance rules ask only whether there is one)
 
 
 def unpack_imu(buf: bytes) -> tuple[int, int, int, Any, Any] | None:
@@ -273,8 +276,8 @@ class ImuEncoder:
                           ) -> tuple[bytes, bytes]:
         """The published rate and acceleration covariances from the input's (REP-145:
         :func:`mkf_ros.stream.rep145.published_covariance`), as bytes."""
-        w = () if flags & sk.OF_W else None  # present or not: the rule needs no value
-        lin = () if flags & sk.OF_LIN else None
+        w = _ANY3 if flags & sk.OF_W else None  # present or not: the rule needs no value
+        lin = _ANY3 if flags & sk.OF_LIN else None
         wcov = rep145.published_covariance(w, None, np.array(d[WC:WC + 9]),
                                            angular_velocity_stddev, fill=self._cov)
         lincov = rep145.published_covariance(lin, None, np.array(d[AC:AC + 9]),

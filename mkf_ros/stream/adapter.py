@@ -259,7 +259,7 @@ def covariance_out(input_cov: Any, stddev: float, add: Any = None) -> np.ndarray
 
 _NO_ADD = np.zeros((0, 9))
 _PRESENT = struct.Struct("<q").unpack_from  # the output record's flags (its first field)
-assert sk.OUTPUT.fields["present"][1] == 0
+assert sk.OUTPUT.fields is not None and sk.OUTPUT.fields["present"][1] == 0
 _NAN3 = np.full(3, math.nan)
 
 
@@ -354,8 +354,8 @@ class StreamAdapter:
         self._ev_imu = self._ev_views[sk.EV_IMU]
         self._ev_imu_seq = self._ev[sk.EV_IMU]
         self._out_flat = self._out.view(np.float64)
-        self._out_bytes = memoryview(self._out.view(np.uint8)).toreadonly()
-        self._ev_imu_bytes = memoryview(self._ev_imu_seq.view(np.uint8))
+        self._out_bytes = self._out.view(np.uint8).data.toreadonly()
+        self._ev_imu_bytes = self._ev_imu_seq.view(np.uint8).data
 
     _VIEWS = ("_ev_views", "_out_present", "_out_slot", "_ev_imu", "_ev_imu_seq", "_out_flat",
               "_out_bytes", "_ev_imu_bytes")
