@@ -103,7 +103,7 @@ setup(
     entry_points={
         "console_scripts": [
             "mkf = mkf_ros.cli.main:main",
-            "estimator = mkf_ros.ros.estimator_node:main",
+            "estimator = mkf_ros.ros.estimator_main:main",
             "estimator_lifecycle = mkf_ros.ros.lifecycle:lifecycle_main",
             "player = mkf_ros.ros.player_node:main",
         ],

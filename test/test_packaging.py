@@ -10,6 +10,7 @@ import ast
 import contextlib
 import json
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -37,7 +38,8 @@ ROS_PACKAGES = frozenset(
         "tf2_ros",
     }
 )
-# Imported only behind ``try: ... except ImportError`` (no pip wheel exists): may be missing.
+# Imported only behind ``try: ... except ImportError`` (no pip wheel exists): may be missing
+# here, but declared in package.xml all the same (a real install has it).
 OPTIONAL_ROS_PACKAGES = frozenset({"tf2_ros"})
 # Any other imported module named like a ROS interface package counts as well (nav_msgs, ...).
 ROS_INTERFACE_SUFFIXES = ("_msgs", "_srvs", "_interfaces")
@@ -319,6 +321,50 @@ def test_package_xml_lists_every_imported_ros_package() -> None:
         if _is_ros_package(mod) and mod not in OPTIONAL_ROS_PACKAGES and mod not in deps
     }
     assert not missing, f"imported ROS packages missing from package.xml <exec_depend>: {missing}"
+
+
+#: rosdistro's rosdep/python.yaml, transcribed for Ubuntu: the key that installs each Python
+#: distribution (PyPI name, normalised) and what it installs there.
+ROSDEP_PYTHON_KEYS = {
+    "setuptools": ("python3-setuptools", "apt: python3-setuptools"),
+    "numpy": ("python3-numpy", "apt: python3-numpy"),
+    "numba": ("python3-numba", "apt: python3-numba"),
+    "rosbags": ("python3-rosbags-pip", "pip: rosbags"),  # rosdistro PR #37795
+    "matplotlib": ("python3-matplotlib", "apt: python3-matplotlib"),
+    "tqdm": ("python3-tqdm", "apt: python3-tqdm"),
+    "pyyaml": ("python3-yaml", "apt: python3-yaml"),
+}
+
+
+def _requirement_name(req: str) -> str:
+    m = re.match(r"\s*([A-Za-z0-9][A-Za-z0-9._-]*)", req)
+    assert m, f"not a requirement: {req!r}"
+    return re.sub(r"[-_.]+", "-", m.group(1)).lower()
+
+
+def test_every_install_requires_entry_has_its_rosdep_key() -> None:
+    """``rosdep install --from-paths src`` installs what the package needs: each
+    install_requires entry of setup.py is declared in package.xml through the rosdep key that
+    installs it (rosbags through python3-rosbags-pip), and no Python key is left over."""
+    reqs = _setup_kwargs().get("install_requires")
+    assert isinstance(reqs, list) and reqs
+    deps = _dependencies(_package_xml(), "depend", "exec_depend")
+    needed = set()
+    for req in reqs:
+        name = _requirement_name(req)
+        assert name in ROSDEP_PYTHON_KEYS, (
+            f"install_requires has {req!r}: find its rosdep key (rosdistro rosdep/python.yaml), "
+            "add it to package.xml and to ROSDEP_PYTHON_KEYS here")
+        key = ROSDEP_PYTHON_KEYS[name][0]
+        assert key in deps, f"package.xml lacks <exec_depend>{key}</exec_depend> ({req})"
+        needed.add(key)
+    python_keys = {d for d in deps if d.startswith("python3-")}
+    assert python_keys == needed, f"package.xml declares more: {sorted(python_keys - needed)}"
+
+
+def test_package_xml_declares_tf2_ros() -> None:
+    """publish_tf works after ``rosdep install``: tf2_ros is an exec dependency."""
+    assert "tf2_ros" in _dependencies(_package_xml(), "depend", "exec_depend")
 
 
 # ---------------------------------------------------------------- (c) setup.py

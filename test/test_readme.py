@@ -5,44 +5,51 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
-from mkf_ros.cli.params_cmd import to_markdown
-from mkf_ros.core.params import BY_NAME
-
-README = Path(__file__).resolve().parents[1] / "README.md"
+ROOT = Path(__file__).resolve().parents[1]
+README = ROOT / "README.md"
 
 
-def test_parameter_table_is_current() -> None:
-    text = README.read_text()
-    m = re.search(r"<!-- PARAMS-TABLE[^>]*-->\n(.*?)<!-- /PARAMS-TABLE -->", text, re.S)
-    assert m, "README has no generated parameter table"
-    assert m.group(1) == to_markdown(list(BY_NAME.values())), (
-        "README parameter table is stale: regenerate with `mkf params --format markdown`")
+def _section(title: str) -> str:
+    m = re.search(rf"^## {re.escape(title)}.*?$(.*?)(?=^## |\Z)", README.read_text(), re.S | re.M)
+    assert m, f"README has no section '## {title}'"
+    return m.group(1)
 
 
 def test_quick_start_has_the_two_commands() -> None:
-    text = README.read_text()
-    block = re.search(r"## Quick start.*?```bash\n(.*?)```", text, re.S)
+    block = re.search(r"```bash\n(.*?)```", _section("Quick start"), re.S)
     assert block
     cmds = [ln.split("#")[0].strip() for ln in block.group(1).splitlines() if ln.strip()]
     assert cmds == ["./run demo", "./run test"]
+    run = (ROOT / "run").read_text()
+    for verb in ("demo", "test"):  # what ./run dispatches on
+        assert re.search(rf"^\s*{verb}\)", run, re.M), f"./run has no '{verb}' command"
 
 
-def test_layout_tree_matches_the_package() -> None:
-    """The Development section's tree names every package and top-level module of mkf_ros (and
-    every module of core/ and stream/, where the design lives), and nothing that is not there."""
-    text = README.read_text()
-    block = re.search(r"## Development\n+```\n(.*?)```", text, re.S)
-    assert block, "README has no layout tree under ## Development"
-    tree = block.group(1)
-    pkg = README.parent / "mkf_ros"
-    named = set(re.findall(r"mkf_ros/([\w.]+)", tree))
-    for name in named - {"_kernels"}:  # _kernels: made by the install / ./run setup
-        assert (pkg / name).exists(), f"README layout names mkf_ros/{name}, which does not exist"
-    top = {p.name for p in pkg.iterdir()
-           if (p.suffix == ".py" and p.name != "__init__.py")
-           or (p.is_dir() and (p / "__init__.py").exists())}
-    assert top <= named, f"README layout misses {sorted(top - named)}"
-    words = set(re.findall(r"[\w]+\.py", tree))
-    for sub in ("core", "stream"):
-        mods = {p.name for p in (pkg / sub).glob("*.py") if p.name != "__init__.py"}
-        assert mods <= words, f"README layout misses mkf_ros/{sub}/{sorted(mods - words)}"
+def test_the_results_table_comes_with_the_command_that_makes_it() -> None:
+    """One results table, right after the one command that prints it: a bench script that
+    exists, given a folder for every dataset the table has columns for; the peers' versions
+    in the table are the ones the benchmark installs (requirements/bench.txt)."""
+    sec = _section("Results")
+    cmds = re.findall(r"```bash\n(.*?)```", sec, re.S)
+    assert len(cmds) == 1, "the Results section has one command"
+    cmd = cmds[0].split("#")[0].split()
+    assert cmd[:3] == ["./run", "bench", "real_data"]
+    assert (ROOT / "bench" / "real_data.py").is_file()
+    tables = re.findall(r"^\|.*\|$(?:\n^\|.*\|$)+", sec, re.M)
+    assert len(tables) == 1, "the Results section has one table"
+    header = tables[0].splitlines()[0]
+    for column, folder in (("BROAD", "broad"), ("RepoIMU", "repoimu/TStick"),
+                           ("ESE650", "ese650"), ("tyrex", "tyrex")):
+        assert column in header
+        assert any(arg.endswith("/" + folder) for arg in cmd), f"no {folder} folder in {cmd}"
+    pins = dict(re.findall(r"^([\w-]+)==([\w.]+)$", (ROOT / "requirements" / "bench.txt")
+                           .read_text(), re.M))
+    quoted = re.findall(r"`(vqf|imufusion|ahrs)` ([\d.]+)", tables[0])
+    assert {name for name, _v in quoted} == {"vqf", "imufusion", "ahrs"}
+    for name, version in quoted:
+        assert pins[name] == version, f"README quotes {name} {version}, the bench pins {pins[name]}"
+
+
+def test_the_readme_is_short() -> None:
+    """What it is, the two commands, one results table, links: a few hundred lines at most."""
+    assert len(README.read_text().splitlines()) <= 300

@@ -161,7 +161,7 @@ class _Demo:
         self._warm()
         env = dict(os.environ, RCUTILS_COLORIZED_OUTPUT="0", PYTHONUNBUFFERED="1",
                    RCUTILS_CONSOLE_OUTPUT_FORMAT="[{severity}] [{name}]: {message}")
-        est_cmd = [*_exe("estimator", "mkf_ros.ros.estimator_node"), "--ros-args"]
+        est_cmd = [*_exe("estimator", "mkf_ros.ros.estimator_main"), "--ros-args"]
         for k, v in self.params.items():
             est_cmd += ["-p", f"{k}:={_ros_value(v)}"]
         ply_cmd = [

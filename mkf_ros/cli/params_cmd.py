@@ -17,8 +17,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="top-level key of the YAML (default: estimator)")
     parser.add_argument("--update", action="store_true",
                         help="in a source checkout: rewrite every generated copy "
-                             "(config/estimator.yaml, the tables in README.md and "
-                             "docs/estimator.md)")
+                             "(config/estimator.yaml and the table in docs/estimator.md)")
 
 
 def yaml_value(v: object) -> str:
@@ -57,7 +56,7 @@ def to_markdown(params: list[Param]) -> str:
 
 
 def update_generated(root: Path) -> list[Path]:
-    """Regenerate the YAML and the Markdown tables between their markers; returns the files."""
+    """Regenerate the YAML and the Markdown table between its markers; returns the files."""
     params = list(BY_NAME.values())
     table = to_markdown(params)
     done = []
@@ -65,15 +64,10 @@ def update_generated(root: Path) -> list[Path]:
     if cfg.parent.is_dir():
         cfg.write_text(to_yaml(params, "/**"))
         done.append(cfg)
-    for path, begin, end in ((root / "README.md", r"<!-- PARAMS-TABLE[^>]*-->\n",
-                              "<!-- /PARAMS-TABLE -->"),
-                             (root / "docs" / "estimator.md", "<!-- params:begin -->\n",
-                              "<!-- params:end -->")):
-        if not path.is_file():
-            continue
-        text = path.read_text()
-        new, n = re.subn(f"({begin})(.*?)({re.escape(end)})",
-                         lambda m: m.group(1) + table + m.group(3), text, flags=re.S)
+    path = root / "docs" / "estimator.md"  # the table between its markers
+    if path.is_file():
+        new, n = re.subn(r"(<!-- params:begin -->\n)(.*?)(<!-- params:end -->)",
+                         lambda m: m.group(1) + table + m.group(3), path.read_text(), flags=re.S)
         if n:
             path.write_text(new)
             done.append(path)

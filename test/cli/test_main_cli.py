@@ -71,9 +71,9 @@ def test_params_markdown_table(capsys: pytest.CaptureFixture) -> None:
 
 def test_params_update_rewrites_every_generated_copy(tmp_path: Path, monkeypatch,
                                                      capsys: pytest.CaptureFixture) -> None:
-    """``mkf params --update`` in a checkout rewrites config/estimator.yaml and the tables
-    between the markers of README.md and docs/estimator.md, and touches nothing else; outside
-    a checkout it is one clear error line."""
+    """``mkf params --update`` in a checkout rewrites config/estimator.yaml and the table
+    between the markers of docs/estimator.md, and touches nothing else (README.md links to that
+    table and is left as it is); outside a checkout it is one clear error line."""
     repo = Path(params_cmd.__file__).resolve().parents[2]
     root = tmp_path / "checkout"
     (root / "config").mkdir(parents=True)
@@ -81,20 +81,19 @@ def test_params_update_rewrites_every_generated_copy(tmp_path: Path, monkeypatch
     (root / "mkf_ros" / "cli").mkdir(parents=True)
     shutil.copy(repo / "package.xml", root / "package.xml")
     (root / "config" / "estimator.yaml").write_text("stale: 1\n")
-    (root / "README.md").write_text("intro\n<!-- PARAMS-TABLE generated -->\nold\n"
-                                    "<!-- /PARAMS-TABLE -->\noutro\n")
+    (root / "README.md").write_text("intro\n[parameters](docs/estimator.md#parameters)\n")
     (root / "docs" / "estimator.md").write_text("a\n<!-- params:begin -->\nold\n"
                                                 "<!-- params:end -->\nb\n")
     fake = root / "mkf_ros" / "cli" / "params_cmd.py"  # run() finds the checkout from here
     monkeypatch.setattr(params_cmd, "__file__", str(fake))
     assert main(["params", "--update"]) == 0
     assert capsys.readouterr().out.splitlines() == [
-        "updated config/estimator.yaml", "updated README.md", "updated docs/estimator.md"]
+        "updated config/estimator.yaml", "updated docs/estimator.md"]
     cfg = yaml.safe_load((root / "config" / "estimator.yaml").read_text())
     assert cfg["/**"]["ros__parameters"] == {p.name: p.default for p in PARAMS}
     table = params_cmd.to_markdown(PARAMS)
     assert (root / "README.md").read_text() == (
-        f"intro\n<!-- PARAMS-TABLE generated -->\n{table}<!-- /PARAMS-TABLE -->\noutro\n")
+        "intro\n[parameters](docs/estimator.md#parameters)\n")
     assert (root / "docs" / "estimator.md").read_text() == (
         f"a\n<!-- params:begin -->\n{table}<!-- params:end -->\nb\n")
     (root / "package.xml").unlink()

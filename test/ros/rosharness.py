@@ -209,18 +209,19 @@ def record_arrival(stream: Any) -> list[str]:
     reference adapter is fed from the messages the test sent (:func:`reference_outputs`),
     so the node's message conversion is under test, not replayed."""
     kinds: list[str] = []
-    # step_imu: the node's per-message path, and what on_imu (its message-object path) calls
-    step_imu, on_mag = stream.step_imu, stream.on_mag
+    # run_imu_event: the node's per-message path, and what on_imu and step_imu (its
+    # message-object path) call
+    run_imu_event, on_mag = stream.run_imu_event, stream.on_mag
 
     def imu(*args):
         kinds.append("imu")
-        return step_imu(*args)
+        return run_imu_event(*args)
 
     def mag(*args):
         kinds.append("mag")
         return on_mag(*args)
 
-    stream.step_imu, stream.on_mag = imu, mag
+    stream.run_imu_event, stream.on_mag = imu, mag
     return kinds
 
 
