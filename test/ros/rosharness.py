@@ -315,3 +315,23 @@ def output_arrays(msgs: Sequence[Imu]) -> tuple[np.ndarray, np.ndarray, np.ndarr
     cov = np.array([np.asarray(m.orientation_covariance) for m in msgs],
                    dtype=float).reshape(-1, 9)
     return st, q, cov
+
+
+def fake_tf2(monkeypatch: Any) -> list:
+    """A stand-in ``tf2_ros`` (its wheel is not on PyPI): the transforms the node sends."""
+    import sys
+    import types
+
+    sent: list = []
+
+    class TransformBroadcaster:
+        def __init__(self, node) -> None:
+            self.node = node
+
+        def sendTransform(self, t) -> None:
+            sent.append(t)
+
+    mod = types.ModuleType("tf2_ros")
+    mod.TransformBroadcaster = TransformBroadcaster
+    monkeypatch.setitem(sys.modules, "tf2_ros", mod)
+    return sent

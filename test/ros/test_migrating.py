@@ -5,13 +5,11 @@ Madgwick's report and imu_filter_madgwick's ENU conventions), TF included; witho
 from __future__ import annotations
 
 import math
-import sys
-import types
 from pathlib import Path
 
 import numpy as np
 import pytest
-from rosharness import imu_msg, mag_msg, quat, send_one_by_one
+from rosharness import fake_tf2, imu_msg, mag_msg, quat, send_one_by_one
 
 from mkf_ros.sim import simulate
 
@@ -71,22 +69,6 @@ def stateless_orientation(a: np.ndarray, m: np.ndarray) -> np.ndarray:
     east = np.cross(m, up)
     east /= np.linalg.norm(east)
     return np.vstack([east, np.cross(up, east), up])
-
-
-def fake_tf2(monkeypatch) -> list:
-    sent: list = []
-
-    class TransformBroadcaster:
-        def __init__(self, node) -> None:
-            pass
-
-        def sendTransform(self, t) -> None:
-            sent.append(t)
-
-    mod = types.ModuleType("tf2_ros")
-    mod.TransformBroadcaster = TransformBroadcaster
-    monkeypatch.setitem(sys.modules, "tf2_ros", mod)
-    return sent
 
 
 def test_the_madgwick_config_reproduces_imu_filter_madgwick(harness, monkeypatch) -> None:

@@ -6,13 +6,12 @@ from __future__ import annotations
 import math
 import sys
 import time
-import types
 
 import numpy as np
 import pytest
 from geometry_msgs.msg import Vector3Stamped
 from rclpy.qos import QoSProfile, ReliabilityPolicy
-from rosharness import assert_message_is, imu_msg, mag_msg, quat
+from rosharness import assert_message_is, fake_tf2, imu_msg, mag_msg, quat
 from sensor_msgs.msg import Imu
 from std_msgs.msg import Bool
 
@@ -152,22 +151,6 @@ def test_zero_gyro_and_orientation_carrying_input_are_named_once(harness, capfd)
     assert all(s.level == WARN for s in statuses(h) if zero in s.message)
     err = capfd.readouterr().err
     assert err.count(zero) == 1 and err.count(ori) == 1
-
-
-def fake_tf2(monkeypatch) -> list:
-    sent: list = []
-
-    class TransformBroadcaster:
-        def __init__(self, node) -> None:
-            self.node = node
-
-        def sendTransform(self, t) -> None:
-            sent.append(t)
-
-    mod = types.ModuleType("tf2_ros")
-    mod.TransformBroadcaster = TransformBroadcaster
-    monkeypatch.setitem(sys.modules, "tf2_ros", mod)
-    return sent
 
 
 def test_tf_follows_the_message(harness, monkeypatch) -> None:

@@ -84,6 +84,24 @@ def test_encode_equals_the_message_path(source: str, missing: str | None) -> Non
         assert all(math.isfinite(x) for x in got.orientation_covariance)
 
 
+def changing_imu_messages(rng: np.random.Generator, missing: str | None, n: int = 12) -> list:
+    """``n`` IMU messages 10 ms apart whose covariances change from one to the next (known,
+    unknown, and with ``missing`` the gyro's, the accelerometer's or both marked "not
+    reported" now and then)."""
+    out = []
+    for k in range(n):
+        m = random_imu(rng, "imu_link")
+        m.header.stamp = convert.sec_to_stamp(100.0 + 0.01 * k)
+        m.angular_velocity_covariance = [0.0] * 9 if k % 2 else np.diag([1e-4] * 3).reshape(9)
+        m.linear_acceleration_covariance = [0.0] * 9 if k % 3 else np.diag([1e-2] * 3).reshape(9)
+        if missing in ("gyr", "both") and k % 4 == 3:
+            m.angular_velocity_covariance[0] = -1.0
+        if missing in ("acc", "both") and k % 4 == 2:
+            m.linear_acceleration_covariance[0] = -1.0
+        out.append(m)
+    return out
+
+
 @pytest.mark.parametrize("source", ["input", "bias_corrected", "estimate"])
 @pytest.mark.parametrize("missing", [None, "gyr", "acc", "both"])
 def test_encode_values_equals_encode(source: str, missing: str | None) -> None:
@@ -94,15 +112,7 @@ def test_encode_values_equals_encode(source: str, missing: str | None) -> None:
     kw: dict = dict(angular_velocity_source=source, estimate_gyro_bias=True,
                     remove_gravity_vector=source == "estimate")
     s, s_values = StreamAdapter(**kw), StreamAdapter(**kw)
-    for k in range(12):
-        m = random_imu(rng, "imu_link")
-        m.header.stamp = convert.sec_to_stamp(100.0 + 0.01 * k)
-        m.angular_velocity_covariance = [0.0] * 9 if k % 2 else np.diag([1e-4] * 3).reshape(9)
-        m.linear_acceleration_covariance = [0.0] * 9 if k % 3 else np.diag([1e-2] * 3).reshape(9)
-        if missing in ("gyr", "both") and k % 4 == 3:
-            m.angular_velocity_covariance[0] = -1.0
-        if missing in ("acc", "both") and k % 4 == 2:
-            m.linear_acceleration_covariance[0] = -1.0
+    for k, m in enumerate(changing_imu_messages(rng, missing)):
         h = rawmsg.parse(serialize_message(m), rawmsg.IMU_DOUBLES)
         out = s.on_imu(h.stamp, *rawmsg.imu_arrays(h))
         flags = s_values.step_imu(h.stamp, *rawmsg.imu_views(h))
@@ -131,15 +141,7 @@ def test_the_node_byte_path_equals_encode(source: str, missing: str | None) -> N
     kw: dict = dict(angular_velocity_source=source, estimate_gyro_bias=True,
                     remove_gravity_vector=source == "estimate")
     s, s_bytes = StreamAdapter(**kw), StreamAdapter(**kw)
-    for k in range(12):
-        m = random_imu(rng, "imu_link")
-        m.header.stamp = convert.sec_to_stamp(100.0 + 0.01 * k)
-        m.angular_velocity_covariance = [0.0] * 9 if k % 2 else np.diag([1e-4] * 3).reshape(9)
-        m.linear_acceleration_covariance = [0.0] * 9 if k % 3 else np.diag([1e-2] * 3).reshape(9)
-        if missing in ("gyr", "both") and k % 4 == 3:
-            m.angular_velocity_covariance[0] = -1.0
-        if missing in ("acc", "both") and k % 4 == 2:
-            m.linear_acceleration_covariance[0] = -1.0
+    for k, m in enumerate(changing_imu_messages(rng, missing)):
         data = serialize_message(m)
         h = rawmsg.parse(data, rawmsg.IMU_DOUBLES)
         out = s.on_imu(h.stamp, *rawmsg.imu_arrays(h))
