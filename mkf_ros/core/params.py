@@ -212,8 +212,8 @@ PARAMS: tuple[Param, ...] = (
        "removes; the accelerometer's disturbance variance grows by (v*W/g)^2 (W low-passed "
        "over acc_time_constant, correlated over it), so that the gyro carries the tilt through "
        "the turn. 0 = the body turns in place (a handheld sensor); a person walking or "
-       "running: 1.5-3 (phones carried indoors: 2 lowers the tilt error by 14 %, "
-       "docs/real_data.md); a car: its speed",
+       "running: 1.5-3 (phones carried by two people: 2 lowers each one's tilt error by an "
+       "eighth, docs/real_data.md); a car: its speed",
        unit="m/s", range=(0.0, 100.0), group="robustness"),
     _P("acc_disturbance_time", float, 0.1, "Correlation time of the non-gravitational "
        "acceleration left in the fused accelerometer: its per-sample variance is "
