@@ -31,7 +31,7 @@ def read_version() -> str:
 
 
 class BuildPyWithKernels(build_py):
-    """``build_py`` plus the install-time kernel compile (``mkf_ros.core._jit.precompile``,
+    """``build_py`` plus the install-time kernel compile (``mkf_ros.kernels.precompile``,
     about a minute on 2 cores): the numba kernels are compiled into the built package
     (``mkf_ros/_kernels/``) so that the first start of the installed node loads them instead
     of compiling. pip's isolated build environment gets numba and NumPy from pyproject.toml's
@@ -44,7 +44,8 @@ class BuildPyWithKernels(build_py):
                 or os.environ.get("MKF_ROS_NO_PRECOMPILE") == "1"):
             return  # (an editable checkout precompiles into its own tree: ./run setup)
         lib = os.path.abspath(self.build_lib)
-        code = "import mkf_ros.core._jit as j; j.precompile(j.PACKAGED_CACHE_ROOT)"
+        code = ("import mkf_ros.kernels as k, mkf_ros.core._jit as j; "
+                "k.precompile(j.PACKAGED_CACHE_ROOT)")
         path = os.pathsep.join(filter(None, [lib, os.environ.get("PYTHONPATH")]))
         env = dict(os.environ, PYTHONPATH=path,
                    MKF_ROS_CACHE_DIR=os.path.join(lib, package_name, "_kernels"))
@@ -80,12 +81,16 @@ setup(
     ],
     install_requires=[
         "setuptools",
-        "numpy>=1.24",
-        "numba>=0.59",
+        # two supported sets, both tested in CI (.ci/run): Ubuntu 24.04's packages, which
+        # rosdep installs for ROS 2 Jazzy (requirements/ubuntu-noble.txt: numba 0.58.1,
+        # NumPy 1.26.4, ...), and the current releases (requirements/dev.txt: numba 0.68,
+        # NumPy 2.4); docs/estimator.md § Start-up
+        "numpy>=1.26.4",
+        "numba>=0.58.1",
         "rosbags>=0.11,<0.12",  # mkf_ros.bags.writer extends its storage writers' internals
-        "matplotlib>=3.7",
+        "matplotlib>=3.6.3",
         "tqdm>=4.60",
-        "pyyaml",
+        "pyyaml>=6.0.1",
     ],
     extras_require={
         # `mkf study/process --scheduler tcp://HOST:8786`: work units on a Dask cluster
@@ -98,7 +103,7 @@ setup(
     entry_points={
         "console_scripts": [
             "mkf = mkf_ros.cli.main:main",
-            "estimator = mkf_ros.ros.estimator_node:main",
+            "estimator = mkf_ros.ros.estimator_main:main",
             "estimator_lifecycle = mkf_ros.ros.lifecycle:lifecycle_main",
             "player = mkf_ros.ros.player_node:main",
         ],

@@ -104,10 +104,11 @@ def main() -> None:
         ap.error(f"--modes: choose from serial, local, dask, got {args.modes!r}")
 
     from mkf_ros import parallel
+    from mkf_ros.kernels import warm_all
     from mkf_ros.study import config as cfg
 
     cells = cfg.cells()
-    print(f"warming kernels (mkf_ros {parallel.warm_all()})", file=sys.stderr)
+    print(f"warming kernels (mkf_ros {warm_all()})", file=sys.stderr)
     tmp = Path(tempfile.mkdtemp(prefix="mkf-cluster-bench-"))
     runs: dict[str, list[dict]] = defaultdict(list)
     try:

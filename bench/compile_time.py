@@ -1,15 +1,19 @@
 """The install-time kernel compile: wall time, CPU time and peak memory, from an empty cache.
 
-    ./run bench compile_time [--jobs N] [--tasks]
+    ./run bench compile_time [--jobs N] [--tasks] [--python PYTHON ...]
 
 Copies the package (without its compiled kernels, ``mkf_ros/_kernels``) to a temporary
 directory and runs the install-time compile there as ``pip install`` and ``colcon build`` do
-(``mkf_ros.core._jit.precompile`` into the copy's ``_kernels``). Prints the wall time, the CPU
+(``mkf_ros.kernels.precompile`` into the copy's ``_kernels``). Prints the wall time, the CPU
 time of every compiling process, and the peak resident memory, both of the largest process
 and of all of them together (sampled from /proc every 20 ms). Then, in a fresh process on the
 compiled cache, the time ``mkf_ros.warmup()`` takes and how many numba compiler passes it still
 ran (0: the install-time compile left nothing to compile for the first start). ``--tasks`` adds
 each compile task's own wall, CPU and peak memory.
+
+One row per Python environment: this one, each ``--python`` given, and Ubuntu 24.04's set
+(``.venv-noble``, built by ``.ci/noble``) when it exists; each compiles with its own numba.
+The environments run one after the other.
 """
 
 from __future__ import annotations
@@ -32,7 +36,8 @@ _COMPILE = """
 import json, sys
 from pathlib import Path
 import mkf_ros.core._jit as j
-j.precompile(j.PACKAGED_CACHE_ROOT, jobs=int(sys.argv[1]) or None,
+import mkf_ros.kernels as k
+k.precompile(j.PACKAGED_CACHE_ROOT, jobs=int(sys.argv[1]) or None,
              report=lambda r: print("TASK " + json.dumps(r), flush=True))
 """
 
@@ -81,15 +86,15 @@ def _tree_rss_kib(pid: int) -> tuple[int, int]:
     return total, largest
 
 
-def compile_copy(jobs: int) -> dict:
-    """The install-time compile of a fresh copy of the package; its figures."""
+def compile_copy(jobs: int, python: str = sys.executable) -> dict:
+    """The install-time compile of a fresh copy of the package by ``python``; its figures."""
     with tempfile.TemporaryDirectory(prefix="mkf-compile-") as tmp:
         shutil.copytree(ROOT / "mkf_ros", Path(tmp) / "mkf_ros",
                         ignore=shutil.ignore_patterns("_kernels", "__pycache__"))
         env = dict(os.environ, PYTHONPATH=tmp, MKF_ROS_CACHE_DIR=str(Path(tmp) / "user-cache"))
         before = resource.getrusage(resource.RUSAGE_CHILDREN)
         t0 = time.perf_counter()
-        proc = subprocess.Popen([sys.executable, "-c", _COMPILE, str(jobs)], cwd=tmp, env=env,
+        proc = subprocess.Popen([python, "-c", _COMPILE, str(jobs)], cwd=tmp, env=env,
                                 stdout=subprocess.PIPE, text=True)
         peak = [0, 0]
         done = threading.Event()
@@ -110,10 +115,14 @@ def compile_copy(jobs: int) -> dict:
         if proc.returncode:
             sys.exit(f"compile_time: the compile failed (exit {proc.returncode})")
         tasks = [json.loads(line[5:]) for line in out.splitlines() if line.startswith("TASK ")]
-        check = subprocess.run([sys.executable, "-c", _CHECK], cwd=tmp, env=env,
+        check = subprocess.run([python, "-c", _CHECK], cwd=tmp, env=env,
                                capture_output=True, text=True, check=True)
         cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
-        return {"wall": wall, "cpu": cpu, "peak_sum_mb": peak[0] / 1024,
+        version = subprocess.run(
+            [python, "-c", "import sys, numba, numpy; print(f'numba {numba.__version__}, "
+             "NumPy {numpy.__version__}, Python {sys.version.split()[0]}')"],
+            capture_output=True, text=True, check=True).stdout.strip()
+        return {"env": version, "wall": wall, "cpu": cpu, "peak_sum_mb": peak[0] / 1024,
                 "peak_max_mb": peak[1] / 1024, "tasks": tasks,
                 "check": json.loads(check.stdout.strip().splitlines()[-1])}
 
@@ -121,25 +130,34 @@ def compile_copy(jobs: int) -> dict:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--jobs", type=int, default=0,
-                    help="compiling processes (default: the install's, mkf_ros.core._jit."
+                    help="compiling processes (default: the install's, mkf_ros.kernels."
                          "compile_jobs)")
     ap.add_argument("--tasks", action="store_true", help="print every compile task's figures")
+    ap.add_argument("--python", action="append", default=[],
+                    help="another environment's interpreter to compile with (repeatable)")
     args = ap.parse_args()
-    r = compile_copy(args.jobs)
-    from mkf_ros.core._jit import compile_jobs
+    pythons = [sys.executable, *args.python]
+    noble = ROOT / ".venv-noble" / "bin" / "python"
+    if noble.exists() and str(noble) not in pythons:
+        pythons.append(str(noble))
+    results = [compile_copy(args.jobs, py) for py in pythons]
+    from mkf_ros.kernels import compile_jobs
 
     jobs = args.jobs or compile_jobs()
     print(f"\ninstall-time compile of every kernel, empty cache, {jobs} process(es) at a time, "
           f"{os.cpu_count()} CPUs\n")
-    print("| wall | CPU (all processes) | peak RSS, all processes | peak RSS, largest process |"
-          " warmup() after it | compiler passes run by that warmup |")
-    print("|---:|---:|---:|---:|---:|---:|")
-    print(f"| {r['wall']:.1f} s | {r['cpu']:.1f} s | {r['peak_sum_mb']:.0f} MB | "
-          f"{r['peak_max_mb']:.0f} MB | {r['check']['seconds']:.2f} s | {r['check']['compiled']} |")
+    print("| environment | wall | CPU (all processes) | peak RSS, all processes |"
+          " peak RSS, largest process | warmup() after it | compiler passes run by that warmup |")
+    print("|---|---:|---:|---:|---:|---:|---:|")
+    for r in results:
+        print(f"| {r['env']} | {r['wall']:.1f} s | {r['cpu']:.1f} s | {r['peak_sum_mb']:.0f} MB | "
+              f"{r['peak_max_mb']:.0f} MB | {r['check']['seconds']:.2f} s | "
+              f"{r['check']['compiled']} |")
     if args.tasks:
-        print("\n| task | wall | CPU | peak RSS |\n|---|---:|---:|---:|")
-        for name, wall, cpu, rss in r["tasks"]:
-            print(f"| {name} | {wall:.1f} s | {cpu:.1f} s | {rss / 1024:.0f} MB |")
+        for r in results:
+            print(f"\n{r['env']}\n\n| task | wall | CPU | peak RSS |\n|---|---:|---:|---:|")
+            for name, wall, cpu, rss in r["tasks"]:
+                print(f"| {name} | {wall:.1f} s | {cpu:.1f} s | {rss / 1024:.0f} MB |")
 
 
 if __name__ == "__main__":

@@ -133,7 +133,7 @@ def installed_estimator(work: Path, precompile: bool) -> tuple[list[str], float]
                            check=True, capture_output=True, text=True, cwd=work).stdout.strip()
     assert Path(where).is_relative_to(venv), f"the layered venv imports mkf_ros from {where}"
     print(f"installed mkf_ros: {Path(where).parent}")
-    return [str(vpy), "-m", "mkf_ros.ros.estimator_node"], build
+    return [str(vpy), "-m", "mkf_ros.ros.estimator_main"], build
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -161,7 +161,7 @@ def main(argv: list[str] | None = None) -> int:
         else:
             exe = Path(sys.executable).parent / "estimator"
             cmd = ([str(exe)] if exe.is_file()
-                   else [sys.executable, "-m", "mkf_ros.ros.estimator_node"])
+                   else [sys.executable, "-m", "mkf_ros.ros.estimator_main"])
         print(f"estimator: {' '.join(cmd)}  (ROS_DOMAIN_ID={os.environ['ROS_DOMAIN_ID']}, "
               f"LOCALHOST discovery; {os.cpu_count()} cores)")
         if build is not None:

@@ -8,9 +8,10 @@ Offline use needs only NumPy and numba::
 """
 
 from mkf_ros._version import __version__
-from mkf_ros.api import EstimateResult, estimate, warmup
+from mkf_ros.api import EstimateResult, estimate
 from mkf_ros.core.filter import AttitudeFilter
 from mkf_ros.core.params import PARAMS, FilterParams
+from mkf_ros.kernels import warmup
 
 __all__ = [
     "PARAMS", "AttitudeFilter", "EstimateResult", "FilterParams", "__version__", "estimate",

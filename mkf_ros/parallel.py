@@ -16,7 +16,7 @@ writer of the study's files:
 at most ``in_flight`` at a time, and each result is handed to the caller as it arrives.
 
 Dask (``pip install 'mkf_ros[cluster]'``) is imported only by :func:`connect`; nothing else here
-needs it. ``python -m mkf_ros.parallel`` compiles (or loads) every kernel and prints the code
+needs it. ``python -m mkf_ros.kernels`` compiles (or loads) every kernel and prints the code
 version: run it once on each worker machine (see ``docs/study/cluster.md``).
 """
 
@@ -57,14 +57,14 @@ def code_version() -> str:
     Equal on two machines when they run the same package code (editable, wheel or colcon
     install alike); any edit of any module changes it, so the cluster never mixes code.
     """
-    import mkf_ros
+    from mkf_ros._version import __version__
 
-    root = Path(mkf_ros.__file__).resolve().parent
+    root = Path(__file__).resolve().parent
     h = hashlib.sha256()
     for path in sorted(root.rglob("*.py")):
         h.update(path.relative_to(root).as_posix().encode() + b"\0")
         h.update(path.read_bytes())
-    return f"{mkf_ros.__version__}+src.{h.hexdigest()[:12]}"
+    return f"{__version__}+src.{h.hexdigest()[:12]}"
 
 
 def checked_call(expected: str, fn: Callable[..., R], *args: Any) -> R:
@@ -464,18 +464,3 @@ def local_cluster(n_workers: int, directory: str | Path, *, timeout: float = 120
                 with contextlib.suppress(ProcessLookupError):
                     os.killpg(p.pid, signal.SIGKILL)
                 p.wait(timeout=10)
-
-
-def warm_all() -> str:
-    """Compile (or load from the cache) the kernels of the filters, ``mkf process`` and the
-    study; returns :func:`code_version`."""
-    import mkf_ros
-    from mkf_ros.study.runner import warm_up
-
-    mkf_ros.warmup()
-    warm_up()
-    return code_version()
-
-
-if __name__ == "__main__":  # pragma: no cover - exercised by hand on worker machines
-    print(f"mkf_ros {warm_all()}: kernels ready")

@@ -10,6 +10,7 @@ import ast
 import contextlib
 import json
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -37,7 +38,8 @@ ROS_PACKAGES = frozenset(
         "tf2_ros",
     }
 )
-# Imported only behind ``try: ... except ImportError`` (no pip wheel exists): may be missing.
+# Imported only behind ``try: ... except ImportError`` (no pip wheel exists): may be missing
+# here, but declared in package.xml all the same (a real install has it).
 OPTIONAL_ROS_PACKAGES = frozenset({"tf2_ros"})
 # Any other imported module named like a ROS interface package counts as well (nav_msgs, ...).
 ROS_INTERFACE_SUFFIXES = ("_msgs", "_srvs", "_interfaces")
@@ -321,6 +323,50 @@ def test_package_xml_lists_every_imported_ros_package() -> None:
     assert not missing, f"imported ROS packages missing from package.xml <exec_depend>: {missing}"
 
 
+#: rosdistro's rosdep/python.yaml, transcribed for Ubuntu: the key that installs each Python
+#: distribution (PyPI name, normalised) and what it installs there.
+ROSDEP_PYTHON_KEYS = {
+    "setuptools": ("python3-setuptools", "apt: python3-setuptools"),
+    "numpy": ("python3-numpy", "apt: python3-numpy"),
+    "numba": ("python3-numba", "apt: python3-numba"),
+    "rosbags": ("python3-rosbags-pip", "pip: rosbags"),  # rosdistro PR #37795
+    "matplotlib": ("python3-matplotlib", "apt: python3-matplotlib"),
+    "tqdm": ("python3-tqdm", "apt: python3-tqdm"),
+    "pyyaml": ("python3-yaml", "apt: python3-yaml"),
+}
+
+
+def _requirement_name(req: str) -> str:
+    m = re.match(r"\s*([A-Za-z0-9][A-Za-z0-9._-]*)", req)
+    assert m, f"not a requirement: {req!r}"
+    return re.sub(r"[-_.]+", "-", m.group(1)).lower()
+
+
+def test_every_install_requires_entry_has_its_rosdep_key() -> None:
+    """``rosdep install --from-paths src`` installs what the package needs: each
+    install_requires entry of setup.py is declared in package.xml through the rosdep key that
+    installs it (rosbags through python3-rosbags-pip), and no Python key is left over."""
+    reqs = _setup_kwargs().get("install_requires")
+    assert isinstance(reqs, list) and reqs
+    deps = _dependencies(_package_xml(), "depend", "exec_depend")
+    needed = set()
+    for req in reqs:
+        name = _requirement_name(req)
+        assert name in ROSDEP_PYTHON_KEYS, (
+            f"install_requires has {req!r}: find its rosdep key (rosdistro rosdep/python.yaml), "
+            "add it to package.xml and to ROSDEP_PYTHON_KEYS here")
+        key = ROSDEP_PYTHON_KEYS[name][0]
+        assert key in deps, f"package.xml lacks <exec_depend>{key}</exec_depend> ({req})"
+        needed.add(key)
+    python_keys = {d for d in deps if d.startswith("python3-")}
+    assert python_keys == needed, f"package.xml declares more: {sorted(python_keys - needed)}"
+
+
+def test_package_xml_declares_tf2_ros() -> None:
+    """publish_tf works after ``rosdep install``: tf2_ros is an exec dependency."""
+    assert "tf2_ros" in _dependencies(_package_xml(), "depend", "exec_depend")
+
+
 # ---------------------------------------------------------------- (c) setup.py
 
 
@@ -333,6 +379,35 @@ def test_install_requires_has_no_ros_wheels() -> None:
         f"{ros_wheels}"
     )
     assert "tests_require" not in _setup_kwargs(), "drop tests_require (setuptools warns, colcon)"
+
+
+def _pins(path: Path) -> dict[str, str]:
+    """``name == version`` pins of a requirements file and the files it includes (-r)."""
+    pins: dict[str, str] = {}
+    for line in path.read_text().splitlines():
+        line = line.split("#", 1)[0].strip()
+        if line.startswith("-r "):
+            pins.update(_pins(path.parent / line[3:].strip()))
+        elif "==" in line:
+            name, version = line.split("==", 1)
+            pins[name.split("[", 1)[0].strip().lower().replace("_", "-")] = version.strip()
+    return pins
+
+
+@pytest.mark.parametrize("pinned", ["dev.txt", "ubuntu-noble.txt"])
+def test_every_supported_set_satisfies_install_requires(pinned: str) -> None:
+    """Both sets CI builds (the current releases; Ubuntu 24.04's, what rosdep installs for
+    Jazzy) are inside setup.py's declared ranges, and pin every runtime requirement."""
+    from packaging.requirements import Requirement
+
+    pins = _pins(REPO / "requirements" / pinned)
+    reqs = [Requirement(r) for r in _setup_kwargs()["install_requires"]]  # type: ignore[union-attr]
+    missing = [r.name for r in reqs if r.name.lower() not in pins]
+    outside = [f"{r.name}=={pins[r.name.lower()]} (needs {r.specifier})" for r in reqs
+               if r.name.lower() in pins and pins[r.name.lower()] not in r.specifier]
+    assert not missing and not outside, (missing, outside)
+    if pinned == "ubuntu-noble.txt":  # Ubuntu 24.04's own versions
+        assert (pins["numba"], pins["numpy"]) == ("0.58.1", "1.26.4")
 
 
 # ---------------------------------------------------------------- environment

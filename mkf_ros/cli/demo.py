@@ -161,7 +161,7 @@ class _Demo:
         self._warm()
         env = dict(os.environ, RCUTILS_COLORIZED_OUTPUT="0", PYTHONUNBUFFERED="1",
                    RCUTILS_CONSOLE_OUTPUT_FORMAT="[{severity}] [{name}]: {message}")
-        est_cmd = [*_exe("estimator", "mkf_ros.ros.estimator_node"), "--ros-args"]
+        est_cmd = [*_exe("estimator", "mkf_ros.ros.estimator_main"), "--ros-args"]
         for k, v in self.params.items():
             est_cmd += ["-p", f"{k}:={_ros_value(v)}"]
         ply_cmd = [
@@ -178,7 +178,7 @@ class _Demo:
         return self._run_nodes(est_cmd, ply_cmd, env)
 
     def _warm(self) -> None:
-        from mkf_ros.api import FIRST_COMPILE_TIME, warmup
+        from mkf_ros.kernels import FIRST_COMPILE_TIME, warmup
 
         t0 = time.monotonic()
         self.say("  loading the filter kernels (compiled at install time; where that step did "

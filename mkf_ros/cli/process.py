@@ -217,7 +217,7 @@ def run(args: argparse.Namespace) -> int:
 
     check_smooth(args)
     if process_batch.wanted(args):
-        return process_batch.run(args)
+        return process_batch.run(args, _overrides(args))
     args.bag = args.bags[0]
     if args.storage not in ("mcap", "sqlite3"):
         raise CliError(f"unknown storage {args.storage!r} (choose from mcap, sqlite3)")

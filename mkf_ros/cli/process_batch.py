@@ -26,10 +26,10 @@ def wanted(args: argparse.Namespace) -> bool:
             or is_folder_of_bags(Path(args.bags[0])))
 
 
-def _jobs(args: argparse.Namespace, out: Path) -> tuple[list[Any], list[str]]:
+def _jobs(args: argparse.Namespace, out: Path,
+          params: dict[str, Any]) -> tuple[list[Any], list[str]]:
     from mkf_ros.bags.batch import BagJob, find_bags
     from mkf_ros.cli.main import CliError
-    from mkf_ros.cli.process import _overrides
 
     try:
         pairs = find_bags(args.bags, exclude=out)
@@ -40,7 +40,6 @@ def _jobs(args: argparse.Namespace, out: Path) -> tuple[list[Any], list[str]]:
                    storage=args.storage, overwrite=args.overwrite, copy_input=args.copy_input,
                    skip=args.skip, smooth=args.smooth, smooth_window=args.smooth_window,
                    smooth_overlap=args.smooth_overlap)
-    params = _overrides(args)
     jobs, names, existing = [], [], []
     for bag, name in pairs:
         dest = out.resolve() / name
@@ -58,7 +57,7 @@ def _jobs(args: argparse.Namespace, out: Path) -> tuple[list[Any], list[str]]:
     return jobs, names
 
 
-def run(args: argparse.Namespace) -> int:
+def run(args: argparse.Namespace, params: dict[str, Any]) -> int:
     from mkf_ros import parallel
     from mkf_ros.bags.batch import run_batch, summary_csv, summary_table
     from mkf_ros.cli.main import CliError
@@ -76,7 +75,7 @@ def run(args: argparse.Namespace) -> int:
         raise CliError(f"--out {out} is a file; with several bags it must be a folder")
     if (out / "metadata.yaml").is_file():
         raise CliError(f"--out {out} is a bag; with several bags it must be a folder")
-    jobs, names = _jobs(args, out)
+    jobs, names = _jobs(args, out, params)
     try:
         for j in jobs:
             Path(j.out).parent.mkdir(parents=True, exist_ok=True)
@@ -96,9 +95,9 @@ def run(args: argparse.Namespace) -> int:
             where = f"Dask cluster {args.scheduler} ({slots} worker threads)"
         else:
             slots = min(args.jobs if args.jobs is not None else parallel.cores(), len(jobs))
-            import mkf_ros
+            from mkf_ros.kernels import warmup
 
-            mkf_ros.warmup()  # before forking: the workers inherit the kernels
+            warmup()  # before forking: the workers inherit the kernels
             # one forked process per bag: a bag that crashes its process fails alone
             executor = parallel.ForkPerUnit(slots)
             where = f"{slots} process(es)"

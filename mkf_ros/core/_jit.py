@@ -1,4 +1,6 @@
-"""The one place that decides how kernels are compiled and cached.
+"""How a kernel is compiled and cached: the decorators (:func:`jit`, :func:`jit_inline`,
+:func:`unit`) and numba's cache location. What gets compiled, when, and how long it takes is
+:mod:`mkf_ros.kernels`.
 
 Every numerical kernel in mkf_ros is a plain Python function decorated with :func:`jit`. With
 numba they are compiled once and cached on disk; with ``NUMBA_DISABLE_JIT=1`` they run as ordinary
@@ -11,15 +13,13 @@ versions; numba itself keys each entry on the CPU, so a foreign-CPU entry is nev
 keeps the cache in a per-user directory (``$MKF_ROS_CACHE_DIR``, else
 ``$XDG_CACHE_HOME/mkf_ros``, else ``~/.cache/mkf_ros``), so an editable install, a colcon install
 tree and every process share one cache, and any change to any kernel invalidates all of them.
+The directory is chosen when the first kernel is compiled or loaded, not at import.
 
-Compiling takes minutes, so the kernels are also compiled at *install* time (``setup.py``'s
-``build_py`` step, which ``pip install``, ``pip wheel`` and ``colcon build`` run, and
-``./run setup`` for the editable checkout: :func:`precompile`) into the package itself
-(``mkf_ros/_kernels/numba-<hash>/``). A user cache that lacks a kernel is seeded from there (a
-file copy, well under a second), so a new user, container or cache directory starts in seconds.
-
-A cache directory that cannot be written is not an error: the kernels go to a private temporary
-directory instead (seeded the same way) and one warning says where it looked.
+The install-time compile (:func:`mkf_ros.kernels.precompile`) puts the kernels into the package
+itself (``mkf_ros/_kernels/numba-<hash>/``). A user cache that lacks a kernel is seeded from there
+(a file copy, well under a second), so a new user, container or cache directory starts in
+seconds. A cache directory that cannot be written is not an error: the kernels go to a private
+temporary directory instead (seeded the same way) and one warning says where it looked.
 
 Compile units. numba links the machine code of every compiled function into each compiled
 function that calls it, directly or through others, and optimises and compiles it there again
@@ -27,7 +27,7 @@ function that calls it, directly or through others, and optimises and compiles i
 units (:func:`unit`): each is compiled once, on its own, as a C callable (a numba ``cfunc``),
 and its callers receive it as an argument and call it through its address (a few nanoseconds
 per call). Its callers' compile no longer includes it, and the units compile independently of each
-other, so :func:`precompile` spreads them over processes.
+other.
 """
 
 from __future__ import annotations
@@ -37,6 +37,7 @@ import os
 import shutil
 import sys
 import tempfile
+import threading
 import warnings
 from collections.abc import Callable
 from pathlib import Path
@@ -141,12 +142,30 @@ def _choose_cache_dir() -> Path:
     return cache
 
 
-_CACHE_DIR = _choose_cache_dir()
+def prune_old_caches(root: Path, keep_days: float = 7.0) -> None:
+    """Best effort: remove caches of other kernel versions unused for ``keep_days``."""
+    import time
+
+    try:
+        for d in root.glob("numba-*"):
+            old = time.time() - d.stat().st_mtime > keep_days * 86400
+            if d.name != _VERSION_DIR and old:
+                shutil.rmtree(d, ignore_errors=True)
+    except OSError:
+        pass
+
+
+_CACHE_DIR: list[Path] = []
 
 
 def kernel_cache_dir() -> Path:
-    """Where this version of the kernels is cached (exists once something was compiled)."""
-    return _CACHE_DIR
+    """Where this version of the kernels is cached: chosen (and seeded from the install-time
+    kernels, and caches of other versions unused for a week removed) on the first call, which
+    is the first kernel compiled or loaded."""
+    if not _CACHE_DIR:
+        prune_old_caches(_cache_root())
+        _CACHE_DIR.append(_choose_cache_dir())
+    return _CACHE_DIR[0]
 
 
 class KernelCacheLocator(caching._SourceFileBackedLocatorMixin, caching._CacheLocator):
@@ -177,124 +196,43 @@ class KernelCacheLocator(caching._SourceFileBackedLocatorMixin, caching._CacheLo
         return self
 
 
-def _prune_old_caches(root: Path, keep_days: float = 7.0) -> None:
-    """Best effort: remove caches of other kernel versions unused for ``keep_days``."""
-    import time
-
-    try:
-        for d in root.glob("numba-*"):
-            old = time.time() - d.stat().st_mtime > keep_days * 86400
-            if d.name != _VERSION_DIR and old:
-                shutil.rmtree(d, ignore_errors=True)
-    except OSError:
-        pass
-
-
-#: The compiled loops that take the units (:func:`mkf_ros.api.compile_entries`), and their
-#: compile times on the reference machine (``./run bench compile_time --tasks``).
-_ENTRY_COSTS = {"estimate": 11.0, "filter": 2.0, "stream": 20.0}
-
-
-def compile_tasks() -> tuple[list[str], list[str]]:
-    """The install-time compile as two lists of tasks: first every :class:`Unit`
-    (``"unit:MODULE.NAME"``) and the compiled loops that take them (``"entries:PART"``,
-    :func:`mkf_ros.api.compile_entries`), independent of each other, largest first (so that
-    the processes end together); then ``"warmup:all"`` (:func:`mkf_ros.api.warmup`: loads
-    them all and compiles whatever they missed; and the simulator's integration kernel,
-    :mod:`mkf_ros.sim._integrate`)."""
-    import mkf_ros.api  # noqa: F401  (defines every unit)
-
-    costs = {f"unit:{u.__module__}.{u.__qualname__}": u.cost for u in UNITS}
-    costs.update({f"entries:{p}": c for p, c in _ENTRY_COSTS.items()})
-    return sorted(costs, key=lambda t: -costs[t]), ["warmup:all"]
-
-
-def run_compile_task(task: str) -> tuple[str, float, float, int]:
-    """One task of :func:`compile_tasks` in this process: ``(task, wall s, CPU s, peak RSS
-    in KiB of this process)``."""
-    import resource
-    import time
-
-    t0, c0 = time.perf_counter(), time.process_time()
-    import mkf_ros.api as api
-
-    kind, name = task.split(":", 1)
-    if kind == "unit":
-        _ = next(u for u in UNITS if f"{u.__module__}.{u.__qualname__}" == name).compiled
-    elif kind == "entries":
-        api.compile_entries(name)
-    else:
-        api.warmup()
-        import numpy as np
-
-        from mkf_ros.sim.motion import integrate
-
-        integrate(np.array([1.0, 0.0, 0.0, 0.0]), np.zeros((2, 3)), 0.01)  # the simulator's
-    return (task, time.perf_counter() - t0, time.process_time() - c0,
-            resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)
-
-
-def compile_jobs() -> int:
-    """Processes of the install-time compile: ``$MKF_ROS_COMPILE_JOBS``, else the CPUs this
-    process may use, at most 2 (each takes up to ~0.5 GB)."""
-    env = os.environ.get("MKF_ROS_COMPILE_JOBS", "")
-    if env.strip().isdigit() and int(env) > 0:
-        return int(env)
-    try:
-        n = len(os.sched_getaffinity(0))
-    except AttributeError:  # pragma: no cover (not Linux)
-        n = os.cpu_count() or 1
-    return max(1, min(2, n))
-
-
-def precompile(root: Path, jobs: int | None = None,
-               report: Callable[[tuple[str, float, float, int]], object] | None = None) -> None:
-    """Compile every kernel into ``root/numba-<hash>/`` (the install-time step; see the module
-    docstring), dropping other versions there: the tasks of :func:`compile_tasks`, each in a
-    fresh process whose cache is ``root``, ``jobs`` at a time (:func:`compile_jobs`).
-    ``report`` receives each task's result (:func:`run_compile_task`)."""
-    import concurrent.futures
-    import multiprocessing
-
-    units, entries = compile_tasks()
-    jobs = jobs or compile_jobs()
-    saved = {k: os.environ.get(k) for k in ("MKF_ROS_CACHE_DIR", "PYTHONWARNINGS")}
-    os.environ.update(MKF_ROS_CACHE_DIR=str(root), PYTHONWARNINGS="ignore")
-    try:
-        for phase in (units, entries):
-            with concurrent.futures.ProcessPoolExecutor(
-                    max_workers=jobs, mp_context=multiprocessing.get_context("spawn"),
-                    max_tasks_per_child=1) as pool:
-                for result in pool.map(run_compile_task, phase):
-                    if report is not None:
-                        report(result)
-    finally:
-        for k, v in saved.items():
-            if v is None:
-                os.environ.pop(k, None)
-            else:
-                os.environ[k] = v
-    _prune_old_caches(root, keep_days=0.0)
-
-
-_prune_old_caches(_cache_root())
-
 if KernelCacheLocator not in caching.CacheImpl._locator_classes:
     caching.CacheImpl._locator_classes.insert(0, KernelCacheLocator)
 
+_NUMBA_VERSION = tuple(int(x) for x in numba.__version__.split(".")[:2])
 #: Whether kernels run as plain Python (``NUMBA_DISABLE_JIT=1``).
 JIT_DISABLED = bool(vars(numba.config)["DISABLE_JIT"])
+
+
+_CACHE_SETUP = threading.Lock()
 
 
 class _Dispatcher(CPUDispatcher):
     """numba's dispatcher, compiling one version per argument *types* for calls from compiled
     code too: numba compiles a separate version of a function for each constant (literal)
     argument of a compiled caller (``f(x, True)`` and ``f(x, False)``: two versions; measured:
-    up to 10 of one small kernel, a quarter of the compile time)."""
+    up to 10 of one small kernel, a quarter of the compile time). Its cache is set up on the
+    first compile or load."""
 
     def get_call_template(self, args: Any, kws: Any) -> Any:
         return super().get_call_template(tuple(types.unliteral(a) for a in args),
                                          {k: types.unliteral(v) for k, v in kws.items()})
+
+    _cache_wanted = False
+
+    def enable_caching(self) -> None:
+        """Caching from the first compile or load on (:meth:`compile`), not from the
+        decoration: numba's cache asks for its directory when it is set up, and importing
+        the kernels touches no disk."""
+        self._cache_wanted = True
+
+    def compile(self, sig: Any) -> Any:
+        if self._cache_wanted:  # set up once, before any thread compiles or loads (the
+            with _CACHE_SETUP:  # two-way smoother's passes call the same kernels at once)
+                if self._cache_wanted:
+                    super().enable_caching()
+                    self._cache_wanted = False
+        return super().compile(sig)
 
 
 _OPTIONS = {"nopython": True, "nogil": True, "error_model": "numpy"}
@@ -361,9 +299,12 @@ def _function_at(typingctx: Any, addr: Any, fntype: Any) -> tuple:
     ft = fntype.instance_type
 
     def codegen(context: Any, builder: Any, sig: Any, args: tuple) -> Any:
-        fn = cgutils.create_struct_proxy(ft)(context, builder)
-        fn.c_addr = builder.inttoptr(args[0], fn.c_addr.type)
-        return fn._getvalue()
+        # the C address is the first field of numba's FunctionType value (``addr`` up to
+        # numba 0.58, ``c_addr`` since); the others (the Python object, the jit address)
+        # stay null: nothing calls a unit but through its C address
+        llty = context.get_value_type(ft)
+        addr = builder.inttoptr(args[0], llty.elements[0])
+        return builder.insert_value(cgutils.get_null_value(llty), addr, 0)
 
     return ft(addr, fntype), codegen
 
@@ -391,5 +332,10 @@ def unit(signature: numba.core.typing.templates.Signature,
 #: more than the arithmetic of a 6-state update, ~0.3 µs for a call with many arrays); inlined,
 #: numba prunes most of those pairs. Costs compile time at every call site (numba types the
 #: inlined code again there). Not for functions with more than 30 parameters (numba cannot
-#: inline such a call).
-jit_inline = _kernel("always")
+#: inline such a call). numba before 0.59 copies the inlined function statement by statement,
+#: each copy taking the function's whole variable scope along (time and memory quadratic in its
+#: size: 80 CPU-s for :func:`~mkf_ros.core.filter.output` alone, past 8 GB for the sensor
+#: step); there these are ordinary kernels, which LLVM may still inline (the same arithmetic in
+#: the same order: the same results).
+INLINE_AT_IR_LEVEL = _NUMBA_VERSION >= (0, 59)
+jit_inline = _kernel("always" if INLINE_AT_IR_LEVEL else "never")

@@ -393,6 +393,7 @@ class AttitudeFilter:
         """Forget the estimate: the next accelerometer sample re-initialises (bias kept at 0)."""
         self._st = new_records(STATE)
         record(self._st).q_c[0] = 1.0
+        self._arrays = KernelArrays(self._cfg, self._st, self._counters, self._work)
 
     @property
     def counters(self) -> np.ndarray:
@@ -431,6 +432,7 @@ class AttitudeFilter:
         if switch:
             from_canonical_entry(cfg, self._st)
         self._params, self._cfg = new, cfg
+        self._arrays = KernelArrays(self._cfg, self._st, self._counters, self._work)
         return new
 
     def set_split_input(self, split: bool) -> None:
@@ -445,7 +447,7 @@ class AttitudeFilter:
         :func:`run_step` and ``Kernels.output`` (:mod:`mkf_ros.stream.kernel`). They are the
         filter's own (updated in place) until :meth:`reset` or :meth:`set_params`; read them
         through the accessors above."""
-        return KernelArrays(self._cfg, self._st, self._counters, self._work)
+        return self._arrays  # built when they change (a front end calls this per message)
 
     def run(self, dts: np.ndarray, gyr: np.ndarray, acc: np.ndarray,
             mag: np.ndarray) -> BatchOutputs:

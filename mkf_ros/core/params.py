@@ -212,8 +212,8 @@ PARAMS: tuple[Param, ...] = (
        "removes; the accelerometer's disturbance variance grows by (v*W/g)^2 (W low-passed "
        "over acc_time_constant, correlated over it), so that the gyro carries the tilt through "
        "the turn. 0 = the body turns in place (a handheld sensor); a person walking or "
-       "running: 1.5-3 (phones carried indoors: 2 lowers the tilt error by 14 %, "
-       "docs/real_data.md); a car: its speed",
+       "running: 1.5-3 (phones carried by two people: 2 lowers each one's tilt error by an "
+       "eighth, docs/real_data.md); a car: its speed",
        unit="m/s", range=(0.0, 100.0), group="robustness"),
     _P("acc_disturbance_time", float, 0.1, "Correlation time of the non-gravitational "
        "acceleration left in the fused accelerometer: its per-sample variance is "
@@ -247,17 +247,6 @@ PARAMS: tuple[Param, ...] = (
        "low-passed field by more than this fraction of the field (plus the gyro scale error "
        "over the rotation in its memory) are not fused", unit="1", range=(0.0, 1000.0),
        group="robustness"),
-    _P("mag_timing_error", float, 0.0, "Timing error of the magnetometer against the gyro "
-       "(sampled separately on phones and many IMUs, resampled, delayed): at a rate w the "
-       "field turns by w times this between them, which the consistency test allows (tyrex "
-       "phones: 0.01 s lowers the 9D error by 0.5 deg; 0 keeps RepoIMU's Xsens-class IMU at "
-       "its best)",
-       unit="s", range=(0.0, 1.0), group="robustness"),
-    _P("mag_undisturbed_time", float, 0.0, "The field must have passed the magnitude, dip and "
-       "consistency tests for this long without a break before it is fused again (0: every "
-       "sample that passes them; a person or robot moving through a building passes them "
-       "only in short stretches)", unit="s",
-       range=(0.0, 3600.0), group="robustness"),
     _P("mag_disturbance_time", float, 3.0, "Correlation time of the magnetometer's heading "
        "error (calibration, the local field: indoors it changes over metres, seconds at "
        "walking speed): the heading variance per sample is the noise's times max(1, time/dt); "

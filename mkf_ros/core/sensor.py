@@ -82,6 +82,7 @@ from mkf_ros.core.state import (
     F33,
     FUSION_T,
     GYR,
+    GYRO_SURPRISE_CHI2,
     LP_ACC,
     LP_MAG,
     LP_RATE,
@@ -290,7 +291,6 @@ def _heading_init(c: np.record, s: np.record, m_body: np.ndarray, m_norm: float)
     set_world_attitude_cov(s, c.nx, 0.0, mag_yaw_var(c, ref), True)
     s.heading_fixed = True
     s.t_mag_disagree = 0.0
-    s.t_mag_ok = 0.0
     s.t_mag_lp = 0.0
     for i in range(3):  # the field's low-pass starts at this sample (unit magnitude)
         s.mag_lp[i] = m_body[i]
@@ -428,19 +428,36 @@ def start(c: np.record, s: np.record, k: np.record, cn: Canonical, dt: float, gy
 
 # --- 3. the gyro -----------------------------------------------------------------------------
 @hot
-def _gyro_gate(c: np.record, s: np.record, k: np.record, g: tuple) -> bool:
+def _rate_jump(P: np.ndarray, r: tuple, dt: float) -> None:
+    """The attitude's variance grows by ``Δt² r rᵀ``: a rate jump ``r`` over the step
+    (:func:`_gyro_gate`), added symmetrically (each entry once)."""
+    for i in range(3):
+        for j in range(i, 3):
+            v = P[i, j] + dt * dt * r[i] * r[j]
+            P[i, j] = v
+            P[j, i] = v
+
+
+@hot
+def _gyro_gate(c: np.record, s: np.record, k: np.record, g: tuple, dt: float) -> bool:
     """The gyro's innovation gate: the innovation ``g − ω̄ − b̄`` against
     ``S = H P Hᵀ + R_ω`` (``H = [0, I, I]``), χ² with ``gyro_gate``. One sample alone beyond it
     is an outlier (a corrupted message): it is skipped — it reaches neither the filter nor the
     inertial low-passes — and counted. A second one in a row says the rate did change that
     much: the rate's prior was too narrow by the innovation, so its variance grows by it
-    (``P_ωω += diag(r²)``) and the sample is taken. Returns whether to use the sample."""
+    (``P_ωω += diag(r²)``) and the sample is taken. A sample taken beyond
+    :data:`~mkf_ros.core.state.GYRO_SURPRISE_CHI2` is a jump of the rate that the model did
+    not expect, real (an impact) or not (a glitch below the gate): the rotation over the coming
+    step is uncertain by ``r Δt``, so the attitude's variance grows by ``Δt² r rᵀ`` (PSD; a
+    20° glitch is then as uncertain as it is wrong, and the accelerometer and magnetometer
+    take it back in seconds instead of at the pace of a confident filter). Returns whether to
+    use the sample."""
     bias = c.nx == 9
     w, b, P = s.w, s.b, s.P
     r = (g[0] - w[0] - (b[0] if bias else 0.0), g[1] - w[1] - (b[1] if bias else 0.0),
          g[2] - w[2] - (b[2] if bias else 0.0))
     rw = c.gyro_var
-    if r[0] * r[0] + r[1] * r[1] + r[2] * r[2] <= c.gyro_gate * rw:
+    if r[0] * r[0] + r[1] * r[1] + r[2] * r[2] <= min(c.gyro_gate, GYRO_SURPRISE_CHI2) * rw:
         s.gyr_rejected = False  # S ⪰ R_ω I, so rᵀ S⁻¹ r ≤ |r|²/R_ω: within, no inverse needed
         return True
     S = [[0.0, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]]
@@ -457,11 +474,14 @@ def _gyro_gate(c: np.record, s: np.record, k: np.record, g: tuple) -> bool:
             nis += r[i] * Si[i][j] * r[j]
     if okinv and not nis > c.gyro_gate:
         s.gyr_rejected = False
+        if nis > GYRO_SURPRISE_CHI2:
+            _rate_jump(P, r, dt)
         return True
     k.gyr_rejected_chi2 += 1
     if s.gyr_rejected:
         for i in range(3):
             P[3 + i, 3 + i] += r[i] * r[i]
+        _rate_jump(P, r, dt)
         s.gyr_rejected = False
         return True
     s.gyr_rejected = True
@@ -469,12 +489,13 @@ def _gyro_gate(c: np.record, s: np.record, k: np.record, g: tuple) -> bool:
 
 
 @hot
-def _gyro(c: np.record, s: np.record, k: np.record, g: tuple, has_g: bool) -> tuple:
+def _gyro(c: np.record, s: np.record, k: np.record, g: tuple, has_g: bool,
+          dt: float) -> tuple:
     """The gyro sample after its gate (MEKF and MUKF with ``gyro_gate``), and the rate (bias
     removed) that turns the inertial low-passes over this step: the gyro's, or without one the
     estimate's. Returns ``(g, has_g, ω_l)``."""
     if has_g and c.algorithm <= ALGO_MUKF and c.gyro_gate > 0 and not c.paper_init:
-        has_g = _gyro_gate(c, s, k, g)
+        has_g = _gyro_gate(c, s, k, g, dt)
         if not has_g:
             g = ZERO3
     b, w = s.b, s.w
@@ -825,12 +846,11 @@ def _mag_plausible(c: np.record, s: np.record, k: np.record, R: tuple, m_body: t
 
 @hot
 def _mag_consistent(c: np.record, s: np.record, k: np.record, m_body: tuple, m_norm: float,
-                    alm: float, rate: float) -> bool:
+                    alm: float) -> bool:
     """The field over its learned magnitude against its own low-pass in the almost inertial
     frame (``mag_consistency_tolerance``, plus the gyro's scale error over the rotation in that
-    memory and the turn at the current ``rate`` over the magnetometer's timing error against
-    the gyro, ``mag_timing_error``), the low-pass stepped by this sample; counted if not. True
-    before a magnitude is learned."""
+    memory), the low-pass stepped by this sample; counted if not. True before a magnitude is
+    learned."""
     if s.mag_count <= 0:
         return True
     f = m_norm / s.mag_norm
@@ -839,8 +859,7 @@ def _mag_consistent(c: np.record, s: np.record, k: np.record, m_body: tuple, m_n
     dev2 = (mv[0] - lp[0]) ** 2 + (mv[1] - lp[1]) ** 2 + (mv[2] - lp[2]) ** 2
     _lowpass(lp, mv, alm)
     tol2 = (c.mag_consistency_tolerance ** 2
-            + (c.gyro_scale_error * c.mag_time_constant * s.mag_rate_lp) ** 2
-            + (c.mag_timing_error * rate) ** 2)
+            + (c.gyro_scale_error * c.mag_time_constant * s.mag_rate_lp) ** 2)
     if dev2 > tol2:
         k.mag_rejected_inconsistent += 1
         return False
@@ -913,7 +932,6 @@ def _mag_checks(c: np.record, s: np.record, k: np.record, u: Units, dt: float, d
       body turns; a magnet on the body turns with it, and a field that changes along the path
       changes;
     * plausibility: magnitude and dip against the learned reference (:func:`_mag_plausible`);
-    * both held for ``mag_undisturbed_time`` without a break;
     * recovery (:func:`mag_recovery`) after ``mag_recovery_time`` of χ² refusals.
 
     Counted when refused."""
@@ -926,18 +944,13 @@ def _mag_checks(c: np.record, s: np.record, k: np.record, u: Units, dt: float, d
     s.t_mag_lp = t + dtm
     alm, _ = _lowpass_gain(s, LP_MAG, t, dtm, c.mag_time_constant)
     Rq = rotmat_t(t4(s.q_c))
-    rate = np.sqrt(wl[0] * wl[0] + wl[1] * wl[1] + wl[2] * wl[2])
-    ok = _mag_consistent(c, s, k, m_body, m_norm, alm, rate)
+    ok = _mag_consistent(c, s, k, m_body, m_norm, alm)
     if ok and not _mag_plausible(c, s, k, Rq, m_body, m_norm):
         ok = _mag_candidate(c, s, dtm, Rq, m_body, m_norm, wl)
     elif ok:
         s.t_mag_cand = 0.0  # the reference holds: no candidate
     if not ok:
-        s.t_mag_ok = 0.0
         s.t_mag_disagree = 0.0  # disturbance, not evidence of a wrong heading
-        return False
-    s.t_mag_ok += dtm
-    if s.t_mag_ok < c.mag_undisturbed_time:
         return False
     if s.t_mag_disagree > c.mag_recovery_time:
         u.mag_recovery(c, s, u.canonical, Rq, m_body)
@@ -1318,7 +1331,7 @@ def step(c: np.record, s: np.record, k: np.record, w: np.record, u: Units, dt: f
     s.t_acc_refused += dt
     if s.t_mag_disagree > 0.0:  # inside a period of disagreement with a plausible field
         s.t_mag_disagree += dt
-    g, has_g, wl = _gyro(c, s, k, gyr if has_g else ZERO3, has_g)
+    g, has_g, wl = _gyro(c, s, k, gyr if has_g else ZERO3, has_g, dt)
     Rw = rotmat_t(q_omega_t(wl, dt))  # R(Δq): body axes of the previous sample → this one
     a_body, var_a, a_raw, var_a_raw, a_ok, has_a, a_sens, a_bias_gain = _accelerometer(
         c, s, k, u, dt, wl, Rw, acc, has_a)

@@ -42,7 +42,7 @@ COPIED_PARAMS = (
     "acc_norm_tolerance", "acc_gate", "acc_recovery_time", "acc_time_constant", "acc_bias_excess",
     "mag_bias_gain", "acc_turn_speed",
     "acc_disturbance_time", "acc_alignment_error", "gyro_scale_error", "gyro_gate",
-    "mag_time_constant", "mag_consistency_tolerance", "mag_timing_error", "mag_undisturbed_time",
+    "mag_time_constant", "mag_consistency_tolerance",
     "mag_disturbance_time", "mag_norm_tolerance", "mag_dip_tolerance", "mag_gate",
     "mag_recovery_time", "mag_new_time", "mag_new_first_time", "rest_gyro_threshold",
     "rest_acc_threshold", "rest_time",
@@ -111,7 +111,6 @@ STATE = np.dtype(
         # --- timers (s)
         ("t_acc_refused", np.float64),  # since the last accepted accelerometer sample
         ("t_mag_disagree", np.float64),  # a plausible field has disagreed (χ²); 0: it agrees
-        ("t_mag_ok", np.float64),  # the field has been plausible and consistent
         ("t_rest", np.float64),  # at rest without a break
         ("dt_acc", np.float64),  # since the previous accelerometer sample
         ("dt_mag", np.float64),  # since the previous magnetometer sample
@@ -227,6 +226,13 @@ ACC_CLIP_SIGMAS = 4.0
 MAG_NEW_MIN_RATE = 0.35
 REST_LP_TAU = 0.5  # s: rest detection compares the gyro and accelerometer with their low-pass
 REST_CHI2 = 16.27  # 3 degrees of freedom, 0.1 %: the low-passed rate agrees with the bias
+#: A gyro sample whose innovation against the rate model is beyond this χ² (3 degrees of
+#: freedom; 1000 is a rate change ~30 σ of the rate model's prior: at 100 Hz and the default
+#: ``rate_process_noise``, ~14 rad/s within one sample) is a jump no motion of the model explains
+#: — a glitch, or an impact that saturates the gyro: the attitude over the step is then uncertain
+#: by the jump times the step (docs/math.md §9.3). Lower (the 0.1 % level, 16.3) took the jerks
+#: of a phone in a running person's pocket for jumps: tyrex 6D +0.04°.
+GYRO_SURPRISE_CHI2 = 1000.0
 # Euler baselines' tilt re-alignment (:func:`baseline_realign`): the accelerometer "looks like
 # gravity" when its magnitude is within this fraction of ``gravity`` ...
 REALIGN_ACC_TOL = 0.05

@@ -334,8 +334,8 @@ def read_tyrex_trial(path: str | Path, info: dict | None = None) -> Recording:
     gyro's rate, gyro rad/s (the authors' static bias removed), acc m/s² (+g up), magnetometer
     µT, reference quaternion [w x y z] phone → ENU (absolute heading: no alignment), ``valid``
     where the reference is scored. ``meta["groups"]``: the motion (AR, Texting, …), the
-    disturbance (Dist, NoDist) and the device, from ``info`` (an entry of ``trials.json``) or
-    the file name ``User_Device_Dist_Motion``."""
+    disturbance (Dist, NoDist), the device and the user, from ``info`` (an entry of
+    ``trials.json``) or the file name ``User_Device_Dist_Motion``."""
     path = Path(path)
     with np.load(path) as z:
         gyr = np.array(z["gyr"], dtype=float)
@@ -355,13 +355,14 @@ def read_tyrex_trial(path: str | Path, info: dict | None = None) -> Recording:
     device = str(info.get("device", parts[1] if len(parts) > 1 else ""))
     dist = info.get("magnetic_disturbance", len(parts) > 2 and parts[2] == "Dist")
     motion = str(info.get("motion", parts[-1]))
-    groups = ["all_trials", motion, "Dist" if dist else "NoDist", device]
+    user = str(info.get("user", parts[0]))
+    groups = ["all_trials", motion, "Dist" if dist else "NoDist", device, user]
     cats = {"all_trials": "", "Dist": "disturbance", "NoDist": "disturbance"}
     return Recording(
         name=path.stem, dataset="tyrex", t=np.arange(n) / rate, gyr=gyr, acc=acc, mag=mag,
         q_ref=q, alignment="none", errors=ALL_ERRORS, note="",
         meta={"path": str(path), "rate": rate, "groups": groups,
-              "group_categories": {**cats, motion: "motion", device: "device"}},
+              "group_categories": {**cats, motion: "motion", device: "device", user: "user"}},
     )
 
 

@@ -27,7 +27,9 @@ from rclpy.publisher import Publisher
 from rclpy.qos_overriding_options import QoSOverridingOptions
 from sensor_msgs.msg import Imu
 
-from mkf_ros.ros.estimator_node import USAGE, EstimatorNode, main, output_qos
+from mkf_ros.ros.estimator_main import USAGE, main
+from mkf_ros.ros.estimator_node import EstimatorNode
+from mkf_ros.ros.qos import output_qos
 
 
 class EstimatorLifecycleNode(EstimatorNode, LifecycleNode):

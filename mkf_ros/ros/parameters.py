@@ -5,13 +5,23 @@ Every :class:`~mkf_ros.core.params.Param` becomes a statically typed ROS paramet
 ``IntegerRange``, the allowed choices in ``additional_constraints``, and ``read_only`` where
 the definition says so. Integers given for floating-point parameters (``max_dt:=1`` on the
 command line, ``max_dt: 1`` in YAML) are accepted as doubles.
+
+Parameters that would be silently ignored are named instead: start-up overrides that match
+no parameter (:func:`unknown_overrides`: a typo, or another filter's parameter), and
+parameter files or ``-p node:name:=value`` rules addressed to another IMU filter's node name
+(:func:`foreign_filter_rules`: a parameter file of imu_filter_madgwick, keyed
+``imu_filter_madgwick:`` or ``imu_filter:``, given to this node).
 """
 
 from __future__ import annotations
 
 import difflib
+import re
+from collections.abc import Iterator, Sequence
+from pathlib import Path
 from typing import Any
 
+import yaml
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 from rclpy.exceptions import ParameterNotDeclaredException
 from rclpy.node import Node
@@ -135,4 +145,107 @@ def unknown_overrides(node: Node) -> dict[str, str]:
         if node.has_parameter(name):
             continue
         out[name] = unknown_hint(name)
+    return out
+
+
+#: Node names of other IMU filters' nodes: imu_filter_madgwick's default and the name its
+#: launch files give it, imu_complementary_filter's launch name and default; with any name
+#: that mentions madgwick or a complementary filter (:func:`looks_like_imu_filter`).
+IMU_FILTER_NODE_NAMES = ("imu_filter_madgwick", "imu_filter", "complementary_filter_gain_node",
+                         "ComplementaryFilterROS")
+
+
+def looks_like_imu_filter(name: str) -> bool:
+    """Whether a node name is another IMU filter's (:data:`IMU_FILTER_NODE_NAMES`)."""
+    low = name.lower()
+    return (name in IMU_FILTER_NODE_NAMES or "madgwick" in low
+            or "complementary_filter" in low or low.startswith("imu_filter"))
+
+
+def node_key_matches(key: str, fqn: str) -> bool:
+    """Whether a parameter file's node key (``estimator``, ``/ns/estimator``, ``/**``,
+    ``/**/estimator``, ``/ns/*``) addresses the node ``fqn`` (``/ns/name``), as rcl matches
+    it: a key without a leading ``/`` is absolute all the same, ``*`` is one name, ``**`` any
+    number of names."""
+    pattern = ""
+    for tok in key.strip("/").split("/"):
+        pattern += "(/[^/]+)*" if tok == "**" else "/" + re.escape(tok).replace(r"\*", "[^/]+")
+    return re.fullmatch(pattern, fqn) is not None
+
+
+def _node_keys(tree: Any, path: str = "") -> Iterator[str]:
+    """The node keys of a parameter file (nested namespaces joined: ``/ns: {node: ...}`` is
+    ``/ns/node``)."""
+    if not isinstance(tree, dict):
+        return
+    for key, value in tree.items():
+        if key == "ros__parameters":
+            yield path
+        elif isinstance(value, dict):
+            yield from _node_keys(value, f"{path}/{str(key).strip('/')}" if path else str(key))
+
+
+def ros_parameter_sources(argv: Sequence[str]) -> tuple[list[str], list[tuple[str, str]]]:
+    """The parameter files (``--params-file F``) and node-addressed rules (``-p node:name:=v``,
+    as ``(node, "name:=v")``) among the ROS arguments of a command line."""
+    files: list[str] = []
+    rules: list[tuple[str, str]] = []
+    in_ros, take = False, ""
+    for arg in argv:
+        if take:
+            if take == "file":
+                files.append(arg)
+            else:
+                name, sep, value = arg.partition(":=")
+                if sep and ":" in name:
+                    node, pname = name.split(":", 1)
+                    rules.append((node, f"{pname}:={value}"))
+            take = ""
+        elif arg == "--ros-args":
+            in_ros = True
+        elif arg == "--":
+            in_ros = False
+        elif in_ros and arg == "--params-file":
+            take = "file"
+        elif in_ros and arg in ("-p", "--param"):
+            take = "param"
+    return files, rules
+
+
+def _run_as(key: str, namespace: str) -> str:
+    """How to run this node (in ``namespace``) as the node that ``key`` addresses."""
+    ns, _, name = ("/" + key.strip("/")).rpartition("/")
+    remaps = f"-r __node:={name}"
+    if ns and ns != namespace.rstrip("/") and "*" not in ns:
+        remaps += f" -r __ns:={ns}"
+    return f"run this node under that name (--ros-args {remaps}; in a launch file: name='{name}')"
+
+
+def foreign_filter_rules(argv: Sequence[str], node_name: str, namespace: str) -> list[str]:
+    """One warning per parameter file section or ``-p node:...`` rule of ``argv`` (the ROS
+    arguments the node was started with) that is addressed to another IMU filter's node name
+    (:func:`looks_like_imu_filter`) and not to this node (``/namespace/node_name``): such
+    parameters are silently ignored by ROS. Each warning names them and says how to apply
+    them. A file that cannot be read is left to rcl (which refuses to start)."""
+    fqn = namespace.rstrip("/") + "/" + node_name
+    files, rules = ros_parameter_sources(argv)
+    out = []
+    for path in files:
+        try:
+            tree = yaml.safe_load(Path(path).read_text())
+        except (OSError, yaml.YAMLError):
+            continue
+        for key in _node_keys(tree):
+            last = key.strip("/").rpartition("/")[2]
+            if "*" in last or not looks_like_imu_filter(last) or node_key_matches(key, fqn):
+                continue
+            out.append(f"{path}: the parameters for node {key!r} (another IMU filter's node "
+                       f"name) are not for this node ({fqn}) and are ignored; to apply them, "
+                       f"{_run_as(key, namespace)} or rename the key {key!r} to "
+                       f"{node_name!r} (or '/**')")
+    for node, rule in rules:
+        if looks_like_imu_filter(node) and not node_key_matches(node, fqn):
+            out.append(f"-p {node}:{rule} is addressed to node {node!r} (another IMU filter's "
+                       f"node name), not to this node ({fqn}), and is ignored; to apply it, "
+                       f"write -p {rule} or {_run_as(node, namespace)}")
     return out

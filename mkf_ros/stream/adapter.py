@@ -54,6 +54,7 @@ estimator's output rather than raw data?).
 from __future__ import annotations
 
 import math
+import struct
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any
@@ -79,6 +80,7 @@ from mkf_ros.stream import rep145
 
 # constants of the rules above, defined with the rules in stream/kernel.py
 from mkf_ros.stream.kernel import MAX_BACKWARDS as MAX_BACKWARDS
+from mkf_ros.stream.rep145 import covariance_out as covariance_out
 
 #: Reasons a sample (or part of one) was dropped, rejected or caused a reset; see module doc.
 COUNTER_REASONS: dict[str, str] = {
@@ -242,22 +244,8 @@ def orientation_note(topic: str) -> str:
             "orientation is ignored; the estimate comes from its gyro and accelerometer")
 
 
-def covariance_out(input_cov: Any, stddev: float, add: Any = None) -> np.ndarray:
-    """Published 3×3 covariances (9 values, row major) from the input's (REP-145): one
-    (9 values) or a stack (M, 9), with ``add`` as one (3×3) or a stack (M, 3, 3).
-
-    An unknown input covariance (all zeros) is filled with ``stddev²`` on the diagonal when
-    ``stddev > 0`` and otherwise stays unknown; ``add`` is added to a known one. A
-    covariance with NaN/Inf or the "not reported" marker (-1 first) counts as unknown.
-    """
-    c = np.array(input_cov, dtype=float)
-    rows = c.reshape(-1, 9)  # a view: ``c`` is filled through it
-    sk.covariance_rows(rows, float(stddev), _NO_ADD if add is None else
-                       np.ascontiguousarray(add, dtype=float).reshape(-1, 9))
-    return c.reshape(-1) if c.ndim < 2 or c.shape == (3, 3) else rows
-
-
-_NO_ADD = np.zeros((0, 9))
+_PRESENT = struct.Struct("<q").unpack_from  # the output record's flags (its first field)
+assert sk.OUTPUT.fields is not None and sk.OUTPUT.fields["present"][1] == 0
 _NAN3 = np.full(3, math.nan)
 
 
@@ -352,8 +340,11 @@ class StreamAdapter:
         self._ev_imu = self._ev_views[sk.EV_IMU]
         self._ev_imu_seq = self._ev[sk.EV_IMU]
         self._out_flat = self._out.view(np.float64)
+        self._out_bytes = self._out.view(np.uint8).data.toreadonly()
+        self._ev_imu_bytes = self._ev_imu_seq.view(np.uint8).data
 
-    _VIEWS = ("_ev_views", "_out_present", "_out_slot", "_ev_imu", "_ev_imu_seq", "_out_flat")
+    _VIEWS = ("_ev_views", "_out_present", "_out_slot", "_ev_imu", "_ev_imu_seq", "_out_flat",
+              "_out_bytes", "_ev_imu_bytes")
 
     def __getstate__(self) -> dict[str, Any]:
         """The state of :func:`copy.deepcopy` and :mod:`pickle`: every record, without the
@@ -567,8 +558,27 @@ class StreamAdapter:
         v[:] = _vec(gyr, "gyr")
         a[:] = _vec(acc, "acc")
         stamp_v[0] = float(stamp)
+        return self.run_imu_event()
+
+    @property
+    def imu_event_bytes(self) -> memoryview:
+        """The bytes of :meth:`step_imu`'s event record (:data:`~mkf_ros.stream.kernel.EVENT`:
+        ``stamp`` s, ``v`` the gyro, ``a`` the accelerometer, float64, all NaN = not
+        reported), writable: a front end that has the readings as bytes writes them here and
+        calls :meth:`run_imu_event` (the node's per-message path, without numpy)."""
+        return self._ev_imu_bytes
+
+    def run_imu_event(self) -> int:
+        """:meth:`step_imu` of the sample already in :attr:`imu_event_bytes` (the same rules:
+        the record is what :meth:`step_imu` writes)."""
         self._run(self._ev_imu_seq, self._out, 0, 1)
-        return int(self._out_present[0])
+        return _PRESENT(self._out_bytes)[0]  # the flags, without a numpy scalar
+
+    @property
+    def output_bytes(self) -> memoryview:
+        """The latest IMU sample's output record (:data:`~mkf_ros.stream.kernel.OUTPUT`) as
+        read-only bytes, updated in place like :attr:`output_values`."""
+        return self._out_bytes
 
     @property
     def output_values(self) -> np.ndarray:
@@ -687,7 +697,7 @@ class StreamAdapter:
             k, why = sk.run_events(kernel_table(), tuple(self.filter.kernel_arrays()), self._npar,
                                    self._ts, self._acnt, self._rec, self._rn, ev, out, k0,
                                    k1)
-            if self._rn[1]:
+            if self._recording and self._rn[1]:
                 raise RuntimeError("smoother recording out of room (record_into: leave a slot "
                                    "per event)")
             if why == sk.R_DONE:

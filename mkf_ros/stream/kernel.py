@@ -216,7 +216,7 @@ def rotate_back(v: np.ndarray, rotvec: np.ndarray) -> np.ndarray:
 @jit
 def covariance_rows(c: np.ndarray, stddev: float, add: np.ndarray) -> None:
     """Published covariances from the input's, in place (rows of 9, see
-    :func:`mkf_ros.stream.adapter.covariance_out`); ``add`` has one row per row of ``c``, one for
+    :func:`mkf_ros.stream.rep145.covariance_out`); ``add`` has one row per row of ``c``, one for
     all, or none."""
     for i in range(c.shape[0]):
         row = c[i]

@@ -4,7 +4,7 @@ Input: a field whose covariance[0] is -1 is "not reported" and reaches the filte
 (None for one message, a NaN row in a stack). Output (``imu/data``): a field without a value
 is published as zeros with covariance[0] = -1 (:data:`NOT_REPORTED`); a field with a value
 carries the filter's own covariance when it has one, and otherwise the input's covariance,
-filled by :func:`mkf_ros.stream.adapter.covariance_out` (all zeros "unknown" → ``stddev²`` on the
+filled by :func:`covariance_out` (all zeros "unknown" → ``stddev²`` on the
 diagonal, plus the filter's ``add``).
 
 The node's message path (:mod:`mkf_ros.ros.convert`), its CDR fast path
@@ -49,9 +49,24 @@ def input_rows(values: Any, cov0: np.ndarray) -> np.ndarray:
     return v
 
 
-def _covariance_out(input_cov: Any, stddev: float, add: Any = None) -> np.ndarray:
-    from mkf_ros.stream.adapter import covariance_out  # compiled kernels: load on first use
-    return covariance_out(input_cov, stddev, add)
+def covariance_out(input_cov: Any, stddev: float, add: Any = None) -> np.ndarray:
+    """Published 3×3 covariances (9 values, row major) from the input's (REP-145): one
+    (9 values) or a stack (M, 9), with ``add`` as one (3×3) or a stack (M, 3, 3).
+
+    An unknown input covariance (all zeros) is filled with ``stddev²`` on the diagonal when
+    ``stddev > 0`` and otherwise stays unknown; ``add`` is added to a known one. A
+    covariance with NaN/Inf or the "not reported" marker (-1 first) counts as unknown.
+    """
+    from mkf_ros.stream import kernel as sk  # compiled kernels: loaded on first use
+
+    c = np.array(input_cov, dtype=float)
+    rows = c.reshape(-1, 9)  # a view: ``c`` is filled through it
+    sk.covariance_rows(rows, float(stddev), _NO_ADD if add is None else
+                       np.ascontiguousarray(add, dtype=float).reshape(-1, 9))
+    return c.reshape(-1) if c.ndim < 2 or c.shape == (3, 3) else rows
+
+
+_NO_ADD = np.zeros((0, 9))
 
 
 def published_covariance(value: np.ndarray | None, filter_cov: np.ndarray | None,
@@ -59,13 +74,13 @@ def published_covariance(value: np.ndarray | None, filter_cov: np.ndarray | None
                          fill: Fill | None = None) -> np.ndarray:
     """The 9 published covariance values of one output field: :data:`NOT_REPORTED` without
     a value; the filter's own ``filter_cov`` (3×3) when given; else the input's filled
-    (``fill``, default :func:`mkf_ros.stream.adapter.covariance_out`, called as
+    (``fill``, default :func:`covariance_out`, called as
     ``fill(input_cov, stddev, add)``)."""
     if value is None:
         return NOT_REPORTED.copy()
     if filter_cov is not None:
         return np.ascontiguousarray(filter_cov, dtype=float).reshape(9)
-    return (fill or _covariance_out)(input_cov, stddev, add)
+    return (fill or covariance_out)(input_cov, stddev, add)
 
 
 def published_covariances(value_ok: np.ndarray, filter_cov: np.ndarray | None,
@@ -84,5 +99,5 @@ def published_covariances(value_ok: np.ndarray, filter_cov: np.ndarray | None,
     a = None if add is None else add[filled]
     if a is not None:  # rows without an ``add`` (NaN) add nothing, as for one message
         a = None if np.isnan(a).all() else np.where(np.isnan(a), 0.0, a)
-    out[filled] = _covariance_out(input_cov[filled], stddev, a)
+    out[filled] = covariance_out(input_cov[filled], stddev, a)
     return out

@@ -1,5 +1,5 @@
-"""The kernel cache and compile switches (mkf_ros/core/_jit.py, mkf_ros.warmup): the cache key
-covers every kernel source, the cache lives where the docs say and is reused by the next
+"""The kernel cache and compile switches (mkf_ros/core/_jit.py, mkf_ros.kernels.warmup): the
+cache key covers every kernel source, the cache lives where the docs say and is reused by the next
 process, ``NUMBA_DISABLE_JIT=1`` runs the same equations as plain Python, and ``warmup()``
 leaves nothing for the first real samples to compile.
 
@@ -114,6 +114,31 @@ def test_a_kernel_is_cached_and_reused_by_the_next_process(tmp_path: Path) -> No
     assert list((Path(first["dir"]) / "core").glob("quaternion.qmul_t-*.nbi"))
     second = _child(_COMPILE_ONE, MKF_ROS_CACHE_DIR=str(tmp_path))
     assert second["hits"] == 1 and second["misses"] == 0
+
+
+_FIRST_KERNEL = """
+import json, sys
+from pathlib import Path
+import mkf_ros, mkf_ros.kernels  # every kernel module
+root = Path(sys.argv[1])
+before = sorted(p.name for p in root.iterdir())
+from mkf_ros.core.quaternion import qmul_t
+qmul_t((1.0, 0.0, 0.0, 0.0), (0.0, 1.0, 0.0, 0.0))
+print(json.dumps({"before": before, "after": sorted(p.name for p in root.iterdir())}))
+"""
+
+
+def test_import_touches_no_cache_directory_the_first_kernel_does(tmp_path: Path) -> None:
+    """Importing every kernel module creates, seeds and prunes nothing on disk; the first
+    kernel compiled or loaded chooses this version's cache directory and removes another
+    version's unused for over a week."""
+    stale = tmp_path / "numba-0000000000000000"
+    stale.mkdir()
+    week_ago = os.path.getmtime(stale) - 8 * 86400
+    os.utime(stale, (week_ago, week_ago))
+    code = _FIRST_KERNEL.replace("sys.argv[1]", repr(str(tmp_path)))
+    got = _child(code, MKF_ROS_CACHE_DIR=str(tmp_path))
+    assert got == {"before": [stale.name], "after": [f"numba-{_jit.KERNEL_HASH}"]}
 
 
 _ESTIMATE = """

@@ -246,7 +246,7 @@ def test_heading_update_agrees_with_the_mukf(seed: int) -> None:
         # a small covariance: the linearisation's premise (a looser mag_disturbance than 0.05
         # widens the heading prior and the two differ by its curvature, 2.6 % at 0.1)
         f = AttitudeFilter(algorithm=algorithm, use_mag=True, mag_reference=list(field),
-                           mag_undisturbed_time=0.0, rest_detection=False,
+                           rest_detection=False,
                            mag_disturbance=0.05)
         f.step(0.0, np.zeros(3), acc, mags[0])  # alignment: heading from this field
         for _ in range(20):

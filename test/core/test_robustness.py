@@ -17,7 +17,7 @@ NO_ROBUSTNESS = dict(acc_gate=0.0, acc_norm_tolerance=1000.0, mag_gate=0.0,
                      mag_norm_tolerance=1000.0, mag_dip_tolerance=3.1416, mag_mode="vector",
                      rest_detection=False, acc_time_constant=0.0, acc_disturbance_time=0.0,
                      mag_disturbance_time=0.0, mag_consistency_tolerance=1000.0,
-                     mag_undisturbed_time=0.0, gyro_gate=0.0, gyro_scale_error=0.0)
+                     gyro_gate=0.0, gyro_scale_error=0.0)
 
 
 @pytest.mark.parametrize("algorithm", ALGOS)

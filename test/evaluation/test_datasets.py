@@ -339,10 +339,11 @@ def test_tyrex_roundtrip(tmp_path: Path) -> None:
     np.testing.assert_allclose(r.gyr, sim.gyr.astype(np.float32))
     assert (r.valid == valid).all()
     np.testing.assert_allclose(r.q_ref[valid], canon(sim.quat[valid]), atol=1e-6)
-    assert r.meta["groups"] == ["all_trials", "AR", "Dist", "Nexus5"]
-    assert recs[0].meta["groups"] == ["all_trials", "RunningPocket", "NoDist", "iPhone5"]
+    assert r.meta["groups"] == ["all_trials", "AR", "Dist", "Nexus5", "Jakob"]
+    assert recs[0].meta["groups"] == ["all_trials", "RunningPocket", "NoDist", "iPhone5", "Ann"]
     cats = recs[0].meta["group_categories"]
     assert cats["AR"] == cats["RunningPocket"] == "motion" and cats["iPhone5"] == "device"
+    assert cats["Jakob"] == cats["Ann"] == "user"  # each user on his own (per-user tables)
 
 
 def test_detect_format_errors(tmp_path: Path) -> None:

@@ -209,18 +209,19 @@ def record_arrival(stream: Any) -> list[str]:
     reference adapter is fed from the messages the test sent (:func:`reference_outputs`),
     so the node's message conversion is under test, not replayed."""
     kinds: list[str] = []
-    # step_imu: the node's per-message path, and what on_imu (its message-object path) calls
-    step_imu, on_mag = stream.step_imu, stream.on_mag
+    # run_imu_event: the node's per-message path, and what on_imu and step_imu (its
+    # message-object path) call
+    run_imu_event, on_mag = stream.run_imu_event, stream.on_mag
 
     def imu(*args):
         kinds.append("imu")
-        return step_imu(*args)
+        return run_imu_event(*args)
 
     def mag(*args):
         kinds.append("mag")
         return on_mag(*args)
 
-    stream.step_imu, stream.on_mag = imu, mag
+    stream.run_imu_event, stream.on_mag = imu, mag
     return kinds
 
 
@@ -314,3 +315,23 @@ def output_arrays(msgs: Sequence[Imu]) -> tuple[np.ndarray, np.ndarray, np.ndarr
     cov = np.array([np.asarray(m.orientation_covariance) for m in msgs],
                    dtype=float).reshape(-1, 9)
     return st, q, cov
+
+
+def fake_tf2(monkeypatch: Any) -> list:
+    """A stand-in ``tf2_ros`` (its wheel is not on PyPI): the transforms the node sends."""
+    import sys
+    import types
+
+    sent: list = []
+
+    class TransformBroadcaster:
+        def __init__(self, node) -> None:
+            self.node = node
+
+        def sendTransform(self, t) -> None:
+            sent.append(t)
+
+    mod = types.ModuleType("tf2_ros")
+    mod.TransformBroadcaster = TransformBroadcaster
+    monkeypatch.setitem(sys.modules, "tf2_ros", mod)
+    return sent

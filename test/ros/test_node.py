@@ -6,14 +6,14 @@ from __future__ import annotations
 import math
 import sys
 import time
-import types
 
 import numpy as np
 import pytest
 from geometry_msgs.msg import Vector3Stamped
 from rclpy.qos import QoSProfile, ReliabilityPolicy
-from rosharness import assert_message_is, imu_msg, quat
+from rosharness import assert_message_is, fake_tf2, imu_msg, mag_msg, quat
 from sensor_msgs.msg import Imu
+from std_msgs.msg import Bool
 
 from mkf_ros.core.quaternion import qconj_np
 from mkf_ros.ros.convert import quat_wxyz
@@ -153,22 +153,6 @@ def test_zero_gyro_and_orientation_carrying_input_are_named_once(harness, capfd)
     assert err.count(zero) == 1 and err.count(ori) == 1
 
 
-def fake_tf2(monkeypatch) -> list:
-    sent: list = []
-
-    class TransformBroadcaster:
-        def __init__(self, node) -> None:
-            self.node = node
-
-        def sendTransform(self, t) -> None:
-            sent.append(t)
-
-    mod = types.ModuleType("tf2_ros")
-    mod.TransformBroadcaster = TransformBroadcaster
-    monkeypatch.setitem(sys.modules, "tf2_ros", mod)
-    return sent
-
-
 def test_tf_follows_the_message(harness, monkeypatch) -> None:
     """publish_tf (at run time): fixed_frame → IMU frame, the message's rotation (yaw offset
     included), the IMU stamp; reverse_tf broadcasts the inverse, frames swapped."""
@@ -202,14 +186,51 @@ def test_debug_topics(harness) -> None:
     rpy, bias = [], []
     h.cli.create_subscription(Vector3Stamped, "imu/rpy/filtered", rpy.append, 50)
     h.cli.create_subscription(Vector3Stamped, "imu/gyro_bias", bias.append, 50)
-    assert h.spin_until(lambda: h.est._rpy_pub.get_subscription_count() > 0
-                        and h.est._bias_pub.get_subscription_count() > 0)
+    assert h.spin_until(lambda: h.est._debug["rpy"].get_subscription_count() > 0
+                        and h.est._debug["bias"].get_subscription_count() > 0)
     roll = 0.3
     h.send_imu([T0 + 0.01 * k for k in range(5)],
                acc=(0.0, 9.80665 * math.sin(roll), 9.80665 * math.cos(roll)))
     assert h.spin_until(lambda: len(rpy) == 5 and len(bias) == 5)
     assert rpy[-1].vector.x == pytest.approx(roll, abs=1e-3)
     assert rpy[-1].header.frame_id == "imu_link"
+
+
+def test_debug_topics_raw_orientation_and_steady_state(harness) -> None:
+    """imu/rpy/raw (imu_filter_madgwick's): roll, pitch, yaw from this accelerometer sample and
+    the latest magnetometer sample alone, published with use_mag once a field sample came;
+    imu/steady_state (imu_complementary_filter's, std_msgs/Bool): the rest detector, false
+    until the sensor has been still for rest_time, false again once it turns."""
+    h = harness({"publish_debug_topics": True, "use_mag": True, "rest_time": 0.5,
+                 "yaw_offset": 0.2})
+    raw, steady = [], []
+    h.cli.create_subscription(Vector3Stamped, "imu/rpy/raw", raw.append, 500)
+    h.cli.create_subscription(Bool, "imu/steady_state", steady.append, 500)
+    assert h.spin_until(lambda: h.est._debug["rpy_raw"].get_subscription_count() > 0
+                        and h.est._debug["steady"].get_subscription_count() > 0)
+    roll, g = 0.3, 9.80665
+    acc = (0.0, g * math.sin(roll), g * math.cos(roll))  # R = Rx(roll): a = Rᵀ (0, 0, g)
+    north = np.array([0.0, 20e-6, -40e-6])  # ENU: the field points north and down
+    c, s = math.cos(roll), math.sin(roll)
+    field = np.array([[1, 0, 0], [0, c, s], [0, -s, c]]) @ north  # Rᵀ m: body x points east
+    h.send_imu([T0 + 0.01 * k for k in range(5)], acc=acc)
+    assert h.spin_until(lambda: len(steady) == 5) and raw == []  # no field sample yet
+    msgs = []
+    for k in range(5, 105):  # 1 s at rest, a field sample every 10th IMU sample
+        msgs.append(imu_msg(T0 + 0.01 * k, (0.0, 0.0, 0.0), acc))
+        if k % 10 == 5:
+            msgs.append(mag_msg(T0 + 0.01 * k, field))
+    h.send(msgs)
+    assert h.spin_until(lambda: len(raw) == 99 and len(steady) == 105)
+    for r in raw:  # the yaw offset applies as to imu/data (heading 0 is east in ENU)
+        np.testing.assert_allclose([r.vector.x, r.vector.y, r.vector.z], [roll, 0.0, 0.2],
+                                   atol=1e-9)
+    assert raw[0].header.stamp == h.out[6].header.stamp
+    flags = [m.data for m in steady]
+    assert not any(flags[:40]) and all(flags[70:])  # still for rest_time (0.5 s), then rest
+    h.send_imu([T0 + 1.05 + 0.01 * k for k in range(20)], gyr=(0.0, 0.0, 1.0), acc=acc)
+    assert h.spin_until(lambda: len(steady) == 125)
+    assert not any(m.data for m in steady[-15:])
 
 
 @pytest.mark.parametrize("publisher_reliability",

@@ -291,3 +291,58 @@ def test_start_up_parameters(ros_context, tmp_path, capfd) -> None:
         with pytest.raises(ParameterError, match=why) as e:
             EstimatorNode(context=ros_context, warm=False, parameter_overrides=[bad])
         assert "\n" not in str(e.value)
+
+
+MADGWICK_FILE = """imu_filter:
+  ros__parameters:
+    use_mag: true
+    world_frame: ned
+    gain: 0.1
+"""
+
+
+@pytest.mark.parametrize("key", ["imu_filter", "imu_filter_madgwick", "/robot/imu_filter",
+                                 "complementary_filter_gain_node"])
+def test_a_file_for_another_filters_node_name_is_named_with_the_fix(
+        ros_context, tmp_path, capfd, key) -> None:
+    """A parameter file keyed by imu_filter_madgwick's (or the complementary filter's) node
+    name, given to this node, would be ignored without a word: the warning names the file and
+    the key, and each fix it names applies the file (the node's parameters take its values)."""
+    f = tmp_path / "imu_filter.yaml"
+    f.write_text(MADGWICK_FILE.replace("imu_filter:", f"{key}:", 1))
+    args = ["--ros-args", "--params-file", str(f)]
+    node = EstimatorNode(context=ros_context, warm=False, cli_args=args)
+    assert (node.stream.params["use_mag"], node.stream.params["world_frame"]) == (False, "enu")
+    node.destroy_node()
+    err = capfd.readouterr().err
+    (line,) = [ln for ln in err.splitlines() if str(f) in ln]
+    assert f"the parameters for node {key!r}" in line and "are ignored" in line
+    name = key.rpartition("/")[2]
+    remaps = f"-r __node:={name}" + (" -r __ns:=/robot" if key.startswith("/robot") else "")
+    assert f"(--ros-args {remaps};" in line and f"rename the key {key!r} to 'estimator'" in line
+    # the first fix: run under that name
+    node = EstimatorNode(context=ros_context, warm=False,
+                         cli_args=["--ros-args", *remaps.split(), "--params-file", str(f)])
+    assert (node.stream.params["use_mag"], node.stream.params["world_frame"]) == (True, "ned")
+    node.destroy_node()
+    err = capfd.readouterr().err
+    assert "are ignored" not in err and "ignoring unknown parameter 'gain'" in err
+    # the second: rename the key
+    f.write_text(MADGWICK_FILE.replace("imu_filter:", "estimator:", 1))
+    node = EstimatorNode(context=ros_context, warm=False, cli_args=args)
+    assert (node.stream.params["use_mag"], node.stream.params["world_frame"]) == (True, "ned")
+    node.destroy_node()
+
+
+def test_a_rule_for_another_filters_node_name_is_named(ros_context, capfd) -> None:
+    """``-p imu_filter:use_mag:=true`` (a node-addressed override) is named too; a file or
+    rule for some other node (a driver's) is not this node's business."""
+    node = EstimatorNode(context=ros_context, warm=False, argv=[
+        "estimator", "--ros-args", "-p", "imu_filter:use_mag:=true",
+        "-p", "camera:fps:=30", "-p", "estimator:max_dt:=2"])
+    node.destroy_node()
+    warnings = [ln for ln in capfd.readouterr().err.splitlines() if "WARN" in ln]
+    assert len(warnings) == 1
+    assert ("-p imu_filter:use_mag:=true is addressed to node 'imu_filter'" in warnings[0]
+            and "write -p use_mag:=true or run this node under that name "
+                "(--ros-args -r __node:=imu_filter;" in warnings[0])

@@ -84,6 +84,24 @@ def test_encode_equals_the_message_path(source: str, missing: str | None) -> Non
         assert all(math.isfinite(x) for x in got.orientation_covariance)
 
 
+def changing_imu_messages(rng: np.random.Generator, missing: str | None, n: int = 12) -> list:
+    """``n`` IMU messages 10 ms apart whose covariances change from one to the next (known,
+    unknown, and with ``missing`` the gyro's, the accelerometer's or both marked "not
+    reported" now and then)."""
+    out = []
+    for k in range(n):
+        m = random_imu(rng, "imu_link")
+        m.header.stamp = convert.sec_to_stamp(100.0 + 0.01 * k)
+        m.angular_velocity_covariance = [0.0] * 9 if k % 2 else np.diag([1e-4] * 3).reshape(9)
+        m.linear_acceleration_covariance = [0.0] * 9 if k % 3 else np.diag([1e-2] * 3).reshape(9)
+        if missing in ("gyr", "both") and k % 4 == 3:
+            m.angular_velocity_covariance[0] = -1.0
+        if missing in ("acc", "both") and k % 4 == 2:
+            m.linear_acceleration_covariance[0] = -1.0
+        out.append(m)
+    return out
+
+
 @pytest.mark.parametrize("source", ["input", "bias_corrected", "estimate"])
 @pytest.mark.parametrize("missing", [None, "gyr", "acc", "both"])
 def test_encode_values_equals_encode(source: str, missing: str | None) -> None:
@@ -94,15 +112,7 @@ def test_encode_values_equals_encode(source: str, missing: str | None) -> None:
     kw: dict = dict(angular_velocity_source=source, estimate_gyro_bias=True,
                     remove_gravity_vector=source == "estimate")
     s, s_values = StreamAdapter(**kw), StreamAdapter(**kw)
-    for k in range(12):
-        m = random_imu(rng, "imu_link")
-        m.header.stamp = convert.sec_to_stamp(100.0 + 0.01 * k)
-        m.angular_velocity_covariance = [0.0] * 9 if k % 2 else np.diag([1e-4] * 3).reshape(9)
-        m.linear_acceleration_covariance = [0.0] * 9 if k % 3 else np.diag([1e-2] * 3).reshape(9)
-        if missing in ("gyr", "both") and k % 4 == 3:
-            m.angular_velocity_covariance[0] = -1.0
-        if missing in ("acc", "both") and k % 4 == 2:
-            m.linear_acceleration_covariance[0] = -1.0
+    for k, m in enumerate(changing_imu_messages(rng, missing)):
         h = rawmsg.parse(serialize_message(m), rawmsg.IMU_DOUBLES)
         out = s.on_imu(h.stamp, *rawmsg.imu_arrays(h))
         flags = s_values.step_imu(h.stamp, *rawmsg.imu_views(h))
@@ -117,3 +127,37 @@ def test_encode_values_equals_encode(source: str, missing: str | None) -> None:
                   "angular_velocity_cov_add", "linear_acceleration", "bias", "omega"):
             np.testing.assert_array_equal(getattr(last, f), getattr(out, f), f)
         assert (last.stamp, last.yaw_lost, last.slot) == (out.stamp, out.yaw_lost, out.slot)
+
+
+@pytest.mark.parametrize("source", ["input", "estimate"])
+@pytest.mark.parametrize("missing", [None, "gyr", "acc", "both"])
+def test_the_node_byte_path_equals_encode(source: str, missing: str | None) -> None:
+    """The node's per-message path without numpy (unpack_imu, pack_imu_event,
+    run_imu_event, encode_record; the not-reported fields None as imu_arrays has them) builds
+    the same bytes as on_imu + encode, message after message, as the input covariances and
+    the present fields change."""
+    rng = np.random.default_rng(7)
+    enc, enc_record = rawmsg.ImuEncoder(), rawmsg.ImuEncoder()
+    kw: dict = dict(angular_velocity_source=source, estimate_gyro_bias=True,
+                    remove_gravity_vector=source == "estimate")
+    s, s_bytes = StreamAdapter(**kw), StreamAdapter(**kw)
+    for k, m in enumerate(changing_imu_messages(rng, missing)):
+        data = serialize_message(m)
+        h = rawmsg.parse(data, rawmsg.IMU_DOUBLES)
+        out = s.on_imu(h.stamp, *rawmsg.imu_arrays(h))
+        sec, nsec, off, gyr, acc = rawmsg.unpack_imu(data)
+        np.testing.assert_array_equal(rawmsg.doubles(data, off), h.d)
+        assert (sec, nsec) == (m.header.stamp.sec, m.header.stamp.nanosec)
+        rawmsg.pack_imu_event(s_bytes.imu_event_bytes, sec + nsec * 1e-9, gyr, acc)
+        assert (gyr is None, acc is None) == tuple(x is None for x in rawmsg.imu_arrays(h))
+        flags = s_bytes.run_imu_event()
+        assert (out is None) == (flags == 0)
+        if out is None:
+            continue
+        want = enc.encode(h, out, 0.02, 0.3 * (k % 2))
+        got = enc_record.encode_record(data, off, s_bytes.output_bytes, flags, 0.02,
+                                       0.3 * (k % 2))
+        assert got == want
+    assert rawmsg.frame_id(data) == "imu_link"
+    restamped = rawmsg.restamped_prefix(data, off, 7, 8) + data[off:]
+    assert deserialize_message(restamped, Imu).header.stamp.sec == 7

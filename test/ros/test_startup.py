@@ -36,7 +36,7 @@ def test_estimator_starts_with_an_unwritable_kernel_cache(ros_context: Any, tmp_
     log = tmp_path / "estimator.log"
     with log.open("w") as out:
         proc = subprocess.Popen(
-            [sys.executable, "-m", "mkf_ros.ros.estimator_node", "--ros-args",
+            [sys.executable, "-m", "mkf_ros.ros.estimator_main", "--ros-args",
              "-p", "qos_overrides./imu/data_raw.subscription.reliability:=reliable"],
             env=env, stdout=out, stderr=subprocess.STDOUT)
     try:

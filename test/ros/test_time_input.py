@@ -112,14 +112,31 @@ def test_bad_vectors_skipped_counted_never_nan(harness) -> None:
     assert h.est._exceptions == 0
 
 
-def test_zero_stamps_and_constant_dt(harness) -> None:
-    h = harness()
-    h.send([imu_msg(0.0, (0, 0, 0), G)] * 3)  # a driver that does not stamp
-    assert h.out == [] and h.est.stream.counters["imu_bad_stamp"] == 3
+def test_zero_stamps_take_the_receive_time(harness, capfd) -> None:
+    """A driver that does not stamp (header stamps zero, as imu_filter_madgwick accepts them):
+    each message takes its receive time (the node's clock) as its stamp, in the filter and in
+    the header of what is published for it, with one warning per input; constant_dt still
+    sets the step."""
+    h = harness({"use_mag": True})
+    before = h.est.get_clock().now().nanoseconds
+    h.send([imu_msg(0.0, (0, 0, 0), G), mag_msg(0.0, (20e-6, 0.0, -40e-6)),
+            imu_msg(0.0, (0, 0, 0), G), imu_msg(0.0, (0, 0, 0), G)])
+    after = h.est.get_clock().now().nanoseconds
+    stamps = [m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec for m in h.out]
+    assert len(stamps) == 3 and before <= stamps[0] < stamps[1] < stamps[2] <= after
+    assert all(finite(m) for m in h.out)
+    c = h.est.stream.counters
+    assert (c["imu_bad_stamp"], c["mag_fused"]) == (0, 1)
+    assert h.est.stamped_on_receipt == {"imu": 3, "acc": 0, "mag": 1}
+    err = capfd.readouterr().err
+    assert err.count("/imu/data_raw have a zero header stamp") == 1
+    assert err.count("/imu/mag have a zero header stamp") == 1
     assert h.set(constant_dt=0.01)[0].successful
     h.send([imu_msg(0.0, (0.0, 0.0, 1.0), G) for _ in range(101)])
-    assert len(h.out) == 101
-    assert yaw(h.out[-1]) == pytest.approx(1.0, abs=0.02)  # 100 × 0.01 s × 1 rad/s
+    assert len(h.out) == 104
+    assert h.out[-1].header.stamp.sec > 0
+    turned = yaw(h.out[-1]) - yaw(h.out[2])
+    assert turned == pytest.approx(1.01, abs=0.02)  # 101 × 0.01 s × 1 rad/s
 
 
 def test_magnetometer_never_gates_the_imu(harness) -> None:
@@ -141,7 +158,7 @@ def test_magnetometer_never_gates_the_imu(harness) -> None:
 def test_never_dies_on_a_message(harness) -> None:
     """An exception inside the processing is counted and reported; the node goes on."""
     h = harness({"diagnostics_period": 0.2})
-    real = h.est.stream.step_imu  # the node's per-message path
+    real = h.est.stream.run_imu_event  # the node's per-message path
     calls = {"n": 0}
 
     def flaky(*a):
@@ -150,7 +167,7 @@ def test_never_dies_on_a_message(harness) -> None:
             raise RuntimeError("boom")
         return real(*a)
 
-    h.est.stream.step_imu = flaky
+    h.est.stream.run_imu_event = flaky
     h.send_imu([T0 + 0.01 * k for k in range(6)])
     assert len(h.out) == 5 and h.est._exceptions == 1
     assert h.spin_until(lambda: any(s.level == b"\x02" for d in h.diag for s in d.status), 3.0)

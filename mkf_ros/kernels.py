@@ -1,0 +1,223 @@
+"""What gets compiled, when, and how long it takes: the numba kernels of the filters.
+
+How one kernel is compiled and where it is cached is :mod:`mkf_ros.core._jit`; this module decides
+what is compiled and when:
+
+* at install time, :func:`precompile` (``setup.py``'s ``build_py``, which ``pip install``,
+  ``pip wheel`` and ``colcon build`` run; ``./run setup`` for an editable checkout) compiles every
+  kernel into the package (``mkf_ros/_kernels/``), from which each user's cache is seeded;
+* at start-up, :func:`warmup` loads them (well under a second), or compiles them where the
+  install-time compile did not run (:data:`FIRST_COMPILE_TIME`).
+
+The install-time compile runs :func:`compile_tasks` in processes of their own, side by side
+(:func:`compile_jobs` at a time), then a check in a fresh process: :func:`warmup` on the
+compiled cache, which loads everything and compiles whatever the tasks missed. Its cost on
+both supported numba versions is in docs/estimator.md § Start-up
+(``./run bench compile_time``).
+
+``python -m mkf_ros.kernels`` compiles (or loads) every kernel, the study's too, and prints the
+code version (a cluster worker's check, docs/study/cluster.md).
+"""
+
+from __future__ import annotations
+
+import os
+import resource
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from mkf_ros.core import _jit
+
+#: How long compiling the kernels takes where the install-time compile did not run
+#: (``colcon build --symlink-install``, ``MKF_ROS_NO_PRECOMPILE=1``, a build environment whose
+#: numba differs from the one at run time): the node's first start took 80 s on the 2-core
+#: reference machine (``./run bench startup --installed --no-precompile``); the messages quote
+#: it.
+FIRST_COMPILE_TIME = "about a minute and a half"
+
+#: The kernel families :func:`warmup` can prepare: :func:`mkf_ros.estimate`'s batch loop and
+#: smoothers, :class:`~mkf_ros.core.filter.AttitudeFilter`'s step, and the streaming front end of
+#: the node and of ``mkf process``. They share the filter's compile units (:mod:`.core._jit`).
+WARMUP_PARTS = ("estimate", "filter", "stream")
+
+
+def warmup(parts: Sequence[str] = WARMUP_PARTS) -> None:
+    """Compile (or load from the kernel cache) the kernels of ``parts`` (default: all, see
+    :data:`WARMUP_PARTS`), so that the first real sample is not delayed. Loading takes well
+    under a second; compiling (no cache of this version, e.g. an install without the
+    install-time compile) takes :data:`FIRST_COMPILE_TIME` for all parts."""
+    from mkf_ros.api import estimate
+    from mkf_ros.core.filter import AttitudeFilter
+    from mkf_ros.stream.adapter import StreamAdapter
+
+    unknown = [p for p in parts if p not in WARMUP_PARTS]
+    if unknown:
+        raise ValueError(f"warmup: unknown part(s) {unknown}; expected some of {WARMUP_PARTS}")
+    n = 4
+    gyr = np.zeros((n, 3))
+    acc = np.tile([0.0, 0.0, 9.81], (n, 1))
+    mag = np.tile([0.0, 20.0, -40.0], (n, 1))
+    for algo in ("mekf", "mukf"):
+        if "estimate" in parts:
+            estimate(gyr, acc, mag, dt=0.01, algorithm=algo, estimate_gyro_bias=True)
+            estimate(gyr, acc, mag, dt=0.01, algorithm=algo, smooth="two-way")  # RTS too
+        if "filter" in parts:
+            f = AttitudeFilter(algorithm=algo, use_mag=True)
+            for k in range(n):
+                f.step(0.01, gyr[k], acc[k], mag[k])
+            _ = f.quaternion
+        if "stream" in parts:
+            s = StreamAdapter(algorithm=algo, use_mag=True)
+            for k in range(n):
+                s.on_mag(1.0 + 0.01 * k, mag[k])
+                s.on_imu(1.0 + 0.01 * k, gyr[k], acc[k])
+
+
+def warm_all() -> str:
+    """Compile (or load) every kernel: the filters' (:func:`warmup`), the simulator's and the
+    study's; returns the code version (:func:`mkf_ros.parallel.code_version`)."""
+    from mkf_ros.parallel import code_version
+    from mkf_ros.sim.motion import integrate
+    from mkf_ros.study.runner import warm_up
+
+    warmup()
+    integrate(np.array([1.0, 0.0, 0.0, 0.0]), np.zeros((2, 3)), 0.01)
+    warm_up()
+    return code_version()
+
+
+# --- the install-time compile ----------------------------------------------------------------
+def _entry_calls(part: str) -> list[tuple[Any, tuple]]:
+    """The compiled loops of ``part`` (:data:`WARMUP_PARTS`) with arguments of the types the
+    front ends call them with. They take the filter's compile units as an array of addresses,
+    so they compile without them (a zero table: they are compiled here, never run)."""
+    from mkf_ros.core import filter as kf
+    from mkf_ros.core import smoother as sm
+    from mkf_ros.stream import kernel as sk
+
+    table = np.zeros(len(kf.KERNEL_TABLE_ORDER), dtype=np.int64)
+    arrays = kf.AttitudeFilter().kernel_arrays()
+    v3, m33, rows = np.zeros(3), np.zeros((3, 3)), np.zeros((1, 3))
+    if part == "estimate":
+        out = kf.new_batch_outputs(1)
+        rec = kf.new_records(sm.RECORD, 1)
+        q4, m133 = np.zeros((1, 4)), np.zeros((1, 3, 3))
+        return [(kf.run_batch, (table, *arrays, np.zeros(1), rows, rows, rows, out)),
+                (sm.forward_recorded, (table, *arrays, np.zeros(1), rows, rows, rows, out, rec,
+                                       0)),
+                (sm.backward, (arrays.cfg, rec, 0, sm.new_smooth_outputs(1))),
+                (sm.fuse_tilt_rows, (q4, np.zeros((1, 2)), q4, m133, m133, q4, m133))]
+    if part == "filter":
+        return [(kf.sensor_step, (table, *arrays, 0.0, v3, v3, v3)),
+                (kf.world_output, (table, arrays.cfg, arrays.st, np.zeros(4), m33)),
+                (kf.to_canonical_entry, (arrays.cfg, arrays.st)),
+                (kf.from_canonical_entry, (arrays.cfg, arrays.st))]
+    # "stream": the records of a StreamAdapter (mkf_ros.stream.adapter)
+    npar, ts, acnt = kf.new_records(sk.NODE), kf.new_records(sk.STREAM), \
+        kf.new_records(sk.ADAPTER_COUNTER_RECORD)
+    return [(sk.run_events, (table, tuple(arrays), npar, ts, acnt, kf.new_records(sm.RECORD, 0),
+                             np.zeros(4, dtype=np.int64), kf.new_records(sk.EVENT),
+                             kf.new_records(sk.OUTPUT), 0, 1)),
+            (sk.covariance_rows, (np.zeros((1, 9)), 0.0, np.zeros((0, 9)))),
+            (sk.published_batch, (npar, np.zeros((1, 4)), np.zeros((1, 3, 3)),
+                                  np.zeros(1, dtype=np.bool_)))]
+
+
+def _units() -> dict[str, _jit.Unit]:
+    import mkf_ros.api  # noqa: F401  (imports every module that defines a unit)
+
+    return {f"{u.__module__}.{u.__qualname__}": u for u in _jit.UNITS}
+
+
+#: The compiled loops of each :data:`WARMUP_PARTS` part and their compile CPU time on the
+#: reference machine (``./run bench compile_time --tasks``; orders the tasks, the largest first).
+_ENTRY_COSTS = {"estimate": 26.0, "filter": 2.0, "stream": 17.5}
+#: The last step of the install-time compile, in a fresh process on the compiled cache.
+CHECK = "check"
+
+
+def compile_tasks() -> list[str]:
+    """The install-time compile's tasks, independent of each other, the largest first (so that
+    the processes end together): every :class:`~mkf_ros.core._jit.Unit`
+    (``"unit:MODULE.NAME"``) and the compiled loops that take them (``"entries:PART"``,
+    :func:`_entry_calls`). Each runs in a fresh process: sharing one across tasks saves no time
+    (a kernel two tasks call is loaded from the cache by the second) and keeps every compiled
+    library in memory."""
+    costs = {f"unit:{name}": u.cost for name, u in _units().items()}
+    costs.update({f"entries:{part}": c for part, c in _ENTRY_COSTS.items()})
+    return sorted(costs, key=lambda t: -costs[t])
+
+
+def run_compile_task(task: str) -> tuple[str, float, float, int]:
+    """One task of :func:`compile_tasks` (or :data:`CHECK`: :func:`warmup` and the simulator's
+    kernel) in this process: ``(task, wall s, CPU s, peak RSS of this process in
+    KiB)``."""
+    t0, c0 = time.perf_counter(), time.process_time()
+    kind, _, name = task.partition(":")
+    if kind == "unit":
+        _ = _units()[name].compiled
+    elif kind == "entries":
+        if not _jit.JIT_DISABLED:
+            import numba
+
+            for dispatcher, args in _entry_calls(name):
+                dispatcher.compile(tuple(numba.typeof(a) for a in args))
+    elif task == CHECK:
+        from mkf_ros.sim.motion import integrate
+
+        warmup()
+        integrate(np.array([1.0, 0.0, 0.0, 0.0]), np.zeros((2, 3)), 0.01)  # the simulator's
+    else:
+        raise ValueError(f"unknown compile task {task!r}")
+    return (task, time.perf_counter() - t0, time.process_time() - c0,
+            resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)
+
+
+def compile_jobs() -> int:
+    """Processes of the install-time compile: ``$MKF_ROS_COMPILE_JOBS``, else the CPUs this
+    process may use, at most 2 (each takes up to ~0.7 GB)."""
+    env = os.environ.get("MKF_ROS_COMPILE_JOBS", "")
+    if env.strip().isdigit() and int(env) > 0:
+        return int(env)
+    try:
+        n = len(os.sched_getaffinity(0))
+    except AttributeError:  # pragma: no cover (not Linux)
+        n = os.cpu_count() or 1
+    return max(1, min(2, n))
+
+
+def precompile(root: Path, jobs: int | None = None,
+               report: Callable[[tuple[str, float, float, int]], object] | None = None) -> None:
+    """Compile every kernel into ``root/numba-<hash>/`` (the install-time step; see the module
+    docstring), dropping other kernel versions there: :func:`compile_tasks`, each in a fresh
+    process whose cache is ``root``, ``jobs`` at a time (:func:`compile_jobs`), then
+    :data:`CHECK` in another. ``report`` receives each task's result (:func:`run_compile_task`)."""
+    import concurrent.futures
+    import multiprocessing
+
+    jobs = jobs or compile_jobs()
+    saved = {k: os.environ.get(k) for k in ("MKF_ROS_CACHE_DIR", "PYTHONWARNINGS")}
+    os.environ.update(MKF_ROS_CACHE_DIR=str(root), PYTHONWARNINGS="ignore")
+    try:
+        for phase, workers in ((compile_tasks(), jobs), ([CHECK], 1)):
+            with concurrent.futures.ProcessPoolExecutor(
+                    max_workers=workers, mp_context=multiprocessing.get_context("spawn"),
+                    max_tasks_per_child=1) as pool:
+                for result in pool.map(run_compile_task, phase):
+                    if report is not None:
+                        report(result)
+    finally:
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+    _jit.prune_old_caches(root, keep_days=0.0)
+
+
+if __name__ == "__main__":  # pragma: no cover - run by hand on cluster workers
+    print(f"mkf_ros {warm_all()}: kernels ready")
