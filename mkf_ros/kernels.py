@@ -135,44 +135,71 @@ def _units() -> dict[str, _jit.Unit]:
 
 #: The compiled loops of each :data:`WARMUP_PARTS` part and their compile CPU time on the
 #: reference machine (``./run bench compile_time --tasks``; orders the tasks, the largest first).
-_ENTRY_COSTS = {"estimate": 26.0, "filter": 2.0, "stream": 17.5}
+_ENTRY_COSTS = {"estimate": 14.0, "filter": 1.4, "stream": 12.0}
 #: The last step of the install-time compile, in a fresh process on the compiled cache.
 CHECK = "check"
+#: Tasks that compile in less CPU time than this (s, their costs) share one process: a process
+#: of its own costs each about half a second of start-up (Python, NumPy, numba, the package)
+#: and the compile of the small kernels they all call.
+SMALL_TASK = 3.0
 
 
 def compile_tasks() -> list[str]:
     """The install-time compile's tasks, independent of each other, the largest first (so that
     the processes end together): every :class:`~mkf_ros.core._jit.Unit`
     (``"unit:MODULE.NAME"``) and the compiled loops that take them (``"entries:PART"``,
-    :func:`_entry_calls`). Each runs in a fresh process: sharing one across tasks saves no time
-    (a kernel two tasks call is loaded from the cache by the second) and keeps every compiled
-    library in memory."""
+    :func:`_entry_calls`); the small ones (:data:`SMALL_TASK`) together, as one task (their
+    names separated by spaces). Each runs in a fresh process: sharing one across the large
+    tasks saves no time (a kernel two tasks call is loaded from the cache by the second) and
+    keeps every compiled library in memory."""
     costs = {f"unit:{name}": u.cost for name, u in _units().items()}
     costs.update({f"entries:{part}": c for part, c in _ENTRY_COSTS.items()})
+    small = sorted(t for t, c in costs.items() if c < SMALL_TASK)
+    if len(small) > 1:
+        costs[" ".join(small)] = sum(costs.pop(t) for t in small)
     return sorted(costs, key=lambda t: -costs[t])
+
+
+#: The compiling processes' garbage collector: objects that survive this many allocations are
+#: checked for cycles (Python's default: 700). numba's compiler allocates millions of small
+#: objects (it copies a function's IR for every call it inlines), which the default makes the
+#: collector scan over and over: a fifth of the compile's CPU time, measured.
+COMPILE_GC_THRESHOLD = 20000
+
+
+def _compiler_process() -> None:
+    """Set up a process of the install-time compile: the package imported, its objects left
+    out of the garbage collector's scans (:func:`gc.freeze`), and the collector run less often
+    (:data:`COMPILE_GC_THRESHOLD`); no effect on what is compiled."""
+    import gc
+
+    _units()
+    gc.freeze()
+    gc.set_threshold(COMPILE_GC_THRESHOLD, 10, 10)
 
 
 def run_compile_task(task: str) -> tuple[str, float, float, int]:
     """One task of :func:`compile_tasks` (or :data:`CHECK`: :func:`warmup` and the simulator's
-    kernel) in this process: ``(task, wall s, CPU s, peak RSS of this process in
-    KiB)``."""
+    kernel; several, separated by spaces, one after the other) in this process:
+    ``(task, wall s, CPU s, peak RSS of this process in KiB)``."""
     t0, c0 = time.perf_counter(), time.process_time()
-    kind, _, name = task.partition(":")
-    if kind == "unit":
-        _ = _units()[name].compiled
-    elif kind == "entries":
-        if not _jit.JIT_DISABLED:
-            import numba
+    for part in task.split():
+        kind, _, name = part.partition(":")
+        if kind == "unit":
+            _ = _units()[name].compiled
+        elif kind == "entries":
+            if not _jit.JIT_DISABLED:
+                import numba
 
-            for dispatcher, args in _entry_calls(name):
-                dispatcher.compile(tuple(numba.typeof(a) for a in args))
-    elif task == CHECK:
-        from mkf_ros.sim.motion import integrate
+                for dispatcher, args in _entry_calls(name):
+                    dispatcher.compile(tuple(numba.typeof(a) for a in args))
+        elif part == CHECK:
+            from mkf_ros.sim.motion import integrate
 
-        warmup()
-        integrate(np.array([1.0, 0.0, 0.0, 0.0]), np.zeros((2, 3)), 0.01)  # the simulator's
-    else:
-        raise ValueError(f"unknown compile task {task!r}")
+            warmup()
+            integrate(np.array([1.0, 0.0, 0.0, 0.0]), np.zeros((2, 3)), 0.01)  # the simulator's
+        else:
+            raise ValueError(f"unknown compile task {part!r}")
     return (task, time.perf_counter() - t0, time.process_time() - c0,
             resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)
 
@@ -206,7 +233,7 @@ def precompile(root: Path, jobs: int | None = None,
         for phase, workers in ((compile_tasks(), jobs), ([CHECK], 1)):
             with concurrent.futures.ProcessPoolExecutor(
                     max_workers=workers, mp_context=multiprocessing.get_context("spawn"),
-                    max_tasks_per_child=1) as pool:
+                    max_tasks_per_child=1, initializer=_compiler_process) as pool:
                 for result in pool.map(run_compile_task, phase):
                     if report is not None:
                         report(result)

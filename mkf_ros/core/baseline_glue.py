@@ -139,13 +139,13 @@ def from_canonical(c: np.record, s: np.record) -> None:
     copy_into(s.q_c, euler_to_quat(phi, theta, psi))
 
 
-@unit(nt.void(CONFIG_T, STATE_T), cost=3.5)
+@unit(nt.void(CONFIG_T, STATE_T), cost=2.2)
 def export(c: np.record, s: np.record) -> None:
     """:func:`baseline_export` compiled on its own (the sensor layer's rare paths call it)."""
     baseline_export(c, s)
 
 
-@unit(nt.void(CONFIG_T, STATE_T), cost=3.4)
+@unit(nt.void(CONFIG_T, STATE_T), cost=1.2)
 def restore(c: np.record, s: np.record) -> None:
     """:func:`from_canonical` compiled on its own (the sensor layer's rare paths call it)."""
     from_canonical(c, s)

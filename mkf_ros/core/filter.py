@@ -119,7 +119,7 @@ __all__ = [
 ]
 
 
-@unit(nt.Tuple((F4, F33))(CONFIG_T, STATE_T), cost=1.6)
+@unit(nt.Tuple((F4, F33))(CONFIG_T, STATE_T), cost=1.3)
 def output(c: np.record, s: np.record) -> tuple[tuple, tuple]:
     """Orientation in the world frame (``q0 ≥ 0``) and its 3×3 covariance about world axes
     (rows), ``Σ_W = R(q_W) Σ_body R(q_W)ᵀ`` (the error is body-side, ``q = q̂ * δ(e)``), plus

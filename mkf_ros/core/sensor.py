@@ -393,7 +393,7 @@ USED, GO, GO_WITHOUT_MAG = 0, 1, 2
 
 
 @unit(nt.int64(CONFIG_T, STATE_T, COUNTERS_T, CANONICAL_T, nt.float64, F3, nt.boolean, F3,
-               nt.boolean, F3, nt.float64, nt.boolean), cost=10)
+               nt.boolean, F3, nt.float64, nt.boolean), cost=5.3)
 def start(c: np.record, s: np.record, k: np.record, cn: Canonical, dt: float, gyr: tuple,
           has_g: bool, acc: tuple, has_a: bool, m_body: tuple, m_norm: float,
           has_m: bool) -> int:
@@ -684,7 +684,7 @@ def _acc_bias_coupling(c: np.record, s: np.record, f: float) -> tuple:
     return Sb, (1.0 / (1.0 + s.acc_excess / (e * e)) if e > 0.0 else 1.0)
 
 
-@unit(nt.void(CONFIG_T, STATE_T, CANONICAL_T, F3, F3, F3), cost=5)
+@unit(nt.void(CONFIG_T, STATE_T, CANONICAL_T, F3, F3, F3), cost=1.8)
 def acc_recovery(c: np.record, s: np.record, cn: Canonical, a: tuple, a_body: tuple,
                  wl: tuple) -> None:
     """Gravity refused for ``acc_recovery_time``: the estimate may be what is wrong. Its tilt
@@ -909,7 +909,7 @@ def _mag_candidate(c: np.record, s: np.record, dtm: float, R: tuple, m_body: tup
     return True
 
 
-@unit(nt.void(CONFIG_T, STATE_T, CANONICAL_T, F33, F3), cost=0.6)
+@unit(nt.void(CONFIG_T, STATE_T, CANONICAL_T, F33, F3), cost=0.4)
 def mag_recovery(c: np.record, s: np.record, cn: Canonical, Rq: tuple, m_body: tuple) -> None:
     """A plausible, consistent field refused by the χ² gate for ``mag_recovery_time``: the
     heading is what is wrong. Its variance grows by the disagreement (no snap: the next
@@ -1110,7 +1110,7 @@ def _mekf_update(c: np.record, s: np.record, w: np.record, dt: float,
     return acc_nis, mag_nis
 
 
-@unit(_UPDATE_SIG(CONFIG_T, STATE_T, WORK_T, nt.float64, FUSION_T), cost=18)
+@unit(_UPDATE_SIG(CONFIG_T, STATE_T, WORK_T, nt.float64, FUSION_T), cost=20)
 def mukf_update(c: np.record, s: np.record, w: np.record, dt: float,
                 z: Fusion) -> tuple[bool, float, float]:
     """The MUKF (docs/math.md §6): the stacked measurement through the sigma points
@@ -1293,7 +1293,7 @@ def _fusion(c: np.record, s: np.record, has_m: bool, dtm: float) -> tuple:
     return m_ref, h_ref, var_h, acc_gate, mag_gate
 
 
-@unit(_UPDATE_SIG(CONFIG_T, STATE_T, COUNTERS_T, nt.float64, FUSION_T), cost=12)
+@unit(_UPDATE_SIG(CONFIG_T, STATE_T, COUNTERS_T, nt.float64, FUSION_T), cost=10.6)
 def baseline_step(c: np.record, s: np.record, k: np.record, dt: float,
                   z: Fusion) -> tuple[bool, float, float]:
     """The baselines' update (:func:`~mkf_ros.core.baseline_glue.baseline_update`)."""
@@ -1310,7 +1310,7 @@ UNITS_T = tuple_type([CANONICAL_T] + [x.type for x in (start, acc_recovery, mag_
 
 # --- the step --------------------------------------------------------------------------------
 @unit(nt.void(CONFIG_T, STATE_T, COUNTERS_T, WORK_T, UNITS_T, nt.float64, F3, F3, F3),
-      cost=20)
+      cost=25)
 def step(c: np.record, s: np.record, k: np.record, w: np.record, u: Units, dt: float,
          gyr: tuple, acc: tuple, mag: tuple) -> None:
     """One sample: any of ``gyr`` (rad/s), ``acc`` (m/s², +g up at rest) and ``mag`` (any unit)

@@ -321,6 +321,21 @@ def rts_linear(nx: int, Pa: np.ndarray, Pp: np.ndarray, A: tuple, dt: float, Qp:
     return True
 
 
+# rts_linear with nx a literal, on the scratch of rts_manifold, each compiled once: the compiler
+# unrolls its 9×9 (6×6) loops (inlined at both call sites instead, the backward pass took half
+# as long again to compile, and a third more memory)
+@jit
+def _rts_linear9(S: np.ndarray, A: tuple, dt: float) -> bool:
+    return rts_linear(9, S[0], S[1], A, dt, S[2], S[4], S[9][0], S[5], (S[6], S[7]), S[8],
+                      S[9][1])
+
+
+@jit
+def _rts_linear6(S: np.ndarray, A: tuple, dt: float) -> bool:
+    return rts_linear(6, S[0], S[1], A, dt, S[2], S[4], S[9][0], S[5], (S[6], S[7]), S[8],
+                      S[9][1])
+
+
 @jit_inline
 def transition_matrix(w: tuple, dt: float, nx: int, Phi: np.ndarray) -> None:
     """The error-state transition of :func:`~mkf_ros.core.mekf.mekf_predict_t` (docs/math.md
@@ -358,7 +373,7 @@ def rts_manifold(c: np.record, r: np.record, qs: np.ndarray, ws: np.ndarray, bs:
     from the :data:`TRANS` slot ``r`` (the posterior at ``t_k``). ``S``: scratch
     ``(10, 9, 9)``. False (nothing changed) if the prediction's covariance is not positive
     definite."""
-    Pa, Pp, Qp, Pn, C, G, X, Po = S[0], S[1], S[2], S[4], S[5], S[6], S[7], S[8]
+    Pa, Pp, Qp, Pn, Po = S[0], S[1], S[2], S[4], S[8]  # (S[5:8]: rts_linear's C, G, X)
     _load_cov(r, nx, Pa)
     qa, wa, ba = t4(r.q), t3(r.w), t3(r.b)
     for i in range(nx):
@@ -389,7 +404,7 @@ def rts_manifold(c: np.record, r: np.record, qs: np.ndarray, ws: np.ndarray, bs:
         dx[3 + i] = ws[i] - wa[i]
         if nx == 9:
             dx[6 + i] = bs[i] - ba[i]
-    if not rts_linear(nx, Pa, Pp, Am, r.dt, Qp, Pn, dx, C, (G, X), Po, dxo):
+    if not (_rts_linear9(S, Am, r.dt) if nx == 9 else _rts_linear6(S, Am, r.dt)):
         return False
     # back to the manifold at the posterior's centre, as the filter's update (§5)
     de = saturate_t(c.chart, (dxo[0], dxo[1], dxo[2]))
@@ -470,10 +485,7 @@ def backward(cfg: np.ndarray, rec: np.ndarray, n: int, out: BatchOutputs) -> int
             have = False
             continue
         if r.kind == TRANS and have:
-            # nx as a literal: the compiler unrolls the 9×9 (6×6) loops
-            ok = (rts_manifold(c, r, qs, ws, bs, Ps, S, 9) if nx == 9
-                  else rts_manifold(c, r, qs, ws, bs, Ps, S, 6))
-            if not ok:
+            if not rts_manifold(c, r, qs, ws, bs, Ps, S, nx):
                 failed += 1
                 _load(r, nx, qs, ws, bs, Ps)
         else:

@@ -61,7 +61,7 @@ from typing import Any
 
 import numpy as np
 
-from mkf_ros.core import smoother
+from mkf_ros.core import _jit, smoother
 from mkf_ros.core.filter import COUNTER_NAMES as FILTER_COUNTERS
 from mkf_ros.core.filter import (
     MAX_ACC_G,
@@ -342,9 +342,10 @@ class StreamAdapter:
         self._out_flat = self._out.view(np.float64)
         self._out_bytes = self._out.view(np.uint8).data.toreadonly()
         self._ev_imu_bytes = self._ev_imu_seq.view(np.uint8).data
+        self._bound: dict[int, tuple] = {}  # _run_event's compiled calls, by event kind
 
     _VIEWS = ("_ev_views", "_out_present", "_out_slot", "_ev_imu", "_ev_imu_seq", "_out_flat",
-              "_out_bytes", "_ev_imu_bytes")
+              "_out_bytes", "_ev_imu_bytes", "_bound")
 
     def __getstate__(self) -> dict[str, Any]:
         """The state of :func:`copy.deepcopy` and :mod:`pickle`: every record, without the
@@ -558,7 +559,8 @@ class StreamAdapter:
         v[:] = _vec(gyr, "gyr")
         a[:] = _vec(acc, "acc")
         stamp_v[0] = float(stamp)
-        return self.run_imu_event()
+        self._run_event(sk.EV_IMU)
+        return _PRESENT(self._out_bytes)[0]  # the flags, without a numpy scalar
 
     @property
     def imu_event_bytes(self) -> memoryview:
@@ -571,7 +573,7 @@ class StreamAdapter:
     def run_imu_event(self) -> int:
         """:meth:`step_imu` of the sample already in :attr:`imu_event_bytes` (the same rules:
         the record is what :meth:`step_imu` writes)."""
-        self._run(self._ev_imu_seq, self._out, 0, 1)
+        self._run_event(sk.EV_IMU)
         return _PRESENT(self._out_bytes)[0]  # the flags, without a numpy scalar
 
     @property
@@ -616,14 +618,14 @@ class StreamAdapter:
         stamp_v, v, _ = self._ev_views[sk.EV_ACC]
         v[:] = _vec(acc, "acc")
         stamp_v[0] = stamp
-        self._run(self._ev[sk.EV_ACC], self._out, 0, 1)
+        self._run_event(sk.EV_ACC)
 
     def on_mag(self, stamp: float, mag: Any) -> None:
         """Process one magnetometer sample (any unit, tesla by REP-145; all NaN = none)."""
         stamp_v, v, _ = self._ev_views[sk.EV_MAG]
         v[:] = _vec(mag, "mag")
         stamp_v[0] = stamp
-        self._run(self._ev[sk.EV_MAG], self._out, 0, 1)
+        self._run_event(sk.EV_MAG)
 
     def process(self, imu_stamp: Any, gyr: Any, acc: Any, mag_stamp: Any = None,
                 mag: Any = None, *, imu_arrival: Any = None, mag_arrival: Any = None,
@@ -688,35 +690,75 @@ class StreamAdapter:
                 progress(k1 - k0)
         return _outputs(out, ts)
 
+    def _args(self, ev: np.ndarray, out: np.ndarray, k0: int, k1: int) -> tuple:
+        """The arguments of :func:`~mkf_ros.stream.kernel.run_events` for these events."""
+        return (kernel_table(), tuple(self.filter.kernel_arrays()), self._npar, self._ts,
+                self._acnt, self._rec, self._rn, ev, out, k0, k1)
+
     def _run(self, ev: np.ndarray, out: np.ndarray, k0: int, k1: int) -> None:
         """Events ``k0 … k1-1`` through the compiled rules. Only resets come back here: the
         filter gets new state, then the loop resumes."""
         if self._recording:  # (set_params builds a new configuration)
             record(self.filter.kernel_arrays().cfg).record_posterior = True
         while True:
-            k, why = sk.run_events(kernel_table(), tuple(self.filter.kernel_arrays()), self._npar,
-                                   self._ts, self._acnt, self._rec, self._rn, ev, out, k0,
-                                   k1)
-            if self._recording and self._rn[1]:
-                raise RuntimeError("smoother recording out of room (record_into: leave a slot "
-                                   "per event)")
-            if why == sk.R_DONE:
+            k0 = self._resume(*sk.run_events(*self._args(ev, out, k0, k1)))
+            if k0 < 0:
                 return
-            if why == sk.R_FULL:
-                if self._on_full is None:
-                    raise RuntimeError("smoother recording full (record_into: no on_full)")
-                self._set_recording(*self._on_full(int(self._rn[0])))
-                k0 = k
-                continue
-            if why == sk.R_TIME_JUMP:  # the same sample again, re-initialising from it
-                self.reset("time jump")
-                k0 = k
-                record(self._ts).resume = True
-            else:  # R_NONFINITE: nothing published for that sample
-                if self._recording:  # its step leaves the smoother's chain
-                    smoother.cut(self._rec, int(self._rn[0]) - 1)
-                self.reset("non-finite estimate")
-                k0 = k + 1
+
+    def _resume(self, k: int, why: int) -> int:
+        """What :func:`~mkf_ros.stream.kernel.run_events` returned, ``(k, why)``: the event
+        to resume from, once the filter is reset or the recording has room; -1 when done."""
+        if self._recording and self._rn[1]:
+            raise RuntimeError("smoother recording out of room (record_into: leave a slot "
+                               "per event)")
+        if why == sk.R_DONE:
+            return -1
+        if why == sk.R_FULL:
+            if self._on_full is None:
+                raise RuntimeError("smoother recording full (record_into: no on_full)")
+            self._set_recording(*self._on_full(int(self._rn[0])))
+            return k
+        if why == sk.R_TIME_JUMP:  # the same sample again, re-initialising from it
+            self.reset("time jump")
+            record(self._ts).resume = True
+            return k
+        # R_NONFINITE: nothing published for that sample
+        if self._recording:  # its step leaves the smoother's chain
+            smoother.cut(self._rec, int(self._rn[0]) - 1)
+        self.reset("non-finite estimate")
+        return k + 1
+
+    def _run_event(self, kind: int) -> None:
+        """:meth:`_run` of the one-event sequence of ``kind`` (``EV_*``; on_imu, on_mag,
+        on_accel), the per-message path: the compiled loop called through its entry point
+        for exactly these arguments, bound once (numba's dispatcher otherwise works out the
+        types of its eleven arguments at every call) and bound again whenever the filter's
+        or the adapter's records are replaced (reset, set_params, recording)."""
+        ev = self._ev[kind]
+        b = self._bound.get(kind)
+        if (b is None or b[0] is not self.filter.kernel_arrays() or b[1] is not self._npar
+                or b[2] is not self._rec or self._recording):
+            self._run(ev, self._out, 0, 1)
+            self._bind(kind)
+            return
+        k0 = self._resume(*b[3](*b[4]))
+        if k0 >= 0:
+            self._run(ev, self._out, k0, 1)
+
+    def _bind(self, kind: int) -> None:
+        """The compiled entry point of :func:`~mkf_ros.stream.kernel.run_events` for the
+        one-event sequence of ``kind`` and the current records (:meth:`_run_event`): the
+        version numba compiled for exactly these argument types, looked up after a call
+        through the dispatcher; none while recording or without JIT."""
+        self._bound.pop(kind, None)
+        if self._recording or _jit.JIT_DISABLED:
+            return
+        args = self._args(self._ev[kind], self._out, 0, 1)
+        disp = sk.run_events
+        cres = disp.overloads.get(tuple(disp.typeof_pyval(a) for a in args))
+        if cres is not None:
+            self._bound[kind] = (self.filter.kernel_arrays(), self._npar, self._rec,
+                                 cres.entry_point, args)
 
 
 def _outputs(out: np.ndarray, stamps: np.ndarray) -> StreamOutputs:
