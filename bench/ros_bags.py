@@ -28,8 +28,11 @@ One table row per (bag, algorithm, 6D/9D):
   (:func:`mkf_ros.evaluation.metrics.unexplained_steps`; ω the input gyro of the later message, Δt
   the stamp difference), with the largest unexplained part and its time (s since the bag start).
   Excused, and shown apart as ``+N ok``: steps after a gap longer than ``max_dt`` (the filter
-  re-aligns there by design) and the first step with the heading fixed by the magnetometer when
-  the yaw variance published just before it was ≥ 1 rad² (the filter had said "heading unknown");
+  re-aligns there by design), the first step with the heading fixed by the magnetometer when
+  the yaw variance published just before it was ≥ 1 rad² (the filter had said "heading unknown"),
+  and steps whose unexplained part is within one standard deviation, about the step's axis, of
+  the orientation covariance published just before (the filter had said it was that uncertain
+  about that axis, e.g. after a shake faster than its rate model follows, docs/math.md § 9.3);
 * ``max yaw var``: the largest published variance about world z (rad², covariance[8], ENU);
 * ``var↓``: jumps (not excused) at which the published yaw variance decreases — "the variance
   drops while the estimate jumps";
@@ -219,6 +222,7 @@ class Run:
     stamp: np.ndarray  #: (M,) s, header stamps
     quat: np.ndarray  #: (M, 4)
     yaw_var: np.ndarray  #: (M,) rad²
+    cov: np.ndarray  #: (M, 3, 3) rad², the published covariance about the world axes
     heading: np.ndarray  #: (M,) bool, heading fixed by the magnetometer
     bias: np.ndarray  #: (M, 3)
     rest: np.ndarray  #: (M,) bool, a zero-rate update at rest was made at this output
@@ -253,7 +257,8 @@ def run_case(bd: BagData, algorithm: str, use_mag: bool, overrides: dict[str, An
     rest_msg = np.diff(rest_count, prepend=0) > 0
     return Run(bag=bd, algorithm=algorithm, use_mag=use_mag, params=r.params,
                n_in=r.n_imu + r.n_mag, n_out=r.n_out, index=o.index, t=r.log_s,
-               stamp=r.stamps, quat=o.quat, yaw_var=o.cov[:, 2, 2], heading=so.heading_initialized,
+               stamp=r.stamps, quat=o.quat, yaw_var=o.cov[:, 2, 2],
+               cov=o.cov, heading=so.heading_initialized,
                bias=so.bias, rest=rest_msg[o.index], counters=r.counters, same=same,
                notes=list(r.notes))
 
@@ -275,6 +280,17 @@ class Checks:
     tilt: tuple[float, float] | None  #: RMS, max inclination difference to the own orientation
 
 
+def axis_variances(q: np.ndarray, cov: np.ndarray) -> np.ndarray:
+    """(M−1,) rad²: the variance, about the axis of each step ``q[k−1] → q[k]`` (world frame,
+    ``q[k] q[k−1]*``), of the covariance published with ``q[k−1]`` (world axes)."""
+    w0, v0 = q[:-1, 0], -q[:-1, 1:]
+    w1, v1 = q[1:, 0], q[1:, 1:]
+    axis = w0[:, None] * v1 + w1[:, None] * v0 + np.cross(v1, v0)
+    n = np.linalg.norm(axis, axis=1, keepdims=True)
+    u = np.divide(axis, n, out=np.zeros_like(axis), where=n > 0)
+    return np.einsum("ki,kij,kj->k", u, cov[:-1], u)
+
+
 def check(run: Run) -> Checks:
     bd = run.bag
     gyr = bd.gyr[run.index]
@@ -284,7 +300,9 @@ def check(run: Run) -> Checks:
     big = unexpl > JUMP_DEG
     gap = np.diff(run.stamp) > float(run.params["max_dt"])
     fix = run.heading[1:] & ~run.heading[:-1] & (run.yaw_var[:-1] >= SMALL_YAW_VAR)
-    ok = big & (gap | fix)
+    # within one σ about the step's axis, published just before: a correction it had announced
+    announced = np.radians(unexpl) <= np.sqrt(axis_variances(run.quat, run.cov))
+    ok = big & (gap | fix | announced)
     jumps = k[big & ~ok]
     drops = jumps[run.yaw_var[jumps] < run.yaw_var[jumps - 1]]
     finite = np.isfinite(run.yaw_var)

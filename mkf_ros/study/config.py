@@ -48,6 +48,12 @@ class Cell:
                 f"{self.mukf_scaling}/{self.sampling}")
 
     @property
+    def label(self) -> str:
+        """The cell as the report's tables name it: ``MEKF RP cu R=1e-02 100 Hz``."""
+        return (f"{self.filter.upper()} {self.chart.upper()} {self.update} R={self.r:.0e} "
+                f"{self.rate_hz:g} Hz")
+
+    @property
     def variant(self) -> tuple[str, str, str, str]:
         """The filter variant (everything except R, rate and sampling)."""
         return (self.filter, self.chart, self.update, self.mukf_scaling)

@@ -602,8 +602,7 @@ def sampling_section(t: Table) -> list[str]:
     out.append("|---|---|---|---:|")
     for s, v in sorted(pairs, key=lambda p: p[0].cell.sort_key()):
         c = s.cell
-        out.append(f"| {c.filter.upper()} {c.chart.upper()} {c.update} R={c.r:.0e} "
-                   f"{c.rate_hz:g} Hz | {_fmt_row(s)} | {_fmt_row(v)} | "
+        out.append(f"| {c.label} | {_fmt_row(s)} | {_fmt_row(v)} | "
                    f"{'–' if s.pub is None else f'{s.pub:g}'} |")
     out.append("")
     return out
@@ -790,8 +789,7 @@ def _disagreements_section(t: Table, ag: dict) -> list[str]:
           "|---|---|---:|---:|---|"]
     for r in sorted(dis, key=lambda r: r.cell.sort_key()):
         c = r.cell
-        L.append(f"| {c.filter.upper()} {c.chart.upper()} {c.update} R={c.r:.0e} "
-                 f"{c.rate_hz:g} Hz | {_fmt_row(r)} | {r.pub:g} | {_pct(r.rel)} | "
+        L.append(f"| {c.label} | {_fmt_row(r)} | {r.pub:g} | {_pct(r.rel)} | "
                  f"{explain(t, r)} |")
     L.append("")
     return L
