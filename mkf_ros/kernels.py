@@ -163,7 +163,7 @@ def compile_tasks() -> list[str]:
 #: The compiling processes' garbage collector: objects that survive this many allocations are
 #: checked for cycles (Python's default: 700). numba's compiler allocates millions of small
 #: objects (it copies a function's IR for every call it inlines), which the default makes the
-#: collector scan over and over: a fifth of the compile's CPU time, measured.
+#: collector scan over and over: about a sixth of a unit's compile CPU time, measured.
 COMPILE_GC_THRESHOLD = 20000
 
 

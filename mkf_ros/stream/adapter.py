@@ -559,8 +559,7 @@ class StreamAdapter:
         v[:] = _vec(gyr, "gyr")
         a[:] = _vec(acc, "acc")
         stamp_v[0] = float(stamp)
-        self._run_event(sk.EV_IMU)
-        return _PRESENT(self._out_bytes)[0]  # the flags, without a numpy scalar
+        return self.run_imu_event()
 
     @property
     def imu_event_bytes(self) -> memoryview:
