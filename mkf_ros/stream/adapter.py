@@ -753,7 +753,7 @@ class StreamAdapter:
         if self._recording or _jit.JIT_DISABLED:
             return
         args = self._args(self._ev[kind], self._out, 0, 1)
-        disp = sk.run_events
+        disp: Any = sk.run_events  # a numba dispatcher (overloads, typeof_pyval)
         cres = disp.overloads.get(tuple(disp.typeof_pyval(a) for a in args))
         if cres is not None:
             self._bound[kind] = (self.filter.kernel_arrays(), self._npar, self._rec,
