@@ -214,7 +214,9 @@ def report(args: argparse.Namespace, modes: list[str], runs: dict[str, list[dict
         print(f"| {cores} | {mk / 60:.1f} min | {serial_full / 60:.1f} min | "
               f"{wall / 3600:.2f} h ({wall / 60:.0f} min) | {cpu_full / wall:.0f}x |")
     if args.json:
-        args.json.write_text(json.dumps({
+        from mkf_ros import files
+
+        files.write_text(args.json, json.dumps({
             "n_s": args.n_s, "workers": args.workers, "units": n_units,
             "best": {m: {k: best[m][k] for k in ("wall_s", "cpu_s", "cpu_total_s", "parent_s")}
                      for m in modes},

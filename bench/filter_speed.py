@@ -36,7 +36,9 @@ def main(argv: list[str] | None = None) -> int:
     ratio = mekf_mukf_ratio(speeds)
     print(f"\nMEKF/MUKF speed ratio: {ratio:.2f} (paper: about 3)")
     if a.json:
-        a.json.write_text(json.dumps({"speeds": [s.as_dict() for s in speeds],
+        from mkf_ros import files
+
+        files.write_text(a.json, json.dumps({"speeds": [s.as_dict() for s in speeds],
                                       "mekf_mukf_ratio": ratio}, indent=1))
     return 0
 

@@ -63,6 +63,7 @@ from typing import Any
 
 import numpy as np
 
+from mkf_ros import files
 from mkf_ros.core.params import BY_NAME
 from mkf_ros.core.quaternion import qmul_np
 from mkf_ros.evaluation.datasets import ALL_ERRORS, Recording, read_dataset
@@ -1014,7 +1015,7 @@ def main(argv: list[str] | None = None) -> int:
                         for c in checks],
             "elapsed_s": wall,
         }
-        args.json.write_text(json.dumps(payload, indent=1, default=float))
+        files.write_text(args.json, json.dumps(payload, indent=1, default=float))
         print(f"scores written to {args.json}")
     return 0
 

@@ -83,6 +83,7 @@ from typing import Any
 import numpy as np
 
 from mkf_ros.bags import BagError, BagReader, cdr
+from mkf_ros.core.quaternion import qconj_np, qmul_np
 from mkf_ros.evaluation.metrics import orientation_errors, step_angles, unexplained_steps
 from mkf_ros.stream import rep145
 
@@ -283,9 +284,7 @@ class Checks:
 def axis_variances(q: np.ndarray, cov: np.ndarray) -> np.ndarray:
     """(M−1,) rad²: the variance, about the axis of each step ``q[k−1] → q[k]`` (world frame,
     ``q[k] q[k−1]*``), of the covariance published with ``q[k−1]`` (world axes)."""
-    w0, v0 = q[:-1, 0], -q[:-1, 1:]
-    w1, v1 = q[1:, 0], q[1:, 1:]
-    axis = w0[:, None] * v1 + w1[:, None] * v0 + np.cross(v1, v0)
+    axis = qmul_np(q[1:], qconj_np(q[:-1]))[:, 1:]
     n = np.linalg.norm(axis, axis=1, keepdims=True)
     u = np.divide(axis, n, out=np.zeros_like(axis), where=n > 0)
     return np.einsum("ki,kij,kj->k", u, cov[:-1], u)

@@ -22,45 +22,44 @@ from launch.actions import DeclareLaunchArgument, OpaqueFunction
 from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
 
-#: The common parameters offered as launch arguments: (name, type, what it does). Their
-#: definitions (default, range, unit) are mkf_ros.core.params.PARAMS; test/ros/test_config.py
-#: checks that each one is a parameter of that type.
-PARAMETER_ARGUMENTS = (
-    ("use_mag", bool, "fuse imu/mag for heading (default false)"),
-    ("world_frame", str, "enu, ned or nwu (default enu)"),
-    ("publish_tf", bool, "broadcast fixed_frame -> IMU frame (default false)"),
-    ("fixed_frame", str, "parent frame of the TF (default odom)"),
-    ("reverse_tf", bool, "broadcast IMU frame -> fixed_frame instead (default false)"),
-    ("publish_debug_topics", bool,
-     "imu/rpy/filtered, imu/rpy/raw, imu/gyro_bias, imu/steady_state (default false)"),
-    ("constant_dt", float, "time step for every sample instead of the stamps, s (default 0)"),
-    ("algorithm", str, "mekf, mukf, euler_kf, euler_ukf or madgwick (default mekf)"),
-    ("declination", float, "magnetic declination, rad, positive east (default 0)"),
-    ("yaw_offset", float, "added to the published heading, rad (default 0)"),
-    ("orientation_stddev", float,
-     "> 0: a fixed orientation_covariance diagonal, rad; 0: the filter's (default 0)"),
-    ("remove_gravity_vector", bool, "subtract gravity from linear_acceleration (default false)"),
-    ("input_mode", str, "imu, or split for separate imu/gyro and imu/accel (default imu)"),
-)
+from mkf_ros.core.params import BY_NAME
+
+#: The common parameters offered as launch arguments (imu_tools #180). Their type, description
+#: and default are those of mkf_ros.core.params.PARAMS, the one definition.
+PARAMETER_NAMES = ("use_mag", "world_frame", "publish_tf", "fixed_frame", "reverse_tf",
+                   "publish_debug_topics", "constant_dt", "algorithm", "declination",
+                   "yaw_offset", "orientation_stddev", "remove_gravity_vector", "input_mode")
 
 
-def _value(name: str, kind: type, text: str):
-    """A launch argument's text as the parameter's type (the node checks the value)."""
-    if kind is bool:
+def _described(name: str) -> tuple[str, type, str]:
+    """``(name, type, description with its default)`` of a parameter, from PARAMS."""
+    p = BY_NAME[name]
+    default = str(p.default).lower() if p.type is bool else (
+        f"{p.default:g}" if p.type is float else p.default)
+    return name, p.type, f"{p.description} (default {default})"
+
+
+PARAMETER_ARGUMENTS = tuple(_described(n) for n in PARAMETER_NAMES)
+
+
+def _value(name: str, text: str):
+    """A launch argument's text as the parameter's value: true/false for a boolean, else the
+    parameter's own check (PARAMS)."""
+    if name == "use_sim_time" or BY_NAME[name].type is bool:
         if text.strip().lower() not in ("true", "false"):
             raise ValueError(f"launch argument {name}: expected true or false, got {text!r}")
         return text.strip().lower() == "true"
-    return kind(text)
+    return BY_NAME[name].validate(text)
 
 
 def _node(context, *args, **kwargs):
     """The node, with the parameter arguments that were given on top of the file."""
     overrides = {"use_sim_time": _value(
-        "use_sim_time", bool, LaunchConfiguration("use_sim_time").perform(context))}
-    for name, kind, _ in PARAMETER_ARGUMENTS:
+        "use_sim_time", LaunchConfiguration("use_sim_time").perform(context))}
+    for name in PARAMETER_NAMES:
         text = LaunchConfiguration(name).perform(context)
         if text != "":
-            overrides[name] = _value(name, kind, text)
+            overrides[name] = _value(name, text)
     return [Node(
         package="mkf_ros",
         executable="estimator",

@@ -57,7 +57,7 @@ import math
 import struct
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -342,7 +342,7 @@ class StreamAdapter:
         self._out_flat = self._out.view(np.float64)
         self._out_bytes = self._out.view(np.uint8).data.toreadonly()
         self._ev_imu_bytes = self._ev_imu_seq.view(np.uint8).data
-        self._bound: dict[int, tuple] = {}  # _run_event's compiled calls, by event kind
+        self._bound: dict[int, _BoundCall] = {}  # _run_event's compiled calls, by event kind
 
     _VIEWS = ("_ev_views", "_out_present", "_out_slot", "_ev_imu", "_ev_imu_seq", "_out_flat",
               "_out_bytes", "_ev_imu_bytes", "_bound")
@@ -735,12 +735,12 @@ class StreamAdapter:
         or the adapter's records are replaced (reset, set_params, recording)."""
         ev = self._ev[kind]
         b = self._bound.get(kind)
-        if (b is None or b[0] is not self.filter.kernel_arrays() or b[1] is not self._npar
-                or b[2] is not self._rec or self._recording):
+        if (b is None or b.arrays is not self.filter.kernel_arrays() or b.npar is not self._npar
+                or b.rec is not self._rec or self._recording):
             self._run(ev, self._out, 0, 1)
             self._bind(kind)
             return
-        k0 = self._resume(*b[3](*b[4]))
+        k0 = self._resume(*b.call(*b.args))
         if k0 >= 0:
             self._run(ev, self._out, k0, 1)
 
@@ -756,8 +756,19 @@ class StreamAdapter:
         disp: Any = sk.run_events  # a numba dispatcher (overloads, typeof_pyval)
         cres = disp.overloads.get(tuple(disp.typeof_pyval(a) for a in args))
         if cres is not None:
-            self._bound[kind] = (self.filter.kernel_arrays(), self._npar, self._rec,
-                                 cres.entry_point, args)
+            self._bound[kind] = _BoundCall(self.filter.kernel_arrays(), self._npar, self._rec,
+                                           cres.entry_point, args)
+
+
+class _BoundCall(NamedTuple):
+    """:meth:`StreamAdapter._run_event`'s compiled call for one event kind, with the records it
+    was bound to (it is bound again when any of them is replaced)."""
+
+    arrays: Any  #: the filter's kernel arrays
+    npar: np.ndarray
+    rec: np.ndarray
+    call: Any  #: the compiled entry point of run_events for these argument types
+    args: tuple
 
 
 def _outputs(out: np.ndarray, stamps: np.ndarray) -> StreamOutputs:
