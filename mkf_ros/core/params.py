@@ -167,8 +167,8 @@ PARAMS: tuple[Param, ...] = (
        group="noise"),
     _P("gyro_bias_noise", float, 1e-4, "Random walk of the gyro bias (sqrt of its PSD)",
        unit="rad/s/sqrt(s)", range=(0.0, 1.0), group="noise"),
-    _P("gyro_bias_stddev", float, 0.01, "Initial uncertainty of the gyro bias, the Kalman "
-       "prior (a calibrated MEMS gyro: about 0.5 deg/s; evidence in motion moves the bias "
+    _P("gyro_bias_stddev", float, 0.015, "Initial uncertainty of the gyro bias, the Kalman "
+       "prior (a calibrated MEMS gyro: about 1 deg/s; evidence in motion moves the bias "
        "against it, a rest learns a larger one in seconds: rest_bias_range)",
        unit="rad/s", range=(1e-9, 1.0), group="noise"),
     # --- disturbances and calibration (extensions for real sensors) --------------------------
@@ -252,7 +252,7 @@ PARAMS: tuple[Param, ...] = (
        "walking speed): the heading variance per sample is the noise's times max(1, time/dt); "
        "0 = independent per sample", unit="s", range=(0.0, 100.0),
        group="noise"),
-    _P("mag_norm_tolerance", float, 0.15, "Magnetometer samples whose magnitude differs from the "
+    _P("mag_norm_tolerance", float, 0.1, "Magnetometer samples whose magnitude differs from the "
        "learned field by more than this fraction are not fused", unit="1", range=(0.0, 1000.0),
        group="robustness"),
     _P("mag_new_time", float, 10.0, "A field of another magnitude than the learned one "
