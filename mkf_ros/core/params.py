@@ -167,7 +167,7 @@ PARAMS: tuple[Param, ...] = (
        group="noise"),
     _P("gyro_bias_noise", float, 1e-4, "Random walk of the gyro bias (sqrt of its PSD)",
        unit="rad/s/sqrt(s)", range=(0.0, 1.0), group="noise"),
-    _P("gyro_bias_stddev", float, 0.015, "Initial uncertainty of the gyro bias, the Kalman "
+    _P("gyro_bias_stddev", float, 0.02, "Initial uncertainty of the gyro bias, the Kalman "
        "prior (a calibrated MEMS gyro: about 1 deg/s; evidence in motion moves the bias "
        "against it, a rest learns a larger one in seconds: rest_bias_range)",
        unit="rad/s", range=(1e-9, 1.0), group="noise"),
