@@ -121,10 +121,9 @@ STATE = np.dtype(
         ("acc_excess", np.float64),  # low-passed (|a| − g)² (normalised), over its τ
         ("acc_dev", np.float64),  # low-passed |a − acc_lp|² (m²/s⁴): the samples' spread
         ("acc_rate_lp", np.float64),  # low-passed |ω|, over acc_time_constant
-        # the gyro's scale noise (docs/math.md §9.1): the rate low-passed over
-        # acc_time_constant (body axes: the net rotation) and the variance added this step
+        # the gyro's rate low-passed over acc_time_constant (body axes): the net rotation of
+        # its scale noise (docs/math.md §9.1)
         ("gyro_net", np.float64, 3),
-        ("scale_var", np.float64),
         ("acc_yaw_lp", np.float64),  # low-passed vertical rate Ω̄ (signed), over acc_time_constant
         # the low-pass's rotation error per unit gyro bias error (rad per rad/s, body axes), per
         # stage (docs/math.md §9.1): its memory is turned by the bias-corrected gyro
@@ -182,7 +181,7 @@ WORK = np.dtype(
      # previous sample's time just before the prediction (docs/math.md §11.1)
      ("rec_set", np.bool_), ("rec_q", np.float64, 4), ("rec_w", np.float64, 3),
      ("rec_b", np.float64, 3), ("rec_P", np.float64, (NX_MAX, NX_MAX)),
-     ("rec_ws2", np.float64)],
+     ("rec_ws2", np.float64)],  # the gyro's scale noise added in this step (§9.1)
     align=True,
 )
 
@@ -490,5 +489,4 @@ def record_posterior(c: np.record, s: np.record, w: np.record) -> None:
     for i in range(3):
         w.rec_w[i] = s.w[i]
         w.rec_b[i] = s.b[i]
-    w.rec_ws2 = s.scale_var
     w.rec_set = True
