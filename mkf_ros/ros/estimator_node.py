@@ -87,7 +87,7 @@ from mkf_ros.stream.adapter import (
     carries_orientation,
     orientation_note,
 )
-from mkf_ros.stream.kernel import OF_WADD
+from mkf_ros.stream.kernel import MSG_DECLINED, OF_WADD
 
 _REST_UPDATES = COUNTER_NAMES.index("rest_updates")
 
@@ -362,51 +362,81 @@ class EstimatorNode(Node):
         return sec, nsec
 
     def _on_imu(self, data: bytes) -> None:
-        """Serialized Imu in (``raw=True``), serialized Imu out: no message objects and no
-        numpy on the fast path (see :mod:`mkf_ros.ros.rawmsg`)."""
+        """Serialized Imu in (``raw=True``), serialized Imu out: in one compiled call
+        (:meth:`StreamAdapter.run_imu_message`: the message read, the filter step, ``imu/data``
+        built), no message objects and no numpy. The first messages (checked for an
+        orientation), a calibration under way or set, TF or debug topics, and a message that
+        call declines take the longer path (:meth:`_on_imu_parsed`)."""
         if not self._active:
             return  # a managed node that is not active takes no input
         self.received_imu += 1
         try:
             self._last_imu_wall = time.monotonic()
-            m = rawmsg.unpack_imu(data)
-            if m is None:  # not little-endian CDR: message objects
-                self._on_imu_msg(deserialize_message(data, Imu))
+            if self._ori_checks or self._extras_on or type(data) is not bytes:
+                self._on_imu_parsed(data)
                 return
-            sec, nsec, off, gyr, acc = m
-            prefix = None
-            if sec == 0 and nsec == 0:
-                sec, nsec = self._receive_time("imu", self._sub_imu.topic_name)
-                prefix = rawmsg.restamped_prefix(data, off, sec, nsec)
-            if self._ori_checks:
-                d = rawmsg.doubles(data, off)
-                self._check_orientation(d[rawmsg.Q:rawmsg.Q + 4], d[rawmsg.QC])
-            self._last_imu_data = data
-            stamp = sec + nsec * 1e-9
-            extras = self._extras_on
+            payload: bytes | None = None
             with self._lock:
-                stream, calib = self.stream, self._calib
+                calib = self._calib
                 if calib is not None and (calib.window is not None or calib.offset_set):
-                    gyr = calib.gyro_input(stamp, gyr, acc, stream.split)
-                rest0 = stream.filter.counters[_REST_UPDATES] if extras else 0
-                rawmsg.pack_imu_event(stream.imu_event_bytes, stamp, gyr, acc)
-                flags = stream.run_imu_event()
-                if not flags:
-                    return
-                payload = self._encode(data, off, flags, sec, nsec, prefix)
-                if extras:
-                    out = stream.last_output()
-                    at_rest = bool(stream.filter.counters[_REST_UPDATES] > rest0)
-            self._pub.publish(payload)
-            self._published += 1
-            if extras:
-                self._extras(Header(stamp=Time(sec=sec, nanosec=nsec),
-                                    frame_id=rawmsg.frame_id(data)), out, self._p, acc, at_rest)
+                    n = MSG_DECLINED
+                else:
+                    stream = self.stream
+                    n = stream.run_imu_message(data)
+                    if n > 0:
+                        payload = stream.message_bytes[:n].tobytes()
+                    elif n == 0 and (flags := stream.output_flags):  # after a reset
+                        payload = self._encode(data, rawmsg.unpack_imu(data)[2], flags)
+            if n == MSG_DECLINED:
+                self._on_imu_parsed(data)
+                return
+            self._last_imu_data = data
+            if payload is not None:
+                self._pub.publish(payload)
+                self._published += 1
         except Exception as e:
             self._count_exception(e, "imu callback")
 
-    def _encode(self, data: bytes, off: int, flags: int, sec: int, nsec: int,
-                prefix: bytes | None) -> bytes:
+    def _on_imu_parsed(self, data: bytes) -> None:
+        """:meth:`_on_imu` the longer way: the message read in Python (:mod:`.rawmsg`), the
+        filter step, ``imu/data`` built from the output record; message objects for input
+        that is not little-endian CDR."""
+        m = rawmsg.unpack_imu(data)
+        if m is None:  # not little-endian CDR: message objects
+            self._on_imu_msg(deserialize_message(data, Imu))
+            return
+        sec, nsec, off, gyr, acc = m
+        prefix = None
+        if sec == 0 and nsec == 0:
+            sec, nsec = self._receive_time("imu", self._sub_imu.topic_name)
+            prefix = rawmsg.restamped_prefix(data, off, sec, nsec)
+        if self._ori_checks:
+            d = rawmsg.doubles(data, off)
+            self._check_orientation(d[rawmsg.Q:rawmsg.Q + 4], d[rawmsg.QC])
+        self._last_imu_data = data
+        stamp = sec + nsec * 1e-9
+        extras = self._extras_on
+        with self._lock:
+            stream, calib = self.stream, self._calib
+            if calib is not None and (calib.window is not None or calib.offset_set):
+                gyr = calib.gyro_input(stamp, gyr, acc, stream.split)
+            rest0 = stream.filter.counters[_REST_UPDATES] if extras else 0
+            rawmsg.pack_imu_event(stream.imu_event_bytes, stamp, gyr, acc)
+            flags = stream.run_imu_event()
+            if not flags:
+                return
+            payload = self._encode(data, off, flags, sec, nsec, prefix)
+            if extras:
+                out = stream.last_output()
+                at_rest = bool(stream.filter.counters[_REST_UPDATES] > rest0)
+        self._pub.publish(payload)
+        self._published += 1
+        if extras:
+            self._extras(Header(stamp=Time(sec=sec, nanosec=nsec),
+                                frame_id=rawmsg.frame_id(data)), out, self._p, acc, at_rest)
+
+    def _encode(self, data: bytes, off: int, flags: int, sec: int = 0, nsec: int = 0,
+                prefix: bytes | None = None) -> bytes:
         """``imu/data``'s bytes for the estimate in the adapter's output record (lock held)."""
         av_sd, la_sd = self._stddevs
         if flags & OF_WADD:  # the bias-corrected rate: its covariance changes every sample

@@ -114,6 +114,9 @@ def _changing_fields(flags: int) -> tuple[np.ndarray, np.ndarray]:
     return np.concatenate(dst), np.concatenate(src)
 
 
+# the stream kernel's copy of the layout (StreamAdapter.run_imu_message, no import of bags)
+assert (sk.IMU_DOUBLES, sk.IMU_Q, sk.IMU_QC, sk.IMU_W, sk.IMU_WC, sk.IMU_A, sk.IMU_AC) == (
+    IMU_DOUBLES, Q, QC, W, WC, A, AC), "sensor_msgs/Imu layout of stream.kernel differs"
 _DOUBLES = struct.Struct(f"<{IMU_DOUBLES}d")  # the Imu message after its header
 _VEC4 = struct.Struct("<4d")
 assert (WC, AC) == (W + 3, A + 3)  # each vector followed by its covariance

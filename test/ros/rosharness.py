@@ -22,6 +22,7 @@ from std_srvs.srv import Trigger
 
 from mkf_ros.ros import convert
 from mkf_ros.ros.estimator_node import EstimatorNode
+from mkf_ros.stream.kernel import MSG_DECLINED
 
 RELIABLE_IN = {
     "qos_overrides./imu/data_raw.subscription.reliability": "reliable",
@@ -209,9 +210,17 @@ def record_arrival(stream: Any) -> list[str]:
     reference adapter is fed from the messages the test sent (:func:`reference_outputs`),
     so the node's message conversion is under test, not replayed."""
     kinds: list[str] = []
-    # run_imu_event: the node's per-message path, and what on_imu and step_imu (its
+    # run_imu_message: the node's per-message path (a message it declines goes on to
+    # run_imu_event); run_imu_event: the node's longer path, and what on_imu and step_imu (its
     # message-object path) call
-    run_imu_event, on_mag = stream.run_imu_event, stream.on_mag
+    run_imu_message, run_imu_event, on_mag = (stream.run_imu_message, stream.run_imu_event,
+                                              stream.on_mag)
+
+    def imu_message(msg):
+        n = run_imu_message(msg)
+        if n != MSG_DECLINED:
+            kinds.append("imu")
+        return n
 
     def imu(*args):
         kinds.append("imu")
@@ -221,7 +230,7 @@ def record_arrival(stream: Any) -> list[str]:
         kinds.append("mag")
         return on_mag(*args)
 
-    stream.run_imu_event, stream.on_mag = imu, mag
+    stream.run_imu_message, stream.run_imu_event, stream.on_mag = imu_message, imu, mag
     return kinds
 
 
