@@ -514,27 +514,40 @@ class EstimatorNode(Node):
             self._count_exception(e, "accelerometer callback")
 
     def _on_mag(self, data: bytes) -> None:
+        """Serialized MagneticField in (``raw=True``): in one compiled call
+        (:meth:`StreamAdapter.run_mag_message`), but with a magnetometer calibration under way,
+        debug topics, or a message that call declines (:meth:`_on_mag_parsed`)."""
         if not self._active:
             return
         self.received_mag += 1
         try:
             self._last_mag_wall = time.monotonic()
-            h = rawmsg.parse(data, rawmsg.MAG_DOUBLES)
-            if h is None:
-                stamp, m = convert.mag_to_array(deserialize_message(data, MagneticField))
-            else:
-                stamp, m = h.stamp, h.d[0:3]
-            if stamp == 0.0:
-                sec, nsec = self._receive_time("mag", self._sub_mag.topic_name)
-                stamp = sec + nsec * 1e-9
-            with self._lock:
-                if self._calib is not None:
-                    self._calib.add_mag(m)
-                if self._debug:
-                    self._last_mag = np.array(m, dtype=float)
-                self.stream.on_mag(stamp, m)
+            if not self._debug and type(data) is bytes:
+                with self._lock:
+                    calib = self._calib
+                    if ((calib is None or calib.mag_samples is None)
+                            and self.stream.run_mag_message(data) != MSG_DECLINED):
+                        return
+            self._on_mag_parsed(data)
         except Exception as e:
             self._count_exception(e, "magnetometer callback")
+
+    def _on_mag_parsed(self, data: bytes) -> None:
+        """:meth:`_on_mag` the longer way: the message read in Python (:mod:`.rawmsg`)."""
+        h = rawmsg.parse(data, rawmsg.MAG_DOUBLES)
+        if h is None:
+            stamp, m = convert.mag_to_array(deserialize_message(data, MagneticField))
+        else:
+            stamp, m = h.stamp, h.d[0:3]
+        if stamp == 0.0:
+            sec, nsec = self._receive_time("mag", self._sub_mag.topic_name)
+            stamp = sec + nsec * 1e-9
+        with self._lock:
+            if self._calib is not None:
+                self._calib.add_mag(m)
+            if self._debug:
+                self._last_mag = np.array(m, dtype=float)
+            self.stream.on_mag(stamp, m)
 
     # --- TF and debug topics (message objects; only when enabled) ------------------------------
     def _extras(self, header: Header, out: StreamOutput, p: dict[str, Any], acc: Any,

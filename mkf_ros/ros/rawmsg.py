@@ -115,8 +115,10 @@ def _changing_fields(flags: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 # the stream kernel's copy of the layout (StreamAdapter.run_imu_message, no import of bags)
-assert (sk.IMU_DOUBLES, sk.IMU_Q, sk.IMU_QC, sk.IMU_W, sk.IMU_WC, sk.IMU_A, sk.IMU_AC) == (
-    IMU_DOUBLES, Q, QC, W, WC, A, AC), "sensor_msgs/Imu layout of stream.kernel differs"
+assert (sk.IMU_DOUBLES, sk.IMU_Q, sk.IMU_QC, sk.IMU_W, sk.IMU_WC, sk.IMU_A, sk.IMU_AC,
+        sk.MAG_DOUBLES) == (IMU_DOUBLES, Q, QC, W, WC, A, AC, MAG_DOUBLES), (
+    "the message layouts of stream.kernel differ from bags.cdr's")
+assert cdr.MAGNETIC_FIELD.offsets()["magnetic_field"] == (0, 3)
 _DOUBLES = struct.Struct(f"<{IMU_DOUBLES}d")  # the Imu message after its header
 _VEC4 = struct.Struct("<4d")
 assert (WC, AC) == (W + 3, A + 3)  # each vector followed by its covariance

@@ -53,6 +53,7 @@ estimator's output rather than raw data?).
 
 from __future__ import annotations
 
+import functools
 import math
 import struct
 from collections.abc import Callable, Mapping
@@ -587,18 +588,35 @@ class StreamAdapter:
         :class:`mkf_ros.ros.rawmsg.ImuEncoder` builds it); 0 when none were built: nothing to
         publish (:attr:`output_flags` 0), or an output after a reset that the sample asked for
         (:attr:`output_values`); :data:`~mkf_ros.stream.kernel.MSG_DECLINED` for a message left
-        to the caller, nothing done (not little-endian plain CDR, truncated, stamped zero,
-        or longer than :data:`~mkf_ros.stream.kernel.MSG_CAPACITY`)."""
-        b = self._bound.get(sk.EV_IMU)
+        to the caller, nothing done (empty, not little-endian plain CDR, truncated, stamped
+        zero, or longer than :data:`~mkf_ros.stream.kernel.MSG_CAPACITY`)."""
+        return self._run_message(sk.EV_IMU, msg)
+
+    def run_mag_message(self, msg: bytes) -> int:
+        """One serialized ``sensor_msgs/MagneticField`` (``bytes``, little-endian plain CDR)
+        through :meth:`on_mag`, in one compiled call (the node's per-message path). Returns
+        0, or :data:`~mkf_ros.stream.kernel.MSG_DECLINED` for a message left to the caller,
+        nothing done (as :meth:`run_imu_message`; stamped 0.0 s)."""
+        return self._run_message(sk.EV_MAG, msg)
+
+    def _run_message(self, kind: int, msg: bytes) -> int:
+        """:meth:`run_imu_message` / :meth:`run_mag_message`: the event of ``kind`` read from
+        ``msg`` and run by the compiled loop through its bound entry point
+        (:meth:`_run_event`)."""
+        if not msg:  # (to the compiled loop, no message)
+            return sk.MSG_DECLINED
+        b = self._bound.get(kind)
         if (b is None or b.arrays is not self.filter.kernel_arrays() or b.npar is not self._npar
-                or b.rec is not self._rec or self._recording):
-            k, why, n = sk.run_events(*self._args(self._ev_imu_seq, self._out, 0, 1, msg))
-            self._bind(sk.EV_IMU)
+                or b.rec is not self._rec):  # (recording replaces the records too)
+            k, why, n = sk.run_events(*self._args(self._ev[kind], self._out, 0, 1, msg))
+            self._bind(kind)
         else:
-            k, why, n = b.call(*b.head, msg)
+            k, why, n = b.call(msg)
+        if why == sk.R_DONE and not self._recording:
+            return n
         k0 = self._resume(k, why)
         if k0 >= 0:  # a reset, then the rest of the sample through the usual path
-            self._run(self._ev_imu_seq, self._out, k0, 1)
+            self._run(self._ev[kind], self._out, k0, 1)
             return 0
         return n
 
@@ -782,7 +800,7 @@ class StreamAdapter:
             self._run(ev, self._out, 0, 1)
             self._bind(kind)
             return
-        k, why, _ = b.call(*b.head, b"")
+        k, why, _ = b.call(b"")
         k0 = self._resume(k, why)
         if k0 >= 0:
             self._run(ev, self._out, k0, 1)
@@ -800,7 +818,7 @@ class StreamAdapter:
         cres = disp.overloads.get(tuple(disp.typeof_pyval(a) for a in args))
         if cres is not None:
             self._bound[kind] = _BoundCall(self.filter.kernel_arrays(), self._npar, self._rec,
-                                           cres.entry_point, args[:-1])
+                                           functools.partial(cres.entry_point, *args[:-1]))
 
 
 class _BoundCall(NamedTuple):
@@ -810,8 +828,9 @@ class _BoundCall(NamedTuple):
     arrays: Any  #: the filter's kernel arrays
     npar: np.ndarray
     rec: np.ndarray
-    call: Any  #: the compiled entry point of run_events for these argument types
-    head: tuple  #: its arguments but the last, ``msg`` (empty but for run_imu_message)
+    #: the compiled entry point of run_events for these argument types with every argument
+    #: but the last, ``msg`` (empty but for run_imu_message)
+    call: Any
 
 
 def _outputs(out: np.ndarray, stamps: np.ndarray) -> StreamOutputs:

@@ -779,6 +779,9 @@ def output(f: FilterRecords, r: StreamRecords, g: np.ndarray, has_g: bool, a: np
 #: velocity, its covariance, linear acceleration, its covariance.
 IMU_DOUBLES = 37
 IMU_Q, IMU_QC, IMU_W, IMU_WC, IMU_A, IMU_AC = 0, 4, 13, 16, 25, 28
+#: ``sensor_msgs/MagneticField`` the same way: the field, then its covariance
+#: (:data:`mkf_ros.bags.cdr.MAGNETIC_FIELD`).
+MAG_DOUBLES = 12
 #: :func:`run_events`' work array ``io`` (float64): the input's doubles (``IO_IN``), the
 #: output's (``IO_OUT``), a covariance to add (``IO_ADD``, 9), then the output message's bytes
 #: from byte ``IO_MSG``, at most :data:`MSG_CAPACITY` of them.
@@ -800,12 +803,15 @@ def _u32(msg: bytes, at: int) -> int:
 
 
 @jit
-def imu_message_in(msg: bytes, io: np.ndarray, e: np.record) -> int:
-    """A serialized ``sensor_msgs/Imu`` (:data:`IMU_DOUBLES`) into the IMU event ``e``: its
-    stamp (s, ``sec + nanosec·1e-9``), angular velocity and linear acceleration (all NaN
-    where covariance[0] is -1, "not reported": :func:`mkf_ros.stream.rep145.not_reported`);
-    its doubles into ``io[IO_IN:]``. Returns where the doubles start (bytes), or
-    :data:`MSG_DECLINED` (``e`` and ``io`` untouched)."""
+def message_in(msg: bytes, io: np.ndarray, e: np.record) -> int:
+    """A serialized ``sensor_msgs/Imu`` (:data:`IMU_DOUBLES`; ``e.kind`` ``EV_IMU``) or
+    ``sensor_msgs/MagneticField`` (:data:`MAG_DOUBLES`; ``EV_MAG``) into the event ``e``: its
+    stamp (s, ``sec + nanosec·1e-9``) and readings: the angular velocity and linear
+    acceleration (all NaN where covariance[0] is -1, "not reported":
+    :func:`mkf_ros.stream.rep145.not_reported`), or the magnetic field; its doubles into
+    ``io[IO_IN:]``. Returns where the doubles start (bytes), or :data:`MSG_DECLINED` (``e``
+    and ``io`` untouched)."""
+    is_imu = e.kind == EV_IMU
     size = len(msg)
     if size < 16 or msg[0] != 0 or msg[1] != 1:
         return MSG_DECLINED
@@ -815,13 +821,21 @@ def imu_message_in(msg: bytes, io: np.ndarray, e: np.record) -> int:
     nsec = _u32(msg, 8)
     n = _u32(msg, 12)
     off = 4 + (12 + n + 7) // 8 * 8
-    end = off + 8 * IMU_DOUBLES
-    if n == 0 or size < end or end > MSG_CAPACITY or (sec == 0 and nsec == 0):
+    nd = IMU_DOUBLES if is_imu else MAG_DOUBLES
+    end = off + 8 * nd
+    stamp = np.float64(sec) + np.float64(nsec) * 1e-9
+    # no stamp (the node's rules: an Imu stamped 0 s 0 ns, a MagneticField stamped 0.0 s)
+    unstamped = (sec == 0 and nsec == 0) if is_imu else stamp == 0.0
+    if n == 0 or size < end or end > MSG_CAPACITY or unstamped:
         return MSG_DECLINED
     u8 = io.view(np.uint8)
-    for i in range(8 * IMU_DOUBLES):
+    for i in range(8 * nd):
         u8[8 * IO_IN + i] = msg[off + i]
-    e.stamp = np.float64(sec) + np.float64(nsec) * 1e-9
+    e.stamp = stamp
+    if not is_imu:
+        for i in range(3):
+            e.v[i] = io[IO_IN + i]
+        return off
     gyr = io[IO_IN + IMU_WC] != -1.0
     acc = io[IO_IN + IMU_AC] != -1.0
     for i in range(3):
@@ -849,7 +863,7 @@ def _published_cov(io: np.ndarray, at: int, present: bool, stddev: float,
 @jit
 def imu_message_out(msg: bytes, off: int, io: np.ndarray, o: np.record, p: np.record) -> int:
     """``imu/data`` for the input message ``msg`` (its doubles at byte ``off``, in
-    ``io[IO_IN:]``: :func:`imu_message_in`) and its output record ``o`` into ``io`` from byte
+    ``io[IO_IN:]``: :func:`message_in`) and its output record ``o`` into ``io`` from byte
     :data:`IO_MSG`: the input's bytes up to its doubles (header and frame_id), then the
     estimate ([x, y, z, w]) and its covariance, the angular velocity and linear acceleration
     as present (``o.present``; zeros where not), their covariances by REP-145 (the filter's
@@ -903,19 +917,19 @@ def run_events(table: np.ndarray, filt: tuple, adapter: tuple, rec: np.ndarray,
     ``R_NONFINITE``: the event is done, call again from ``k + 1``; ``R_FULL``: the smoother's
     recording reached its limit, call again from ``k`` once it has room).
 
-    ``msg`` (the node's per-message path; empty otherwise): a serialized ``sensor_msgs/Imu``,
-    read into the IMU event ``ev[k0]`` first (:func:`imu_message_in`; ``io`` the work array,
-    :data:`IO_SIZE` float64) and, when that event publishes, ``imu/data``'s bytes built in
-    ``io`` from byte :data:`IO_MSG` (:func:`imu_message_out`). The third value returned: their
-    number (0: none built), or :data:`MSG_DECLINED` for a message left to the caller (nothing
-    done)."""
+    ``msg`` (the node's per-message path; empty otherwise): a serialized ``sensor_msgs/Imu``
+    or ``MagneticField`` (as ``ev[k0].kind`` says), read into the event ``ev[k0]`` first
+    (:func:`message_in`; ``io`` the work array, :data:`IO_SIZE` float64) and, when an IMU
+    event publishes, ``imu/data``'s bytes built in ``io`` from byte :data:`IO_MSG`
+    (:func:`imu_message_out`). The third value returned: their number (0: none built), or
+    :data:`MSG_DECLINED` for a message left to the caller (nothing done)."""
     cfg, st, cnt, work = filt
     f = FilterRecords(cfg[0], st[0], cnt[0], work[0], kernels_at(table), rec, rn)
     npar, ts, acnt = adapter
     r = StreamRecords(npar[0], ts[0], acnt[0])
     off = 0
     if len(msg):
-        off = imu_message_in(msg, io, ev[k0])
+        off = message_in(msg, io, ev[k0])
         if off < 0:
             return k0, R_DONE, MSG_DECLINED
     n_out = 0
