@@ -41,7 +41,7 @@ from __future__ import annotations
 import sys
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
@@ -198,6 +198,7 @@ class EstimatorNode(Node):
         callback (the diagnostics timer follows the parameters: _apply_node_side_effects)."""
         qos_opts = QoSOverridingOptions.with_default_policies
         self._pub = self._make_output_publisher()
+        self._publish_bytes = self._bytes_publisher(self._pub)
         # input_mode split: the gyro drives the stream (and the output), the accelerometer is
         # fused at its own stamps (RealSense: -r imu/gyro:=camera/gyro/sample
         # -r imu/accel:=camera/accel/sample)
@@ -231,6 +232,15 @@ class EstimatorNode(Node):
         return self.create_publisher(Imu, "imu/data", output_qos(),
                                      qos_overriding_options=QoSOverridingOptions
                                      .with_default_policies())
+
+    def _bytes_publisher(self, pub: Publisher) -> Callable[[bytes], None]:
+        """How the per-message path publishes ``imu/data``'s bytes: straight to rclpy's C
+        publisher (``pub.handle.publish_raw``, which ``Publisher.publish`` calls after checking
+        the message's type and entering the handle's context: half of its 1 µs per message,
+        ``./run bench node_latency --callback``). The publisher is destroyed only with the
+        node, after the last callback (the managed node publishes through its lifecycle
+        publisher, which checks that it is active)."""
+        return pub.handle.publish_raw
 
     def _destroy_output_publisher(self, pub: Publisher) -> None:
         self.destroy_publisher(pub)
@@ -392,7 +402,7 @@ class EstimatorNode(Node):
                 return
             self._last_imu_data = data
             if payload is not None:
-                self._pub.publish(payload)
+                self._publish_bytes(payload)
                 self._published += 1
         except Exception as e:
             self._count_exception(e, "imu callback")
