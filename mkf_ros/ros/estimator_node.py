@@ -396,7 +396,7 @@ class EstimatorNode(Node):
                     if n > 0:
                         payload = stream.message_bytes[:n].tobytes()
                     elif n == 0 and (flags := stream.output_flags):  # after a reset
-                        payload = self._encode(data, rawmsg.unpack_imu(data)[2], flags)
+                        payload = self._encode(data, rawmsg.doubles_offset(data), flags)
             if n == MSG_DECLINED:
                 self._on_imu_parsed(data)
                 return

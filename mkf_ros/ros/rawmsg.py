@@ -174,6 +174,11 @@ def pack_imu_event(event: memoryview, stamp: float, gyr: Any, acc: Any) -> None:
                      *(_NAN3 if acc is None else acc))
 
 
+def doubles_offset(buf: bytes) -> int:
+    """Where the doubles of a serialized little-endian message start (after its frame_id)."""
+    return cdr.HEADER_BYTES + cdr.body_offset(_HEAD.unpack_from(buf, cdr.HEADER_BYTES)[2] - 1)
+
+
 def frame_id(buf: bytes) -> str:
     """The header's frame_id of a serialized message."""
     n = _HEAD.unpack_from(buf, cdr.HEADER_BYTES)[2]

@@ -796,7 +796,7 @@ MSG_DECLINED = -1
 
 
 @jit
-def _u32(msg: bytes, at: int) -> int:
+def _u32(msg: bytes, at: int) -> np.int64:
     """The little-endian uint32 at byte ``at``."""
     return (np.int64(msg[at]) | (np.int64(msg[at + 1]) << 8) | (np.int64(msg[at + 2]) << 16)
             | (np.int64(msg[at + 3]) << 24))

@@ -32,6 +32,7 @@ def test_parse_matches_rclpy(frame: str) -> None:
     m = random_imu(rng, frame)
     h = rawmsg.parse(serialize_message(m), rawmsg.IMU_DOUBLES)
     assert h is not None
+    assert rawmsg.doubles_offset(serialize_message(m)) == h.off
     assert (h.sec, h.nanosec, h.frame_id) == (m.header.stamp.sec, m.header.stamp.nanosec, frame)
     assert h.stamp == convert.stamp_to_sec(m.header.stamp)
     gyr, acc = rawmsg.imu_arrays(h)
