@@ -243,7 +243,7 @@ PARAMS: tuple[Param, ...] = (
        "field is low-passed in the same almost inertial frame as the accelerometer; a magnet on "
        "the body or a field that changes along the path disagrees with it", unit="s",
        range=(1e-3, 100.0), group="robustness"),
-    _P("mag_consistency_tolerance", float, 0.1, "Magnetometer samples that differ from that "
+    _P("mag_consistency_tolerance", float, 0.15, "Magnetometer samples that differ from that "
        "low-passed field by more than this fraction of the field (plus the gyro scale error "
        "over the rotation in its memory) are not fused", unit="1", range=(0.0, 1000.0),
        group="robustness"),
@@ -255,11 +255,8 @@ PARAMS: tuple[Param, ...] = (
     _P("mag_norm_tolerance", float, 0.1, "Magnetometer samples whose magnitude differs from the "
        "learned field by more than this fraction are not fused", unit="1", range=(0.0, 1000.0),
        group="robustness"),
-    _P("mag_dip_tolerance", float, 0.2618, "Magnetometer samples whose dip angle differs from "
-       "the learned field's by more than this are not fused", unit="rad", range=(0.0, 3.1416),
-       group="robustness"),
-    _P("mag_new_time", float, 10.0, "A field of another magnitude or dip than the learned "
-       "one (another room, a rebar floor, the start of a recording near metal) that stays "
+    _P("mag_new_time", float, 10.0, "A field of another magnitude than the learned one "
+       "( (another room, a rebar floor, the start of a recording near metal) that stays "
        "consistent with the gyro and with itself for this long while the body turns becomes "
        "the new reference; 0 = never", unit="s", range=(0.0, 3600.0), group="robustness"),
     _P("mag_new_first_time", float, 2.0, "As mag_new_time for the first new field since the "

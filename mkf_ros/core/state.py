@@ -43,7 +43,7 @@ COPIED_PARAMS = (
     "mag_bias_gain", "acc_turn_speed",
     "acc_disturbance_time", "acc_alignment_error", "gyro_scale_error", "gyro_gate",
     "mag_time_constant", "mag_consistency_tolerance",
-    "mag_disturbance_time", "mag_norm_tolerance", "mag_dip_tolerance", "mag_gate",
+    "mag_disturbance_time", "mag_norm_tolerance", "mag_gate",
     "mag_recovery_time", "mag_new_time", "mag_new_first_time", "rest_gyro_threshold",
     "rest_acc_threshold", "rest_time",
     "madgwick_beta",
@@ -160,7 +160,7 @@ COUNTER_NAMES = (
     "acc_missing", "acc_invalid",
     "mag_missing", "mag_invalid",
     "gaps", "update_failed", "before_init",
-    "acc_rejected_norm", "acc_rejected_chi2", "mag_rejected_norm", "mag_rejected_dip",
+    "acc_rejected_norm", "acc_rejected_chi2", "mag_rejected_norm",
     "mag_rejected_chi2", "rest_updates", "gimbal_lock", "mag_rejected_inconsistent",
     "gyr_rejected_chi2",
 )

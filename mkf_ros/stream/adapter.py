@@ -124,7 +124,6 @@ _FILTER_REASONS = {
     "acc_rejected_norm": "accelerometer samples not fused: magnitude (acc_norm_tolerance)",
     "acc_rejected_chi2": "accelerometer samples not fused: innovation gate (acc_gate)",
     "mag_rejected_norm": "magnetometer samples not fused: magnitude (mag_norm_tolerance)",
-    "mag_rejected_dip": "magnetometer samples not fused: dip angle (mag_dip_tolerance)",
     "mag_rejected_chi2": "magnetometer samples not fused: innovation gate (mag_gate)",
     "rest_updates": "zero-rate updates at rest (rest_detection)",
 }

@@ -479,7 +479,7 @@ def mag_event(f: FilterRecords, r: StreamRecords, stamp: float, mag: np.ndarray)
     if not 0.0 < norm < np.inf:
         a.mag_invalid += 1
         return
-    # the raw field goes to the filter: it calibrates it and checks magnitude and dip
+    # the raw field goes to the filter: it calibrates it and checks its magnitude
     t.last_mag = stamp
     if r.p.constant_dt > 0.0:  # stamps are not trusted: fuse at the current time
         fuse_untimed(f, r, m, False)

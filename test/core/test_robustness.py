@@ -14,7 +14,7 @@ from mkf_ros.sim import simulate
 
 ALGOS = ["mekf", "mukf"]
 NO_ROBUSTNESS = dict(acc_gate=0.0, acc_norm_tolerance=1000.0, mag_gate=0.0,
-                     mag_norm_tolerance=1000.0, mag_dip_tolerance=3.1416, mag_mode="vector",
+                     mag_norm_tolerance=1000.0, mag_mode="vector",
                      rest_detection=False, acc_time_constant=0.0, acc_disturbance_time=0.0,
                      mag_disturbance_time=0.0, mag_consistency_tolerance=1000.0,
                      gyro_gate=0.0, gyro_scale_error=0.0)
@@ -99,8 +99,7 @@ def test_heading_mode_does_not_pull_inclination(algorithm: str) -> None:
     sim = simulate("slow_rotation", duration=40, rate=100, seed=6)
     dip = np.radians(60 - 20)
     wrong = [0.0, np.cos(dip), -np.sin(dip)]
-    kw = dict(timestamps=sim.t, algorithm=algorithm, mag_reference=wrong,
-              mag_dip_tolerance=3.1416)
+    kw = dict(timestamps=sim.t, algorithm=algorithm, mag_reference=wrong)
     r6 = mkf_ros.estimate(sim.gyr, sim.acc, timestamps=sim.t, algorithm=algorithm)
     rh = mkf_ros.estimate(sim.gyr, sim.acc, sim.mag, mag_mode="heading", **kw)
     rv = mkf_ros.estimate(sim.gyr, sim.acc, sim.mag, mag_mode="vector", mag_gate=0.0, **kw)
@@ -143,7 +142,7 @@ def test_rejections_are_counted_by_reason() -> None:
     sim = simulate("accel_bursts", duration=20, rate=100, seed=3)
     r = mkf_ros.estimate(sim.gyr, sim.acc, sim.mag, timestamps=sim.t)
     for name in ("acc_rejected_norm", "acc_rejected_chi2", "mag_rejected_norm",
-                 "mag_rejected_dip", "mag_rejected_chi2", "rest_updates"):
+                 "mag_rejected_chi2", "rest_updates"):
         assert name in r.counters
     assert r.counters["acc_rejected_norm"] > 0
 
@@ -278,7 +277,7 @@ def test_a_field_that_changes_for_good_becomes_the_reference(algorithm: str) -> 
     heading right (RMSE < 0.5°) and its variance as with the magnetometer fused."""
     sim = simulate("mag_field_change", duration=60, rate=100, seed=3, gyro_bias=(0, 0, 0.01))
     r = mkf_ros.estimate(sim.gyr, sim.acc, sim.mag, timestamps=sim.t, algorithm=algorithm)
-    refused = r.counters["mag_rejected_norm"] + r.counters["mag_rejected_dip"]
+    refused = r.counters["mag_rejected_norm"]
     assert refused < 600
     head = orientation_errors(r.quat, sim.quat)["heading"]
     assert rmse_deg(head[3000:]) < 0.5
@@ -305,8 +304,7 @@ def test_attached_magnet_does_not_turn_the_heading(algorithm: str) -> None:
     assert rmse_deg(head[win]) < 5.0 and np.degrees(head.max()) < 20.0
     assert r.counters["mag_rejected_inconsistent"] + r.counters["mag_rejected_norm"] > 1000
     off = mkf_ros.estimate(sim.gyr, sim.acc, sim.mag, timestamps=sim.t, algorithm=algorithm,
-                           mag_consistency_tolerance=1000.0, mag_norm_tolerance=1000.0,
-                           mag_dip_tolerance=3.1416)
+                           mag_consistency_tolerance=1000.0, mag_norm_tolerance=1000.0)
     assert rmse_deg(orientation_errors(off.quat, sim.quat)["heading"][win]) > 3 * rmse_deg(
         head[win])
 
