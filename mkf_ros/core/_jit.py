@@ -383,7 +383,9 @@ def share_inliner_memo() -> bool:
             _INLINER_MEMO.reset(token)
 
     inline_ir_shared._mkf_ros_shared_memo = True  # type: ignore[attr-defined]
-    ic.copy = SimpleNamespace(deepcopy=_inliner_deepcopy, copy=copy.copy)
+    # the inliner's module reference to ``copy`` (its only use: that deepcopy)
+    ic.copy = SimpleNamespace(  # type: ignore[assignment]
+        deepcopy=_inliner_deepcopy, copy=copy.copy)
     worker.inline_ir = inline_ir_shared
     return True
 
