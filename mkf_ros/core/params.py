@@ -224,9 +224,11 @@ PARAMS: tuple[Param, ...] = (
        "accelerometer's axes against the body's (constant and unobservable: no filter "
        "averages it out); added to the published tilt variance only (default 1 deg)",
        unit="rad", range=(0.0, 0.5), group="noise"),
-    _P("gyro_scale_error", float, 0.01, "Relative scale and axis-alignment error of the "
-       "gyroscope: attitude noise (error * |w|)^2 * dt per step, so that the covariance grows "
-       "while the body turns; it also widens the magnetometer consistency test; 0 = off "
+    _P("gyro_scale_error", float, 0.013, "Relative scale and axis-alignment error of the "
+       "gyroscope: attitude noise (error * |w|)^2 * dt per step for the net rotation (the rate "
+       "low-passed over acc_time_constant) and 0.3 of it for the rest (a swing back and forth "
+       "turns the error one way and back), so that the covariance grows while the body turns; "
+       "it also widens the magnetometer consistency test; 0 = off "
        "(the paper)", unit="1", range=(0.0, 1.0), group="noise"),
     _P("gyro_gate", float, 1e4, "Chi-square gate on the gyro innovation (3 degrees of "
        "freedom) against the rate model: a single sample beyond it is an outlier and is "

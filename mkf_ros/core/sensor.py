@@ -82,6 +82,7 @@ from mkf_ros.core.state import (
     F33,
     FUSION_T,
     GYR,
+    GYRO_SCALE_SWING,
     GYRO_SURPRISE_CHI2,
     LP_ACC,
     LP_MAG,
@@ -320,6 +321,8 @@ def _restart_memory(s: np.record, gyr: np.ndarray, has_g: bool, acc: np.ndarray)
     s.dt_acc = 0.0
     s.acc_excess = 0.0
     s.acc_dev = 0.0
+    for i in range(3):
+        s.gyro_net[i] = 0.0
 
 
 @jit
@@ -969,10 +972,23 @@ def _magnetometer(c: np.record, s: np.record, k: np.record, u: Units, dt: float,
 
 # --- 7. the updates --------------------------------------------------------------------------
 @hot
-def _gyro_scale_noise(c: np.record, s: np.record, dt: float, wl: tuple) -> None:
-    """The gyro's scale and axis errors: attitude noise growing with the rate turned."""
+def _gyro_scale_noise(c: np.record, s: np.record, w: np.record, dt: float, wl: tuple) -> None:
+    """The gyro's scale and axis errors (docs/math.md §9.1): attitude noise
+    ``σ_s² (‖ω̃‖² + κ (‖ω‖² − ‖ω̃‖²)⁺) Δt``, ``ω̃`` the rate low-passed over
+    ``acc_time_constant`` (the net rotation, whose error accumulates), ``κ``
+    :data:`~mkf_ros.core.state.GYRO_SCALE_SWING` the share a swing back and forth keeps;
+    without the low-pass (``acc_time_constant = 0``) every rate counts. The variance added goes
+    to ``w.rec_ws2`` (the smoother takes it out of the transition, §11.3)."""
+    w.rec_ws2 = 0.0
     if c.algorithm <= ALGO_MUKF and c.gyro_scale_error > 0:
-        qs = c.gyro_scale_error ** 2 * (wl[0] ** 2 + wl[1] ** 2 + wl[2] ** 2) * dt
+        v = s.gyro_net
+        a = min(1.0, dt / c.acc_time_constant) if c.acc_time_constant > 0.0 else 1.0
+        for i in range(3):
+            v[i] += a * (wl[i] - v[i])
+        n2 = v[0] * v[0] + v[1] * v[1] + v[2] * v[2]
+        w2 = wl[0] * wl[0] + wl[1] * wl[1] + wl[2] * wl[2]
+        qs = c.gyro_scale_error ** 2 * (n2 + GYRO_SCALE_SWING * max(0.0, w2 - n2)) * dt
+        w.rec_ws2 = qs
         for i in range(3):
             s.P[i, i] += qs
 
@@ -1333,7 +1349,7 @@ def step(c: np.record, s: np.record, k: np.record, w: np.record, u: Units, dt: f
         c, s, k, u, dt, wl, Rw, acc, has_a)
     rest = _rest_test(c, s, dt, g, has_g, acc, has_a, gs == MISSING, as_ == MISSING)
     has_m, dtm = _magnetometer(c, s, k, u, dt, wl, Rw, m, m_norm, has_m)
-    _gyro_scale_noise(c, s, dt, wl)
+    _gyro_scale_noise(c, s, w, dt, wl)
     m_ref, h_ref, var_h, acc_gate, mag_gate = _fusion(c, s, has_m, dtm)
     z = Fusion(g, has_g, rest and c.algorithm < ALGO_EULER_KF, a_body, var_a, has_a, a_raw,
                var_a_raw, a_ok, m, has_m, m_ref, h_ref, var_h, acc_gate, mag_gate, a_sens,

@@ -84,7 +84,7 @@ NP_PACKED = NX_MAX * (NX_MAX + 1) // 2
 #: the recording reversed needs: ``mkf process --smooth two-way``, docs/math.md §11.5).
 RECORD = np.dtype([("kind", np.int8), ("dt", np.float64), ("q", np.float64, 4),
                    ("w", np.float64, 3), ("b", np.float64, 3), ("P", np.float64, NP_PACKED),
-                   ("u", np.float64, 10)])
+                   ("ws2", np.float64), ("u", np.float64, 10)])
 
 #: Parameters whose default differs in the smoother's forward pass (docs/math.md §11.1): the
 #: heading's partial update of the gyro bias (``mag_bias_gain``, §9.2) protects a causal
@@ -159,15 +159,17 @@ def new_smooth_outputs(n: int) -> BatchOutputs:
 
 # --- records ---------------------------------------------------------------------------------
 @jit_inline
-def _store(r: np.record, nx: int, q: np.ndarray, w: np.ndarray, b: np.ndarray, P: np.ndarray,
-           kind: int, dt: float) -> None:
-    """Write an estimate and the upper triangle of its ``P`` into the slot ``r``."""
+def _store(r: np.record, nx: int, w: np.record, kind: int, dt: float) -> None:
+    """Write the recorded estimate of ``w`` (``rec_*``), the upper triangle of its ``P`` and
+    the gyro's scale noise of the step into the slot ``r``."""
+    q, wr, b, P = w.rec_q, w.rec_w, w.rec_b, w.rec_P
     r.kind = kind
     r.dt = dt
+    r.ws2 = w.rec_ws2
     for i in range(4):
         r.q[i] = q[i]
     for i in range(3):
-        r.w[i] = w[i]
+        r.w[i] = wr[i]
         r.b[i] = b[i]
     m = 0
     for i in range(nx):
@@ -209,10 +211,10 @@ def recorded_step(kern: Kernels, c: np.record, s: np.record, k: np.record, w: np
         u[7 + i] = mag[i]
     run_step(kern, c, s, k, w, dt, gyr, acc, mag)
     if w.rec_set and k.gaps == gaps and m >= 1 and rec[m - 1].kind != NONE:
-        _store(rec[m - 1], nx, w.rec_q, w.rec_w, w.rec_b, w.rec_P, TRANS, step_dt(dt))
+        _store(rec[m - 1], nx, w, TRANS, step_dt(dt))
     if s.initialized:
         record_posterior(c, s, w)  # the final state (moved onto q̂ for the MUKF)
-        _store(rec[m], nx, w.rec_q, w.rec_w, w.rec_b, w.rec_P, END, 0.0)
+        _store(rec[m], nx, w, END, 0.0)
     else:
         rec[m].kind = NONE
 
@@ -385,7 +387,7 @@ def rts_manifold(c: np.record, r: np.record, qs: np.ndarray, ws: np.ndarray, bs:
     qm = mekf_predict_t(qa, wa, Pp, nx, r.dt, Qw, Qb)  # the filter's prediction: q̄⁻, P⁻
     # the gyro's scale noise W_s (§9.1), added by the filter before the rate updates, is noise
     # of this transition: out of the posterior, into Q (it leaves the rate updates' gains alone)
-    ws2 = c.gyro_scale_error ** 2 * (wa[0] ** 2 + wa[1] ** 2 + wa[2] ** 2) * r.dt
+    ws2 = r.ws2
     for i in range(3):
         Pa[i, i] -= ws2
         Qp[i, i] = ws2

@@ -121,6 +121,9 @@ STATE = np.dtype(
         ("acc_excess", np.float64),  # low-passed (|a| − g)² (normalised), over its τ
         ("acc_dev", np.float64),  # low-passed |a − acc_lp|² (m²/s⁴): the samples' spread
         ("acc_rate_lp", np.float64),  # low-passed |ω|, over acc_time_constant
+        # the gyro's rate low-passed over acc_time_constant (body axes): the net rotation of
+        # its scale noise (docs/math.md §9.1)
+        ("gyro_net", np.float64, 3),
         ("acc_yaw_lp", np.float64),  # low-passed vertical rate Ω̄ (signed), over acc_time_constant
         # the low-pass's rotation error per unit gyro bias error (rad per rad/s, body axes), per
         # stage (docs/math.md §9.1): its memory is turned by the bias-corrected gyro
@@ -177,7 +180,8 @@ WORK = np.dtype(
      # the smoother's record of this sample (CONFIG.record_posterior): the posterior at the
      # previous sample's time just before the prediction (docs/math.md §11.1)
      ("rec_set", np.bool_), ("rec_q", np.float64, 4), ("rec_w", np.float64, 3),
-     ("rec_b", np.float64, 3), ("rec_P", np.float64, (NX_MAX, NX_MAX))],
+     ("rec_b", np.float64, 3), ("rec_P", np.float64, (NX_MAX, NX_MAX)),
+     ("rec_ws2", np.float64)],  # the gyro's scale noise added in this step (§9.1)
     align=True,
 )
 
@@ -219,6 +223,12 @@ ATTITUDE_VAR_UNKNOWN = np.pi ** 2
 #: The accelerometer low-pass's robust input (:func:`~mkf_ros.core.sensor._acc_robust`): a
 #: sample's deviation from the low-pass counts in full up to this many g ...
 ACC_CLIP_MIN_G = 2.0
+#: The share of the gyro's scale noise that an oscillating rate keeps (docs/math.md §9.1): the
+#: rate's net part (low-passed over ``acc_time_constant``) turns the attitude by
+#: ``gyro_scale_error`` times the angle turned, which accumulates; a swing back and forth turns
+#: it one way and back, and only this share of its power is counted (a clipped or lagging gyro
+#: still loses some of each swing).
+GYRO_SCALE_SWING = 0.3
 #: ... or this many RMS deviations of the recent samples (``acc_dev``), whichever is larger
 ACC_CLIP_SIGMAS = 4.0
 #: A candidate magnetic reference's time counts only while the body turns at least this fast
