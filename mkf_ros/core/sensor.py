@@ -396,7 +396,7 @@ USED, GO, GO_WITHOUT_MAG = 0, 1, 2
 
 
 @unit(nt.int64(CONFIG_T, STATE_T, COUNTERS_T, CANONICAL_T, nt.float64, F3, nt.boolean, F3,
-               nt.boolean, F3, nt.float64, nt.boolean), cost=5.3)
+               nt.boolean, F3, nt.float64, nt.boolean), cost=3.0)
 def start(c: np.record, s: np.record, k: np.record, cn: Canonical, dt: float, gyr: tuple,
           has_g: bool, acc: tuple, has_a: bool, m_body: tuple, m_norm: float,
           has_m: bool) -> int:
@@ -1122,7 +1122,7 @@ def _mekf_update(c: np.record, s: np.record, w: np.record, dt: float,
     return acc_nis, mag_nis
 
 
-@unit(_UPDATE_SIG(CONFIG_T, STATE_T, WORK_T, nt.float64, FUSION_T), cost=20)
+@unit(_UPDATE_SIG(CONFIG_T, STATE_T, WORK_T, nt.float64, FUSION_T), cost=15)
 def mukf_update(c: np.record, s: np.record, w: np.record, dt: float,
                 z: Fusion) -> tuple[bool, float, float]:
     """The MUKF (docs/math.md §6): the stacked measurement through the sigma points
@@ -1305,7 +1305,7 @@ def _fusion(c: np.record, s: np.record, has_m: bool, dtm: float) -> tuple:
     return m_ref, h_ref, var_h, acc_gate, mag_gate
 
 
-@unit(_UPDATE_SIG(CONFIG_T, STATE_T, COUNTERS_T, nt.float64, FUSION_T), cost=10.6)
+@unit(_UPDATE_SIG(CONFIG_T, STATE_T, COUNTERS_T, nt.float64, FUSION_T), cost=9.0)
 def baseline_step(c: np.record, s: np.record, k: np.record, dt: float,
                   z: Fusion) -> tuple[bool, float, float]:
     """The baselines' update (:func:`~mkf_ros.core.baseline_glue.baseline_update`)."""
@@ -1322,7 +1322,7 @@ UNITS_T = tuple_type([CANONICAL_T] + [x.type for x in (start, acc_recovery, mag_
 
 # --- the step --------------------------------------------------------------------------------
 @unit(nt.void(CONFIG_T, STATE_T, COUNTERS_T, WORK_T, UNITS_T, nt.float64, F3, F3, F3),
-      cost=25)
+      cost=14)
 def step(c: np.record, s: np.record, k: np.record, w: np.record, u: Units, dt: float,
          gyr: tuple, acc: tuple, mag: tuple) -> None:
     """One sample: any of ``gyr`` (rad/s), ``acc`` (m/s², +g up at rest) and ``mag`` (any unit)

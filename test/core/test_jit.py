@@ -299,3 +299,53 @@ def test_seed_copies_missing_install_time_kernels_and_keeps_existing(
     assert not (cache / "core" / "filter.run_batch-1.py311.0.nbc").exists()
     assert not list(cache.rglob("stale.nbi"))
     assert not list(cache.rglob("*.tmp"))
+
+
+def test_ir_inliner_copies_an_inlined_function_with_one_scope() -> None:
+    """numba ≥ 0.59 inlines ``jit_inline`` kernels at IR level, copying the inlined function;
+    the copy has one variable scope for all its blocks, as the function itself has (not one
+    copy of the whole scope per block: time and memory quadratic in the function's size), and
+    the compiled caller computes what the Python functions compute. On numba 0.58
+    ``jit_inline`` kernels are ordinary kernels and numba's inliner is left as it is."""
+    import numba
+    from numba.core import inline_closurecall as ic
+
+    if not _jit.INLINE_AT_IR_LEVEL:
+        assert not _jit.INLINER_MEMO_SHARED
+        return
+    assert _jit.INLINER_MEMO_SHARED
+
+    def branchy(x: float, n: int) -> float:  # several blocks, several variables
+        acc = 0.0
+        for i in range(n):
+            if x > i:
+                acc += x * i
+            elif x < -i:
+                acc -= x / (i + 1)
+            else:
+                acc += 1.0
+        return acc
+
+    def caller(x: float, n: int) -> float:
+        return branchy(x, n) + 2.0 * branchy(-x, n + 1)
+
+    copies: list = []
+    inline_ir = ic.InlineWorker.inline_ir
+
+    def spy(self, *args, **kwargs):  # (callee IR kept unmutated, its blocks, names, new blocks)
+        out = inline_ir(self, *args, **kwargs)
+        copies.append(out[0])
+        return out
+
+    inlined = numba.njit(inline="always")(branchy)
+    compiled = numba.njit(lambda x, n: inlined(x, n) + 2.0 * inlined(-x, n + 1))
+    ic.InlineWorker.inline_ir = spy
+    try:
+        for x, n in ((0.5, 4), (-3.0, 7), (10.0, 0)):
+            assert compiled(x, n) == caller(x, n)
+    finally:
+        ic.InlineWorker.inline_ir = inline_ir
+    assert len(copies) == 2
+    for ir in copies:
+        assert len(ir.blocks) > 3
+        assert len({id(b.scope) for b in ir.blocks.values()}) == 1
