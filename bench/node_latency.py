@@ -179,14 +179,13 @@ def role_publish() -> None:
 def role_callback(seconds: float) -> None:
     """In one process, caches warm, no subscriber: CPU per IMU message (1 kHz of a simulated
     rotation with a 100 Hz magnetometer, ``seconds`` long, best of three passes) of the
-    stand-in's callback (``publish``), of the estimator's (IMU and magnetometer callbacks) and
-    of each of their parts (the callback built up part by part, without the magnetometer then
-    with it: each pass's CPU less the previous one's)."""
+    stand-in's callback (``publish``), of the estimator's and of each part of it."""
+    import numpy as np
     import rclpy
     from rclpy.parameter import Parameter
 
+    from mkf_ros.ros import rawmsg
     from mkf_ros.ros.estimator_node import EstimatorNode
-    from mkf_ros.stream.adapter import INPUT_CHECK_MESSAGES
 
     rclpy.init()
     node = EstimatorNode(argv=[], parameter_overrides=[Parameter("use_mag", value=True)])
@@ -195,11 +194,9 @@ def role_callback(seconds: float) -> None:
     t0 = time.time_ns()
     imu = [_stamped(b, t0 + k * 1_000_000) for k, b in enumerate(imus)]
     mag = {k: _stamped(mags[k], t0 + k * 1_000_000) for k in range(5, n, 10)}
-    for data in imu[:INPUT_CHECK_MESSAGES]:  # the first messages take the longer path
-        node._on_imu(data)
-    pub, stream = node._pub, node.stream
+    pub, stream, enc = node._pub, node.stream, node._encoder
 
-    def passes(fn: Any, on_mag: Any = node._on_mag) -> float:
+    def passes(fn: Any) -> float:
         best = math.inf
         for _ in range(3):
             stream.reset("benchmark pass")
@@ -207,30 +204,33 @@ def role_callback(seconds: float) -> None:
             for k, data in enumerate(imu):
                 fn(data)
                 if k in mag:
-                    on_mag(mag[k])
+                    node._on_mag(mag[k])
             best = min(best, time.process_time() - c0)
         return best / n * 1e6
 
-    publish_bytes, run, out = node._publish_bytes, stream.run_imu_message, stream.message_bytes
+    parts = np.zeros(4)
+    clock = time.perf_counter_ns
 
-    def no_mag(data: bytes) -> None:
-        pass
+    def timed(data: bytes) -> None:  # the callback's steps, each timed (lock and checks left out)
+        a = clock()
+        sec, nsec, off, gyr, acc = rawmsg.unpack_imu(data)  # type: ignore[misc]
+        b = clock()
+        rawmsg.pack_imu_event(stream.imu_event_bytes, sec + nsec * 1e-9, gyr, acc)
+        flags = stream.run_imu_event()
+        c = clock()
+        payload = enc.encode_record(data, off, stream.output_bytes, flags, 0.0, 0.0)
+        d = clock()
+        pub.publish(payload)
+        parts[:] += (b - a, c - b, d - c, clock() - d)
 
-    # the parts: the callback built up step by step, each pass's CPU less the previous one's
-    steps = [passes(run, no_mag),
-             passes(lambda data: out[:run(data)].tobytes(), no_mag),
-             passes(lambda data: publish_bytes(out[:run(data)].tobytes()), no_mag),
-             passes(node._on_imu, no_mag), passes(node._on_imu)]
-    labels = ("read the message, the filter step, build imu/data: one compiled call "
-              "(StreamAdapter.run_imu_message)", "imu/data as bytes",
-              "publish (the C publisher's publish_raw)",
-              "the node's bookkeeping (lock, checks, counters)",
-              "the magnetometer messages (their callback; their updates in the filter steps)")
-    rows = [("the stand-in's callback: publish the input bytes (its magnetometer callback "
-             "does nothing)", passes(pub.publish, no_mag)),
-            ("the estimator's callbacks (EstimatorNode._on_imu, _on_mag)", steps[-1])]
-    rows += [(f"  of which: {lab}", b - a) for lab, a, b in zip(labels, [0.0, *steps],
-                                                                 steps, strict=False)]
+    rows = [("the stand-in's callback: publish the input bytes", passes(pub.publish)),
+            ("the estimator's callback (EstimatorNode._on_imu)", passes(node._on_imu))]
+    passes(timed)
+    labels = ("read the message (rawmsg.unpack_imu)",
+              "the filter (pack_imu_event + StreamAdapter.run_imu_event)",
+              "build imu/data (ImuEncoder.encode_record)", "publish")
+    rows += [(f"  of which: {lab}", t / (3 * n) / 1e3) for lab, t in zip(labels, parts,
+                                                                       strict=True)]
     print("| per IMU message (1 kHz, 100 Hz magnetometer, warm caches) | CPU (µs) |")
     print("|---|---:|")
     for lab, us in rows:

@@ -120,10 +120,9 @@ def _entry_calls(part: str) -> list[tuple[Any, tuple]]:
     # "stream": the records of a StreamAdapter (mkf_ros.stream.adapter)
     npar, ts, acnt = kf.new_records(sk.NODE), kf.new_records(sk.STREAM), \
         kf.new_records(sk.ADAPTER_COUNTER_RECORD)
-    return [(sk.run_events, (table, tuple(arrays), (npar, ts, acnt),
-                             kf.new_records(sm.RECORD, 0), np.zeros(4, dtype=np.int64),
-                             kf.new_records(sk.EVENT), kf.new_records(sk.OUTPUT), 0, 1,
-                             np.zeros(sk.IO_SIZE), b"")),
+    return [(sk.run_events, (table, tuple(arrays), npar, ts, acnt, kf.new_records(sm.RECORD, 0),
+                             np.zeros(4, dtype=np.int64), kf.new_records(sk.EVENT),
+                             kf.new_records(sk.OUTPUT), 0, 1)),
             (sk.covariance_rows, (np.zeros((1, 9)), 0.0, np.zeros((0, 9)))),
             (sk.published_batch, (npar, np.zeros((1, 4)), np.zeros((1, 3, 3)),
                                   np.zeros(1, dtype=np.bool_)))]

@@ -41,7 +41,7 @@ from __future__ import annotations
 import sys
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -87,7 +87,7 @@ from mkf_ros.stream.adapter import (
     carries_orientation,
     orientation_note,
 )
-from mkf_ros.stream.kernel import MSG_DECLINED, OF_WADD
+from mkf_ros.stream.kernel import OF_WADD
 
 _REST_UPDATES = COUNTER_NAMES.index("rest_updates")
 
@@ -198,7 +198,6 @@ class EstimatorNode(Node):
         callback (the diagnostics timer follows the parameters: _apply_node_side_effects)."""
         qos_opts = QoSOverridingOptions.with_default_policies
         self._pub = self._make_output_publisher()
-        self._publish_bytes = self._bytes_publisher(self._pub)
         # input_mode split: the gyro drives the stream (and the output), the accelerometer is
         # fused at its own stamps (RealSense: -r imu/gyro:=camera/gyro/sample
         # -r imu/accel:=camera/accel/sample)
@@ -232,15 +231,6 @@ class EstimatorNode(Node):
         return self.create_publisher(Imu, "imu/data", output_qos(),
                                      qos_overriding_options=QoSOverridingOptions
                                      .with_default_policies())
-
-    def _bytes_publisher(self, pub: Publisher) -> Callable[[bytes], None]:
-        """How the per-message path publishes ``imu/data``'s bytes: straight to rclpy's C
-        publisher (``pub.handle.publish_raw``, which ``Publisher.publish`` calls after checking
-        the message's type and entering the handle's context: half of its 1 µs per message,
-        ``./run bench node_latency --callback``). The publisher is destroyed only with the
-        node, after the last callback (the managed node publishes through its lifecycle
-        publisher, which checks that it is active)."""
-        return pub.handle.publish_raw
 
     def _destroy_output_publisher(self, pub: Publisher) -> None:
         self.destroy_publisher(pub)
@@ -372,81 +362,51 @@ class EstimatorNode(Node):
         return sec, nsec
 
     def _on_imu(self, data: bytes) -> None:
-        """Serialized Imu in (``raw=True``), serialized Imu out: in one compiled call
-        (:meth:`StreamAdapter.run_imu_message`: the message read, the filter step, ``imu/data``
-        built), no message objects and no numpy. The first messages (checked for an
-        orientation), a calibration under way or set, TF or debug topics, and a message that
-        call declines take the longer path (:meth:`_on_imu_parsed`)."""
+        """Serialized Imu in (``raw=True``), serialized Imu out: no message objects and no
+        numpy on the fast path (see :mod:`mkf_ros.ros.rawmsg`)."""
         if not self._active:
             return  # a managed node that is not active takes no input
         self.received_imu += 1
         try:
             self._last_imu_wall = time.monotonic()
-            if self._ori_checks or self._extras_on or type(data) is not bytes:
-                self._on_imu_parsed(data)
+            m = rawmsg.unpack_imu(data)
+            if m is None:  # not little-endian CDR: message objects
+                self._on_imu_msg(deserialize_message(data, Imu))
                 return
-            payload: bytes | None = None
-            with self._lock:
-                calib = self._calib
-                if calib is not None and (calib.window is not None or calib.offset_set):
-                    n = MSG_DECLINED
-                else:
-                    stream = self.stream
-                    n = stream.run_imu_message(data)
-                    if n > 0:
-                        payload = stream.message_bytes[:n].tobytes()
-                    elif n == 0 and (flags := stream.output_flags):  # after a reset
-                        payload = self._encode(data, rawmsg.doubles_offset(data), flags)
-            if n == MSG_DECLINED:
-                self._on_imu_parsed(data)
-                return
+            sec, nsec, off, gyr, acc = m
+            prefix = None
+            if sec == 0 and nsec == 0:
+                sec, nsec = self._receive_time("imu", self._sub_imu.topic_name)
+                prefix = rawmsg.restamped_prefix(data, off, sec, nsec)
+            if self._ori_checks:
+                d = rawmsg.doubles(data, off)
+                self._check_orientation(d[rawmsg.Q:rawmsg.Q + 4], d[rawmsg.QC])
             self._last_imu_data = data
-            if payload is not None:
-                self._publish_bytes(payload)
-                self._published += 1
+            stamp = sec + nsec * 1e-9
+            extras = self._extras_on
+            with self._lock:
+                stream, calib = self.stream, self._calib
+                if calib is not None and (calib.window is not None or calib.offset_set):
+                    gyr = calib.gyro_input(stamp, gyr, acc, stream.split)
+                rest0 = stream.filter.counters[_REST_UPDATES] if extras else 0
+                rawmsg.pack_imu_event(stream.imu_event_bytes, stamp, gyr, acc)
+                flags = stream.run_imu_event()
+                if not flags:
+                    return
+                payload = self._encode(data, off, flags, sec, nsec, prefix)
+                if extras:
+                    out = stream.last_output()
+                    at_rest = bool(stream.filter.counters[_REST_UPDATES] > rest0)
+            self._pub.publish(payload)
+            self._published += 1
+            if extras:
+                self._extras(Header(stamp=Time(sec=sec, nanosec=nsec),
+                                    frame_id=rawmsg.frame_id(data)), out, self._p, acc, at_rest)
         except Exception as e:
             self._count_exception(e, "imu callback")
 
-    def _on_imu_parsed(self, data: bytes) -> None:
-        """:meth:`_on_imu` the longer way: the message read in Python (:mod:`.rawmsg`), the
-        filter step, ``imu/data`` built from the output record; message objects for input
-        that is not little-endian CDR."""
-        m = rawmsg.unpack_imu(data)
-        if m is None:  # not little-endian CDR: message objects
-            self._on_imu_msg(deserialize_message(data, Imu))
-            return
-        sec, nsec, off, gyr, acc = m
-        prefix = None
-        if sec == 0 and nsec == 0:
-            sec, nsec = self._receive_time("imu", self._sub_imu.topic_name)
-            prefix = rawmsg.restamped_prefix(data, off, sec, nsec)
-        if self._ori_checks:
-            d = rawmsg.doubles(data, off)
-            self._check_orientation(d[rawmsg.Q:rawmsg.Q + 4], d[rawmsg.QC])
-        self._last_imu_data = data
-        stamp = sec + nsec * 1e-9
-        extras = self._extras_on
-        with self._lock:
-            stream, calib = self.stream, self._calib
-            if calib is not None and (calib.window is not None or calib.offset_set):
-                gyr = calib.gyro_input(stamp, gyr, acc, stream.split)
-            rest0 = stream.filter.counters[_REST_UPDATES] if extras else 0
-            rawmsg.pack_imu_event(stream.imu_event_bytes, stamp, gyr, acc)
-            flags = stream.run_imu_event()
-            if not flags:
-                return
-            payload = self._encode(data, off, flags, sec, nsec, prefix)
-            if extras:
-                out = stream.last_output()
-                at_rest = bool(stream.filter.counters[_REST_UPDATES] > rest0)
-        self._pub.publish(payload)
-        self._published += 1
-        if extras:
-            self._extras(Header(stamp=Time(sec=sec, nanosec=nsec),
-                                frame_id=rawmsg.frame_id(data)), out, self._p, acc, at_rest)
-
-    def _encode(self, data: bytes, off: int, flags: int, sec: int = 0, nsec: int = 0,
-                prefix: bytes | None = None) -> bytes:
+    def _encode(self, data: bytes, off: int, flags: int, sec: int, nsec: int,
+                prefix: bytes | None) -> bytes:
         """``imu/data``'s bytes for the estimate in the adapter's output record (lock held)."""
         av_sd, la_sd = self._stddevs
         if flags & OF_WADD:  # the bias-corrected rate: its covariance changes every sample
@@ -524,40 +484,27 @@ class EstimatorNode(Node):
             self._count_exception(e, "accelerometer callback")
 
     def _on_mag(self, data: bytes) -> None:
-        """Serialized MagneticField in (``raw=True``): in one compiled call
-        (:meth:`StreamAdapter.run_mag_message`), but with a magnetometer calibration under way,
-        debug topics, or a message that call declines (:meth:`_on_mag_parsed`)."""
         if not self._active:
             return
         self.received_mag += 1
         try:
             self._last_mag_wall = time.monotonic()
-            if not self._debug and type(data) is bytes:
-                with self._lock:
-                    calib = self._calib
-                    if ((calib is None or calib.mag_samples is None)
-                            and self.stream.run_mag_message(data) != MSG_DECLINED):
-                        return
-            self._on_mag_parsed(data)
+            h = rawmsg.parse(data, rawmsg.MAG_DOUBLES)
+            if h is None:
+                stamp, m = convert.mag_to_array(deserialize_message(data, MagneticField))
+            else:
+                stamp, m = h.stamp, h.d[0:3]
+            if stamp == 0.0:
+                sec, nsec = self._receive_time("mag", self._sub_mag.topic_name)
+                stamp = sec + nsec * 1e-9
+            with self._lock:
+                if self._calib is not None:
+                    self._calib.add_mag(m)
+                if self._debug:
+                    self._last_mag = np.array(m, dtype=float)
+                self.stream.on_mag(stamp, m)
         except Exception as e:
             self._count_exception(e, "magnetometer callback")
-
-    def _on_mag_parsed(self, data: bytes) -> None:
-        """:meth:`_on_mag` the longer way: the message read in Python (:mod:`.rawmsg`)."""
-        h = rawmsg.parse(data, rawmsg.MAG_DOUBLES)
-        if h is None:
-            stamp, m = convert.mag_to_array(deserialize_message(data, MagneticField))
-        else:
-            stamp, m = h.stamp, h.d[0:3]
-        if stamp == 0.0:
-            sec, nsec = self._receive_time("mag", self._sub_mag.topic_name)
-            stamp = sec + nsec * 1e-9
-        with self._lock:
-            if self._calib is not None:
-                self._calib.add_mag(m)
-            if self._debug:
-                self._last_mag = np.array(m, dtype=float)
-            self.stream.on_mag(stamp, m)
 
     # --- TF and debug topics (message objects; only when enabled) ------------------------------
     def _extras(self, header: Header, out: StreamOutput, p: dict[str, Any], acc: Any,

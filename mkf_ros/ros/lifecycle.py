@@ -18,7 +18,7 @@ standard lifecycle services ``~/change_state``, ``~/get_state``, ``~/get_availab
 from __future__ import annotations
 
 import sys
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from typing import Any
 
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
@@ -69,9 +69,6 @@ class EstimatorLifecycleNode(EstimatorNode, LifecycleNode):
         return self.create_lifecycle_publisher(
             Imu, "imu/data", output_qos(),
             qos_overriding_options=QoSOverridingOptions.with_default_policies())
-
-    def _bytes_publisher(self, pub: Publisher) -> Callable[[bytes], None]:
-        return pub.publish  # the lifecycle publisher's: it publishes only when active
 
     def _destroy_output_publisher(self, pub: Publisher) -> None:
         self.destroy_lifecycle_publisher(pub)  # type: ignore[arg-type]

@@ -114,11 +114,6 @@ def _changing_fields(flags: int) -> tuple[np.ndarray, np.ndarray]:
     return np.concatenate(dst), np.concatenate(src)
 
 
-# the stream kernel's copy of the layout (StreamAdapter.run_imu_message, no import of bags)
-assert (sk.IMU_DOUBLES, sk.IMU_Q, sk.IMU_QC, sk.IMU_W, sk.IMU_WC, sk.IMU_A, sk.IMU_AC,
-        sk.MAG_DOUBLES) == (IMU_DOUBLES, Q, QC, W, WC, A, AC, MAG_DOUBLES), (
-    "the message layouts of stream.kernel differ from bags.cdr's")
-assert cdr.MAGNETIC_FIELD.offsets()["magnetic_field"] == (0, 3)
 _DOUBLES = struct.Struct(f"<{IMU_DOUBLES}d")  # the Imu message after its header
 _VEC4 = struct.Struct("<4d")
 assert (WC, AC) == (W + 3, A + 3)  # each vector followed by its covariance
@@ -172,11 +167,6 @@ def pack_imu_event(event: memoryview, stamp: float, gyr: Any, acc: Any) -> None:
     (:attr:`~mkf_ros.stream.adapter.StreamAdapter.imu_event_bytes`)."""
     _EVENT.pack_into(event, 0, stamp, *(_NAN3 if gyr is None else gyr),
                      *(_NAN3 if acc is None else acc))
-
-
-def doubles_offset(buf: bytes) -> int:
-    """Where the doubles of a serialized little-endian message start (after its frame_id)."""
-    return cdr.HEADER_BYTES + cdr.body_offset(_HEAD.unpack_from(buf, cdr.HEADER_BYTES)[2] - 1)
 
 
 def frame_id(buf: bytes) -> str:

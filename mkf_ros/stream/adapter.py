@@ -53,7 +53,6 @@ estimator's output rather than raw data?).
 
 from __future__ import annotations
 
-import functools
 import math
 import struct
 from collections.abc import Callable, Mapping
@@ -318,7 +317,6 @@ class StreamAdapter:
         for kind, ev in self._ev.items():
             ev["kind"] = kind
         self._out = new_records(sk.OUTPUT)
-        self._io = np.zeros(sk.IO_SIZE)  # run_imu_message's work array (kernel.IO_*)
         # the smoother's recording (record_into): slots, [slots filled, out of room]
         self._rec = new_records(smoother.RECORD, 0)
         self._rn = np.zeros(4, dtype=np.int64)
@@ -343,11 +341,10 @@ class StreamAdapter:
         self._out_flat = self._out.view(np.float64)
         self._out_bytes = self._out.view(np.uint8).data.toreadonly()
         self._ev_imu_bytes = self._ev_imu_seq.view(np.uint8).data
-        self._msg_bytes = self._io.view(np.uint8)[sk.IO_MSG:].data.toreadonly()
         self._bound: dict[int, _BoundCall] = {}  # _run_event's compiled calls, by event kind
 
     _VIEWS = ("_ev_views", "_out_present", "_out_slot", "_ev_imu", "_ev_imu_seq", "_out_flat",
-              "_out_bytes", "_ev_imu_bytes", "_msg_bytes", "_bound")
+              "_out_bytes", "_ev_imu_bytes", "_bound")
 
     def __getstate__(self) -> dict[str, Any]:
         """The state of :func:`copy.deepcopy` and :mod:`pickle`: every record, without the
@@ -411,8 +408,6 @@ class StreamAdapter:
         p.up_world[:] = rotmat_np(q_w) @ np.array([0.0, 0.0, 1.0])  # world up
         p.av_source = sk.AV_SOURCES.index(n["angular_velocity_source"])
         p.split = n["input_mode"] == "split"
-        p.av_stddev = n["angular_velocity_stddev"]
-        p.la_stddev = n["linear_acceleration_stddev"]
         self._npar = rec
         self.filter.set_split_input(self.split)
 
@@ -579,59 +574,6 @@ class StreamAdapter:
         self._run_event(sk.EV_IMU)
         return _PRESENT(self._out_bytes)[0]  # the flags, without a numpy scalar
 
-    def run_imu_message(self, msg: bytes) -> int:
-        """One serialized ``sensor_msgs/Imu`` (``bytes``, little-endian plain CDR) through
-        :meth:`step_imu` and, when it publishes, into ``imu/data``'s bytes, in one compiled call
-        (:func:`~mkf_ros.stream.kernel.run_events` with ``msg``: the node's per-message path).
-        Returns how many bytes of :attr:`message_bytes` are the output message (the input's
-        header, the estimate and the covariances by REP-145, as
-        :class:`mkf_ros.ros.rawmsg.ImuEncoder` builds it); 0 when none were built: nothing to
-        publish (:attr:`output_flags` 0), or an output after a reset that the sample asked for
-        (:attr:`output_values`); :data:`~mkf_ros.stream.kernel.MSG_DECLINED` for a message left
-        to the caller, nothing done (empty, not little-endian plain CDR, truncated, stamped
-        zero, or longer than :data:`~mkf_ros.stream.kernel.MSG_CAPACITY`)."""
-        return self._run_message(sk.EV_IMU, msg)
-
-    def run_mag_message(self, msg: bytes) -> int:
-        """One serialized ``sensor_msgs/MagneticField`` (``bytes``, little-endian plain CDR)
-        through :meth:`on_mag`, in one compiled call (the node's per-message path). Returns
-        0, or :data:`~mkf_ros.stream.kernel.MSG_DECLINED` for a message left to the caller,
-        nothing done (as :meth:`run_imu_message`; stamped 0.0 s)."""
-        return self._run_message(sk.EV_MAG, msg)
-
-    def _run_message(self, kind: int, msg: bytes) -> int:
-        """:meth:`run_imu_message` / :meth:`run_mag_message`: the event of ``kind`` read from
-        ``msg`` and run by the compiled loop through its bound entry point
-        (:meth:`_run_event`)."""
-        if not msg:  # (to the compiled loop, no message)
-            return sk.MSG_DECLINED
-        b = self._bound.get(kind)
-        if (b is None or b.arrays is not self.filter.kernel_arrays() or b.npar is not self._npar
-                or b.rec is not self._rec):  # (recording replaces the records too)
-            k, why, n = sk.run_events(*self._args(self._ev[kind], self._out, 0, 1, msg))
-            self._bind(kind)
-        else:
-            k, why, n = b.call(msg)
-        if why == sk.R_DONE and not self._recording:
-            return n
-        k0 = self._resume(k, why)
-        if k0 >= 0:  # a reset, then the rest of the sample through the usual path
-            self._run(self._ev[kind], self._out, k0, 1)
-            return 0
-        return n
-
-    @property
-    def message_bytes(self) -> memoryview:
-        """The output message of the latest :meth:`run_imu_message` (its first ``n`` bytes,
-        ``n`` what it returned), read-only, rewritten by the next call."""
-        return self._msg_bytes
-
-    @property
-    def output_flags(self) -> int:
-        """The flags of the latest IMU sample's output record (``OF_*``; 0: nothing
-        published)."""
-        return _PRESENT(self._out_bytes)[0]
-
     @property
     def output_bytes(self) -> memoryview:
         """The latest IMU sample's output record (:data:`~mkf_ros.stream.kernel.OUTPUT`) as
@@ -746,12 +688,10 @@ class StreamAdapter:
                 progress(k1 - k0)
         return _outputs(out, ts)
 
-    def _args(self, ev: np.ndarray, out: np.ndarray, k0: int, k1: int,
-              msg: bytes = b"") -> tuple:
+    def _args(self, ev: np.ndarray, out: np.ndarray, k0: int, k1: int) -> tuple:
         """The arguments of :func:`~mkf_ros.stream.kernel.run_events` for these events."""
-        return (kernel_table(), tuple(self.filter.kernel_arrays()),
-                (self._npar, self._ts, self._acnt), self._rec, self._rn, ev, out, k0, k1,
-                self._io, msg)
+        return (kernel_table(), tuple(self.filter.kernel_arrays()), self._npar, self._ts,
+                self._acnt, self._rec, self._rn, ev, out, k0, k1)
 
     def _run(self, ev: np.ndarray, out: np.ndarray, k0: int, k1: int) -> None:
         """Events ``k0 … k1-1`` through the compiled rules. Only resets come back here: the
@@ -759,8 +699,7 @@ class StreamAdapter:
         if self._recording:  # (set_params builds a new configuration)
             record(self.filter.kernel_arrays().cfg).record_posterior = True
         while True:
-            k, why, _ = sk.run_events(*self._args(ev, out, k0, k1))
-            k0 = self._resume(k, why)
+            k0 = self._resume(*sk.run_events(*self._args(ev, out, k0, k1)))
             if k0 < 0:
                 return
 
@@ -800,8 +739,7 @@ class StreamAdapter:
             self._run(ev, self._out, 0, 1)
             self._bind(kind)
             return
-        k, why, _ = b.call(b"")
-        k0 = self._resume(k, why)
+        k0 = self._resume(*b.call(*b.args))
         if k0 >= 0:
             self._run(ev, self._out, k0, 1)
 
@@ -818,7 +756,7 @@ class StreamAdapter:
         cres = disp.overloads.get(tuple(disp.typeof_pyval(a) for a in args))
         if cres is not None:
             self._bound[kind] = _BoundCall(self.filter.kernel_arrays(), self._npar, self._rec,
-                                           functools.partial(cres.entry_point, *args[:-1]))
+                                           cres.entry_point, args)
 
 
 class _BoundCall(NamedTuple):
@@ -828,9 +766,8 @@ class _BoundCall(NamedTuple):
     arrays: Any  #: the filter's kernel arrays
     npar: np.ndarray
     rec: np.ndarray
-    #: the compiled entry point of run_events for these argument types with every argument
-    #: but the last, ``msg`` (empty but for run_imu_message)
-    call: Any
+    call: Any  #: the compiled entry point of run_events for these argument types
+    args: tuple
 
 
 def _outputs(out: np.ndarray, stamps: np.ndarray) -> StreamOutputs:

@@ -95,8 +95,6 @@ NODE = np.dtype(
         ("q_offset", np.float64, 4),  # that turn about world up, in world axes
         ("R_offset", np.float64, (3, 3)),  # its rotation matrix
         ("up_world", np.float64, 3),  # world up in world_frame axes
-        ("av_stddev", np.float64),  # angular_velocity_stddev (REP-145 fill, imu_message)
-        ("la_stddev", np.float64),  # linear_acceleration_stddev
     ],
     align=True,
 )
@@ -216,31 +214,20 @@ def rotate_back(v: np.ndarray, rotvec: np.ndarray) -> np.ndarray:
 
 
 @jit
-def fill_covariance(row: np.ndarray, stddev: float, add: np.ndarray, has_add: bool) -> None:
-    """One published covariance (9 values) from the input's, in place: NaN/Inf or "not
-    reported" (-1 first) count as unknown (zeros); an unknown one gets ``stddev²`` on the
-    diagonal when ``stddev > 0`` and otherwise stays unknown; ``add`` (9 values, with
-    ``has_add``) is added to a known one (:func:`mkf_ros.stream.rep145.covariance_out`)."""
-    if row[0] == -1.0 or not np.isfinite(row.sum()):
-        row[:] = 0.0
-    if not row.any():
-        if stddev <= 0.0:
-            return
-        row[0] = row[4] = row[8] = stddev * stddev
-    if has_add:
-        row += add
-
-
-@jit
 def covariance_rows(c: np.ndarray, stddev: float, add: np.ndarray) -> None:
     """Published covariances from the input's, in place (rows of 9, see
     :func:`mkf_ros.stream.rep145.covariance_out`); ``add`` has one row per row of ``c``, one for
     all, or none."""
-    has_add = add.shape[0] > 0
     for i in range(c.shape[0]):
         row = c[i]
-        fill_covariance(row, stddev, add[i if add.shape[0] > 1 else 0] if has_add else row,
-                        has_add)
+        if row[0] == -1.0 or not np.isfinite(row.sum()):
+            row[:] = 0.0
+        if not row.any():
+            if stddev <= 0.0:
+                continue
+            row[0] = row[4] = row[8] = stddev * stddev
+        if add.shape[0]:
+            row += add[i if add.shape[0] > 1 else 0]
 
 
 # --- magnetometer (split input: accelerometer) samples held for the IMU (gyro) stream --------
@@ -770,169 +757,22 @@ def output(f: FilterRecords, r: StreamRecords, g: np.ndarray, has_g: bool, a: np
     return _OUT
 
 
-# --- the node's per-message path: a serialized sensor_msgs/Imu in, imu/data's bytes out -----
-#: ``sensor_msgs/Imu`` as little-endian plain CDR (encapsulation ``00 01``): the 4-byte
-#: encapsulation, ``header.stamp`` (int32 sec, uint32 nanosec), ``header.frame_id`` (uint32
-#: length with the NUL, the characters, the NUL), padding to 8 (from the encapsulation's end),
-#: then 37 float64 (the layout of :data:`mkf_ros.bags.cdr.IMU`, which :mod:`mkf_ros.ros.rawmsg`
-#: checks these against), at these offsets in doubles: orientation, its covariance, angular
-#: velocity, its covariance, linear acceleration, its covariance.
-IMU_DOUBLES = 37
-IMU_Q, IMU_QC, IMU_W, IMU_WC, IMU_A, IMU_AC = 0, 4, 13, 16, 25, 28
-#: ``sensor_msgs/MagneticField`` the same way: the field, then its covariance
-#: (:data:`mkf_ros.bags.cdr.MAGNETIC_FIELD`).
-MAG_DOUBLES = 12
-#: :func:`run_events`' work array ``io`` (float64): the input's doubles (``IO_IN``), the
-#: output's (``IO_OUT``), a covariance to add (``IO_ADD``, 9), then the output message's bytes
-#: from byte ``IO_MSG``, at most :data:`MSG_CAPACITY` of them.
-IO_IN, IO_OUT, IO_ADD = 0, IMU_DOUBLES, 2 * IMU_DOUBLES
-IO_MSG = 8 * (IO_ADD + 9)
-MSG_CAPACITY = 1024
-IO_SIZE = IO_MSG // 8 + MSG_CAPACITY // 8
-#: :func:`run_events`' answer for a message it leaves to the caller, having done nothing: not
-#: little-endian plain CDR, shorter than its header says (truncated), stamped zero (the node
-#: stamps it on receipt), or longer than :data:`MSG_CAPACITY` bytes out.
-MSG_DECLINED = -1
-
-
 @jit
-def _u32(msg: bytes, at: int) -> np.int64:
-    """The little-endian uint32 at byte ``at``."""
-    return (np.int64(msg[at]) | (np.int64(msg[at + 1]) << 8) | (np.int64(msg[at + 2]) << 16)
-            | (np.int64(msg[at + 3]) << 24))
-
-
-@jit
-def message_in(msg: bytes, io: np.ndarray, e: np.record) -> int:
-    """A serialized ``sensor_msgs/Imu`` (:data:`IMU_DOUBLES`; ``e.kind`` ``EV_IMU``) or
-    ``sensor_msgs/MagneticField`` (:data:`MAG_DOUBLES`; ``EV_MAG``) into the event ``e``: its
-    stamp (s, ``sec + nanosec·1e-9``) and readings: the angular velocity and linear
-    acceleration (all NaN where covariance[0] is -1, "not reported":
-    :func:`mkf_ros.stream.rep145.not_reported`), or the magnetic field; its doubles into
-    ``io[IO_IN:]``. Returns where the doubles start (bytes), or :data:`MSG_DECLINED` (``e``
-    and ``io`` untouched)."""
-    is_imu = e.kind == EV_IMU
-    size = len(msg)
-    if size < 16 or msg[0] != 0 or msg[1] != 1:
-        return MSG_DECLINED
-    sec = _u32(msg, 4)
-    if sec >= 2**31:
-        sec -= 2**32
-    nsec = _u32(msg, 8)
-    n = _u32(msg, 12)
-    off = 4 + (12 + n + 7) // 8 * 8
-    nd = IMU_DOUBLES if is_imu else MAG_DOUBLES
-    end = off + 8 * nd
-    stamp = np.float64(sec) + np.float64(nsec) * 1e-9
-    # no stamp (the node's rules: an Imu stamped 0 s 0 ns, a MagneticField stamped 0.0 s)
-    unstamped = (sec == 0 and nsec == 0) if is_imu else stamp == 0.0
-    if n == 0 or size < end or end > MSG_CAPACITY or unstamped:
-        return MSG_DECLINED
-    u8 = io.view(np.uint8)
-    for i in range(8 * nd):
-        u8[8 * IO_IN + i] = msg[off + i]
-    e.stamp = stamp
-    if not is_imu:
-        for i in range(3):
-            e.v[i] = io[IO_IN + i]
-        return off
-    gyr = io[IO_IN + IMU_WC] != -1.0
-    acc = io[IO_IN + IMU_AC] != -1.0
-    for i in range(3):
-        e.v[i] = io[IO_IN + IMU_W + i] if gyr else np.nan
-        e.a[i] = io[IO_IN + IMU_A + i] if acc else np.nan
-    return off
-
-
-@jit
-def _published_cov(io: np.ndarray, at: int, present: bool, stddev: float,
-                   has_add: bool) -> None:
-    """``io[IO_OUT + at:]``, an output covariance field without the filter's own, by REP-145
-    (:func:`mkf_ros.stream.rep145.published_covariance`): "not reported" without a value,
-    else the input's filled (:func:`fill_covariance`), plus ``io[IO_ADD:]`` with
-    ``has_add``."""
-    row = io[IO_OUT + at:IO_OUT + at + 9]
-    if not present:
-        row[:] = 0.0
-        row[0] = -1.0
-        return
-    row[:] = io[IO_IN + at:IO_IN + at + 9]
-    fill_covariance(row, stddev, io[IO_ADD:IO_ADD + 9], has_add)
-
-
-@jit
-def imu_message_out(msg: bytes, off: int, io: np.ndarray, o: np.record, p: np.record) -> int:
-    """``imu/data`` for the input message ``msg`` (its doubles at byte ``off``, in
-    ``io[IO_IN:]``: :func:`message_in`) and its output record ``o`` into ``io`` from byte
-    :data:`IO_MSG`: the input's bytes up to its doubles (header and frame_id), then the
-    estimate ([x, y, z, w]) and its covariance, the angular velocity and linear acceleration
-    as present (``o.present``; zeros where not), their covariances by REP-145 (the filter's
-    own, or the input's filled with ``p.av_stddev`` / ``p.la_stddev``, plus the bias variance
-    with ``OF_WADD``; "not reported" where the field is not present). The bytes
-    :class:`mkf_ros.ros.rawmsg.ImuEncoder` builds; returns their number."""
-    flags = o.present
-    r = IO_OUT
-    for i in range(3):
-        io[r + IMU_Q + i] = o.q[1 + i]
-    io[r + IMU_Q + 3] = o.q[0]
-    for i in range(3):
-        for j in range(3):
-            io[r + IMU_QC + 3 * i + j] = o.cov[i, j]
-    has_w = (flags & OF_W) != 0
-    has_lin = (flags & OF_LIN) != 0
-    for i in range(3):
-        io[r + IMU_W + i] = o.w[i] if has_w else 0.0
-        io[r + IMU_A + i] = o.lin[i] if has_lin else 0.0
-    if has_w and flags & OF_WCOV:
-        for i in range(3):
-            for j in range(3):
-                io[r + IMU_WC + 3 * i + j] = o.wcov[i, j]
-    else:
-        has_add = (flags & OF_WADD) != 0
-        if has_add:  # the bias variance, a diagonal
-            io[IO_ADD:IO_ADD + 9] = 0.0
-            for i in range(3):
-                io[IO_ADD + 4 * i] = o.wadd[i]
-        _published_cov(io, IMU_WC, has_w, p.av_stddev, has_add)
-    _published_cov(io, IMU_AC, has_lin, p.la_stddev, False)
-    u8 = io.view(np.uint8)
-    for i in range(off):
-        u8[IO_MSG + i] = msg[i]
-    for i in range(8 * IMU_DOUBLES):
-        u8[IO_MSG + off + i] = u8[8 * IO_OUT + i]
-    return off + 8 * IMU_DOUBLES
-
-
-@jit
-def run_events(table: np.ndarray, filt: tuple, adapter: tuple, rec: np.ndarray,
-               rn: np.ndarray, ev: np.ndarray, out: np.ndarray, k0: int, k1: int,
-               io: np.ndarray, msg: bytes) -> tuple[int, int, int]:
+def run_events(table: np.ndarray, filt: tuple, npar: np.ndarray, ts: np.ndarray,
+               acnt: np.ndarray, rec: np.ndarray, rn: np.ndarray, ev: np.ndarray,
+               out: np.ndarray, k0: int, k1: int) -> tuple[int, int]:
     """Events ``k0 … k1-1`` in order (the filter's compiled kernels,
     :func:`~mkf_ros.core.filter.kernel_table`, and its record arrays ``(cfg, st, cnt, work)``
     as a plain tuple: :meth:`~mkf_ros.core.filter.AttitudeFilter.kernel_arrays`, whose
-    NamedTuple numba's dispatcher types more slowly at every call; the adapter's records
-    ``(npar, ts, acnt)``, the smoother's recording, the events and the outputs); returns
-    ``(k, R_DONE, n)`` at the end, or the index and reason of an event that needs a reset
-    (``R_TIME_JUMP``: call again from ``k`` with the time state's ``resume`` set;
-    ``R_NONFINITE``: the event is done, call again from ``k + 1``; ``R_FULL``: the smoother's
-    recording reached its limit, call again from ``k`` once it has room).
-
-    ``msg`` (the node's per-message path; empty otherwise): a serialized ``sensor_msgs/Imu``
-    or ``MagneticField`` (as ``ev[k0].kind`` says), read into the event ``ev[k0]`` first
-    (:func:`message_in`; ``io`` the work array, :data:`IO_SIZE` float64) and, when an IMU
-    event publishes, ``imu/data``'s bytes built in ``io`` from byte :data:`IO_MSG`
-    (:func:`imu_message_out`). The third value returned: their number (0: none built), or
-    :data:`MSG_DECLINED` for a message left to the caller (nothing done)."""
+    NamedTuple numba's dispatcher types more slowly at every call; the adapter's, the events
+    and the outputs); returns ``(k, R_DONE)`` at the end, or the index
+    and reason of an event that needs a reset (``R_TIME_JUMP``: call again from ``k`` with
+    the time state's ``resume`` set; ``R_NONFINITE``: the event is done, call again from
+    ``k + 1``; ``R_FULL``: the smoother's recording reached its limit, call again from ``k``
+    once it has room)."""
     cfg, st, cnt, work = filt
     f = FilterRecords(cfg[0], st[0], cnt[0], work[0], kernels_at(table), rec, rn)
-    npar, ts, acnt = adapter
     r = StreamRecords(npar[0], ts[0], acnt[0])
-    off = 0
-    if len(msg):
-        off = message_in(msg, io, ev[k0])
-        if off < 0:
-            return k0, R_DONE, MSG_DECLINED
-    n_out = 0
     for k in range(k0, k1):
         e = ev[k]
         if e.kind == EV_MAG:
@@ -942,9 +782,7 @@ def run_events(table: np.ndarray, filt: tuple, adapter: tuple, rec: np.ndarray,
         else:
             res = imu_event(f, r, e.stamp, e.v, e.a, out[e.row])
             if res >= R_TIME_JUMP:
-                return k, res, 0
-            if off > 0 and k == k0 and res == _OUT:
-                n_out = imu_message_out(msg, off, io, out[e.row], r.p)
+                return k, res
         if rn[0] >= rn[2] > 0:
-            return k + 1, R_FULL, n_out
-    return k1, R_DONE, n_out
+            return k + 1, R_FULL
+    return k1, R_DONE

@@ -20,10 +20,8 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import Imu, MagneticField
 from std_srvs.srv import Trigger
 
-from mkf_ros.ros import convert, rawmsg
+from mkf_ros.ros import convert
 from mkf_ros.ros.estimator_node import EstimatorNode
-from mkf_ros.stream import kernel as sk
-from mkf_ros.stream.kernel import MSG_DECLINED
 
 RELIABLE_IN = {
     "qos_overrides./imu/data_raw.subscription.reliability": "reliable",
@@ -211,23 +209,9 @@ def record_arrival(stream: Any) -> list[str]:
     reference adapter is fed from the messages the test sent (:func:`reference_outputs`),
     so the node's message conversion is under test, not replayed."""
     kinds: list[str] = []
-    # run_imu_message / run_mag_message: the node's per-message path (a message they decline
-    # goes on to run_imu_event / on_mag); run_imu_event: the node's longer path, and what
-    # on_imu and step_imu (its message-object path) call
-    run_imu_message, run_mag_message, run_imu_event, on_mag = (
-        stream.run_imu_message, stream.run_mag_message, stream.run_imu_event, stream.on_mag)
-
-    def imu_message(msg):
-        n = run_imu_message(msg)
-        if n != MSG_DECLINED:
-            kinds.append("imu")
-        return n
-
-    def mag_message(msg):
-        n = run_mag_message(msg)
-        if n != MSG_DECLINED:
-            kinds.append("mag")
-        return n
+    # run_imu_event: the node's per-message path, and what on_imu and step_imu (its
+    # message-object path) call
+    run_imu_event, on_mag = stream.run_imu_event, stream.on_mag
 
     def imu(*args):
         kinds.append("imu")
@@ -237,7 +221,6 @@ def record_arrival(stream: Any) -> list[str]:
         kinds.append("mag")
         return on_mag(*args)
 
-    stream.run_imu_message, stream.run_mag_message = imu_message, mag_message
     stream.run_imu_event, stream.on_mag = imu, mag
     return kinds
 
@@ -352,18 +335,3 @@ def fake_tf2(monkeypatch: Any) -> list:
     mod.TransformBroadcaster = TransformBroadcaster
     monkeypatch.setitem(sys.modules, "tf2_ros", mod)
     return sent
-
-
-def python_path_bytes(s: Any, enc: Any, data: bytes, av_sd: float,
-                      la_sd: float) -> bytes | None:
-    """``imu/data``'s bytes for ``data`` the node's longer way: read in Python, the filter
-    step, the output record encoded by :class:`rawmsg.ImuEncoder` (None: nothing published)."""
-    sec, nsec, off, gyr, acc = rawmsg.unpack_imu(data)
-    rawmsg.pack_imu_event(s.imu_event_bytes, sec + nsec * 1e-9, gyr, acc)
-    flags = s.run_imu_event()
-    if not flags:
-        return None
-    if flags & sk.OF_WADD:
-        return enc.encode_values(rawmsg.RawHeader(data, rawmsg.IMU_DOUBLES), s.output_values,
-                                 flags, av_sd, la_sd)
-    return enc.encode_record(data, off, s.output_bytes, flags, av_sd, la_sd)

@@ -12,7 +12,7 @@ import pytest
 from geometry_msgs.msg import Vector3Stamped
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rosharness import assert_message_is, fake_tf2, imu_msg, mag_msg, quat
-from sensor_msgs.msg import Imu, MagneticField
+from sensor_msgs.msg import Imu
 from std_msgs.msg import Bool
 
 from mkf_ros.core.quaternion import qconj_np
@@ -317,66 +317,3 @@ def test_big_endian_input_takes_the_message_path(harness) -> None:
         assert len(slow) == (0 if wire is None else len(sent_imu))
         outs[ns] = [quat(m) for m in h.out]
     np.testing.assert_array_equal(outs["/le"], outs["/be"])
-
-
-@pytest.mark.parametrize("params", [
-    {"use_mag": True},
-    {"use_mag": True, "angular_velocity_source": "bias_corrected",
-     "angular_velocity_stddev": 0.02, "linear_acceleration_stddev": 0.3},
-    {"angular_velocity_source": "estimate", "remove_gravity_vector": True, "yaw_offset": 0.4},
-])
-def test_imu_data_is_the_python_paths_bytes(harness, params: dict) -> None:
-    """After the first INPUT_CHECK_MESSAGES messages, the node reads each message, runs the
-    filter and builds imu/data in one compiled call: what it publishes is, byte for byte,
-    what the longer Python path (unpack_imu, run_imu_event, ImuEncoder) builds on a fresh
-    adapter fed the same bytes in the node's arrival order, as the covariances and the
-    present fields change (known, unknown, not reported), magnetometer messages between, the
-    stamps jump back and forward."""
-    from rclpy.serialization import serialize_message
-    from rosharness import python_path_bytes, record_arrival
-
-    from mkf_ros.ros import rawmsg
-    from mkf_ros.stream.adapter import StreamAdapter
-
-    h = harness(params)
-    kinds = record_arrival(h.est.stream)
-    compiled = {"n": 0}
-    run = h.est.stream.run_imu_message
-
-    def counted(msg: bytes) -> int:
-        n = run(msg)
-        compiled["n"] += n > 0
-        return n
-
-    h.est.stream.run_imu_message = counted
-    sent = []
-    for k in range(INPUT_CHECK_MESSAGES + 70):
-        # at 90 the stamps jump back by 50 s (a reset, re-initialised from that message), at
-        # 91 forward again (a gap)
-        m = imu_msg(T0 + 0.01 * k - 50.0 * (k == 90), (0.01, -0.02, 0.03), (0.1, 0.2, 9.8))
-        m.angular_velocity_covariance = [0.0] * 9 if k % 2 else [1e-4, 0, 0, 0, 1e-4, 0, 0, 0,
-                                                                  1e-4]
-        m.linear_acceleration_covariance = [0.0] * 9 if k % 3 else [1e-2] + [0.0] * 8
-        if k % 7 == 3:
-            m.angular_velocity_covariance[0] = -1.0
-        if k % 11 == 5:
-            m.linear_acceleration_covariance[0] = -1.0
-        sent.append(m)
-        if k % 4 == 1:
-            sent.append(mag_msg(T0 + 0.01 * k + 0.002, (2e-5, 1e-6, -4e-5)))
-    h.send(sent)
-    assert h.est._exceptions == 0, h.est._last_exception
-    ref, enc = StreamAdapter(params), rawmsg.ImuEncoder()
-    av, la = (params.get(f"{x}_stddev", 0.0) for x in ("angular_velocity", "linear_acceleration"))
-    imus, mags = (iter([m for m in sent if isinstance(m, t)]) for t in (Imu, MagneticField))
-    want = []
-    for kind in kinds:
-        if kind == "imu":
-            out = python_path_bytes(ref, enc, serialize_message(next(imus)), av, la)
-            if out is not None:
-                want.append(out)
-        else:
-            hm = rawmsg.parse(serialize_message(next(mags)), rawmsg.MAG_DOUBLES)
-            ref.on_mag(hm.stamp, hm.d[0:3])
-    assert [serialize_message(m) for m in h.out] == want
-    assert compiled["n"] >= 68 and h.est.stream.counters["resets_time_jump"] == 1

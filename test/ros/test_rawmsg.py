@@ -7,11 +7,10 @@ import math
 import numpy as np
 import pytest
 from rclpy.serialization import deserialize_message, serialize_message
-from rosharness import imu_msg, python_path_bytes
+from rosharness import imu_msg
 from sensor_msgs.msg import Imu, MagneticField
 
 from mkf_ros.ros import convert, rawmsg
-from mkf_ros.stream import kernel as sk
 from mkf_ros.stream.adapter import StreamAdapter
 
 pytestmark = pytest.mark.ros
@@ -32,7 +31,6 @@ def test_parse_matches_rclpy(frame: str) -> None:
     m = random_imu(rng, frame)
     h = rawmsg.parse(serialize_message(m), rawmsg.IMU_DOUBLES)
     assert h is not None
-    assert rawmsg.doubles_offset(serialize_message(m)) == h.off
     assert (h.sec, h.nanosec, h.frame_id) == (m.header.stamp.sec, m.header.stamp.nanosec, frame)
     assert h.stamp == convert.stamp_to_sec(m.header.stamp)
     gyr, acc = rawmsg.imu_arrays(h)
@@ -163,61 +161,3 @@ def test_the_node_byte_path_equals_encode(source: str, missing: str | None) -> N
     assert rawmsg.frame_id(data) == "imu_link"
     restamped = rawmsg.restamped_prefix(data, off, 7, 8) + data[off:]
     assert deserialize_message(restamped, Imu).header.stamp.sec == 7
-
-
-@pytest.mark.parametrize("source", ["input", "bias_corrected", "estimate"])
-@pytest.mark.parametrize("missing", [None, "gyr", "acc", "both"])
-@pytest.mark.parametrize("stddevs", [(0.0, 0.0), (0.02, 0.3)])
-def test_the_compiled_message_path_builds_the_same_bytes(source: str, missing: str | None,
-                                                         stddevs: tuple[float, float]) -> None:
-    """StreamAdapter.run_imu_message / run_mag_message (the message read, the filter step and
-    imu/data's bytes in one compiled call) publish, message after message, the bytes of the
-    Python path (unpack_imu, run_imu_event, ImuEncoder) and leave the adapter in the same
-    state, as the covariances, the present fields, the frame_id and the magnetometer change."""
-    rng = np.random.default_rng(11)
-    kw: dict = dict(angular_velocity_source=source, estimate_gyro_bias=True, use_mag=True,
-                    remove_gravity_vector=source == "estimate", yaw_offset=0.3,
-                    angular_velocity_stddev=stddevs[0], linear_acceleration_stddev=stddevs[1])
-    s_py, s_c = StreamAdapter(**kw), StreamAdapter(**kw)
-    enc = rawmsg.ImuEncoder()
-    published = 0
-    for k, m in enumerate(changing_imu_messages(rng, missing, n=40)):
-        m.header.frame_id = "imu" * (k % 4)
-        data = serialize_message(m)
-        want = python_path_bytes(s_py, enc, data, *stddevs)
-        n = s_c.run_imu_message(data)
-        assert n >= 0
-        assert (s_c.message_bytes[:n].tobytes() if n else None) == want, k
-        published += want is not None
-        if k % 3 == 1:  # a magnetometer message between two IMU messages
-            mag = MagneticField(header=m.header)
-            mag.header.stamp = convert.sec_to_stamp(100.0 + 0.01 * k + 0.004)
-            mag.magnetic_field.x, mag.magnetic_field.y, mag.magnetic_field.z = 2e-5, 1e-6, -4e-5
-            h = rawmsg.parse(serialize_message(mag), rawmsg.MAG_DOUBLES)
-            s_py.on_mag(h.stamp, h.d[0:3])
-            assert s_c.run_mag_message(serialize_message(mag)) == 0
-    assert published > 30
-    assert s_c.counters == s_py.counters and s_c.counters["mag_fused"] > 0
-
-
-def test_the_compiled_message_path_declines_what_the_node_reads_the_longer_way() -> None:
-    """A message the compiled path cannot take (another encoding, truncated, stamped zero,
-    too long) is declined with nothing done: the node takes it the longer way (message
-    objects, the one-line error, the receive time)."""
-    s = StreamAdapter(use_mag=True)
-    m = imu_msg(5.0, (0.0, 0.0, 0.0), (0.0, 0.0, 9.81))
-    data = serialize_message(m)
-    assert s.run_imu_message(data) > 0
-    before = s.counters
-    big_endian = b"\x00\x00" + data[2:]
-    zero = imu_msg(0.0, (0.0, 0.0, 0.0), (0.0, 0.0, 9.81))
-    long_frame = imu_msg(5.01, (0.0, 0.0, 0.0), (0.0, 0.0, 9.81), "f" * sk.MSG_CAPACITY)
-    for bad in (big_endian, data[:100], data[:10], b"", serialize_message(zero),
-                serialize_message(long_frame)):
-        assert s.run_imu_message(bad) == sk.MSG_DECLINED
-    mag = MagneticField(header=zero.header)
-    for bad in (serialize_message(mag), serialize_message(mag)[:30]):
-        assert s.run_mag_message(bad) == sk.MSG_DECLINED
-    assert s.counters == before
-    assert s.run_imu_message(serialize_message(imu_msg(5.01, (0.0, 0.0, 0.0),
-                                                       (0.0, 0.0, 9.81)))) > 0
