@@ -58,6 +58,7 @@ def warmup(parts: Sequence[str] = WARMUP_PARTS) -> None:
     unknown = [p for p in parts if p not in WARMUP_PARTS]
     if unknown:
         raise ValueError(f"warmup: unknown part(s) {unknown}; expected some of {WARMUP_PARTS}")
+    _jit.share_inliner_memo()  # in case anything is compiled here
     n = 4
     gyr = np.zeros((n, 3))
     acc = np.tile([0.0, 0.0, 9.81], (n, 1))
@@ -193,6 +194,7 @@ def _compiler_process() -> None:
     import gc
 
     _units()
+    _jit.share_inliner_memo()
     gc.freeze()
     gc.set_threshold(COMPILE_GC_THRESHOLD, 10, 10)
     atexit.register(_exit_at_once)

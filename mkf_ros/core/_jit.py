@@ -363,8 +363,12 @@ def share_inliner_memo() -> bool:
     the whole function would. The inlined code is the same: the filters' outputs are
     bit-identical, the sensor step's machine code too (the MUKF's differs in the order of two
     calls and its stack layout); the sensor step compiles in about a quarter less CPU time and
-    0.1 GB less memory. Returns whether it applied (not on a numba whose inliner is laid out
-    otherwise: that one compiles as before)."""
+    0.1 GB less memory. Returns whether it applied (not on a numba that does not inline at IR
+    level or whose inliner is laid out otherwise: that one compiles as before). Called where
+    the package compiles (:mod:`mkf_ros.kernels`), not at import: numba stays as it is for a
+    program that only imports the package."""
+    if not INLINE_AT_IR_LEVEL:
+        return False
     from numba.core import inline_closurecall as ic
 
     worker = getattr(ic, "InlineWorker", None)
@@ -389,6 +393,3 @@ def share_inliner_memo() -> bool:
     worker.inline_ir = inline_ir_shared
     return True
 
-
-#: Whether numba's inliner shares one memo per inlined call (:func:`share_inliner_memo`).
-INLINER_MEMO_SHARED = INLINE_AT_IR_LEVEL and share_inliner_memo()

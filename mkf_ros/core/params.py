@@ -258,7 +258,7 @@ PARAMS: tuple[Param, ...] = (
        "learned field by more than this fraction are not fused", unit="1", range=(0.0, 1000.0),
        group="robustness"),
     _P("mag_new_time", float, 10.0, "A field of another magnitude than the learned one "
-       "( (another room, a rebar floor, the start of a recording near metal) that stays "
+       "(another room, a rebar floor, the start of a recording near metal) that stays "
        "consistent with the gyro and with itself for this long while the body turns becomes "
        "the new reference; 0 = never", unit="s", range=(0.0, 3600.0), group="robustness"),
     _P("mag_new_first_time", float, 2.0, "As mag_new_time for the first new field since the "

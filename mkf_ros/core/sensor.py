@@ -831,8 +831,7 @@ def _dip(R: tuple, m_body: tuple) -> float:
 
 
 @hot
-def _mag_plausible(c: np.record, s: np.record, k: np.record, R: tuple, m_body: tuple,
-                   m_norm: float) -> bool:
+def _mag_plausible(c: np.record, s: np.record, k: np.record, m_norm: float) -> bool:
     """Field magnitude against the learned reference (extension); counted if not. No test on
     the dip: indoors it differs from room to room as much as a disturbance's (docs/math.md
     §9.3), and the consistency test already refuses a field that turns with the body."""
@@ -944,7 +943,7 @@ def _mag_checks(c: np.record, s: np.record, k: np.record, u: Units, dt: float, d
     alm, _ = _lowpass_gain(s, LP_MAG, t, dtm, c.mag_time_constant)
     Rq = rotmat_t(t4(s.q_c))
     ok = _mag_consistent(c, s, k, m_body, m_norm, alm)
-    if ok and not _mag_plausible(c, s, k, Rq, m_body, m_norm):
+    if ok and not _mag_plausible(c, s, k, m_norm):
         ok = _mag_candidate(c, s, dtm, Rq, m_body, m_norm, wl)
     elif ok:
         s.t_mag_cand = 0.0  # the reference holds: no candidate
@@ -982,9 +981,7 @@ def _gyro_scale_noise(c: np.record, s: np.record, w: np.record, dt: float, wl: t
     w.rec_ws2 = 0.0
     if c.algorithm <= ALGO_MUKF and c.gyro_scale_error > 0:
         v = s.gyro_net
-        a = min(1.0, dt / c.acc_time_constant) if c.acc_time_constant > 0.0 else 1.0
-        for i in range(3):
-            v[i] += a * (wl[i] - v[i])
+        _lowpass(v, wl, min(1.0, dt / c.acc_time_constant) if c.acc_time_constant > 0.0 else 1.0)
         n2 = v[0] * v[0] + v[1] * v[1] + v[2] * v[2]
         w2 = wl[0] * wl[0] + wl[1] * wl[1] + wl[2] * wl[2]
         qs = c.gyro_scale_error ** 2 * (n2 + GYRO_SCALE_SWING * max(0.0, w2 - n2)) * dt

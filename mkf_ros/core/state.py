@@ -223,14 +223,14 @@ ATTITUDE_VAR_UNKNOWN = np.pi ** 2
 #: The accelerometer low-pass's robust input (:func:`~mkf_ros.core.sensor._acc_robust`): a
 #: sample's deviation from the low-pass counts in full up to this many g ...
 ACC_CLIP_MIN_G = 2.0
+#: ... or this many RMS deviations of the recent samples (``acc_dev``), whichever is larger
+ACC_CLIP_SIGMAS = 4.0
 #: The share of the gyro's scale noise that an oscillating rate keeps (docs/math.md §9.1): the
 #: rate's net part (low-passed over ``acc_time_constant``) turns the attitude by
 #: ``gyro_scale_error`` times the angle turned, which accumulates; a swing back and forth turns
 #: it one way and back, and only this share of its power is counted (a clipped or lagging gyro
 #: still loses some of each swing).
 GYRO_SCALE_SWING = 0.3
-#: ... or this many RMS deviations of the recent samples (``acc_dev``), whichever is larger
-ACC_CLIP_SIGMAS = 4.0
 #: A candidate magnetic reference's time counts only while the body turns at least this fast
 #: (rad/s, VQF's 20°/s): a still body sees any field, a magnet on it included, as consistent.
 MAG_NEW_MIN_RATE = 0.35

@@ -311,9 +311,9 @@ def test_ir_inliner_copies_an_inlined_function_with_one_scope() -> None:
     from numba.core import inline_closurecall as ic
 
     if not _jit.INLINE_AT_IR_LEVEL:
-        assert not _jit.INLINER_MEMO_SHARED
+        assert not _jit.share_inliner_memo()
         return
-    assert _jit.INLINER_MEMO_SHARED
+    assert _jit.share_inliner_memo()
 
     def branchy(x: float, n: int) -> float:  # several blocks, several variables
         acc = 0.0
