@@ -372,12 +372,11 @@ def share_inliner_memo() -> bool:
     from numba.core import inline_closurecall as ic
 
     worker = getattr(ic, "InlineWorker", None)
-    if (getattr(ic, "copy", None) is not copy or worker is None
-            or not hasattr(worker, "inline_ir")):
-        return False
-    inline_ir = worker.inline_ir
+    inline_ir = getattr(worker, "inline_ir", None)
     if getattr(inline_ir, "_mkf_ros_shared_memo", False):
-        return True
+        return True  # applied before
+    if getattr(ic, "copy", None) is not copy or inline_ir is None:
+        return False
 
     def inline_ir_shared(self: Any, *args: Any, **kwargs: Any) -> Any:
         token = _INLINER_MEMO.set({})
