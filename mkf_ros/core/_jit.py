@@ -375,7 +375,7 @@ def share_inliner_memo() -> bool:
     inline_ir = getattr(worker, "inline_ir", None)
     if getattr(inline_ir, "_mkf_ros_shared_memo", False):
         return True  # applied before
-    if getattr(ic, "copy", None) is not copy or inline_ir is None:
+    if getattr(ic, "copy", None) is not copy or worker is None or inline_ir is None:
         return False
 
     def inline_ir_shared(self: Any, *args: Any, **kwargs: Any) -> Any:
