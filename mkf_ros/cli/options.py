@@ -19,7 +19,7 @@ def flag(p: Param) -> str:
 
 def help_text(p: Param) -> str:
     """The flag's help: the definition's one-line doc and default. argparse %-formats help
-    strings, so a literal ``%`` (``acc_gate``: "0.1% false rejection") is escaped here."""
+    strings, so a literal ``%`` (``mag_disturbance``: "10-25 %") is escaped here."""
     return f"{p.doc()} (default: {p.default})".replace("%", "%%")
 
 

@@ -160,15 +160,15 @@ CANONICAL_T = tuple_type([export.type, restore.type], Canonical)
 @jit
 def baseline_realign(c: np.record, s: np.record, a: tuple, w: tuple) -> bool:
     """Euler baselines only: when the accelerometer has been refused for
-    ``acc_recovery_time`` and this sample looks like gravity (magnitude within
-    :data:`REALIGN_ACC_TOL` of ``gravity``, rate below :data:`REALIGN_MAX_RATE`), re-align the
-    tilt from it, keeping yaw and its variance, as after a gap. Widening the prior alone does
-    not bring them back: once the tilt is far off, the Euler UKF's sigma points span more than
-    a turn and its χ² gate refuses gravity whatever the variance (measured: tilt variances of
-    20–90 rad² still refused). The tilt variance is one sample's (as in the alignment) plus
-    the square of the tilt's jump: never narrower than the step taken. Works on the canonical
-    form (between :func:`baseline_export` and :func:`from_canonical`). Returns whether it
-    re-aligned (False: not a baseline that needs it, or not gravity)."""
+    :data:`~mkf_ros.core.state.ACC_RECOVERY_TIME` and this sample looks like gravity (magnitude
+    within :data:`REALIGN_ACC_TOL` of ``gravity``, rate below :data:`REALIGN_MAX_RATE`),
+    re-align the tilt from it, keeping yaw and its variance, as after a gap. Widening the prior
+    alone does not bring them back: once the tilt is far off, the Euler UKF's sigma points span
+    more than a turn and its χ² gate refuses gravity whatever the variance (measured: tilt
+    variances of 20–90 rad² still refused). The tilt variance is one sample's (as in the
+    alignment) plus the square of the tilt's jump: never narrower than the step taken. Works on
+    the canonical form (between :func:`baseline_export` and :func:`from_canonical`). Returns
+    whether it re-aligned (False: not a baseline that needs it, or not gravity)."""
     algo = c.algorithm
     if algo != ALGO_EULER_KF and algo != ALGO_EULER_UKF:
         return False

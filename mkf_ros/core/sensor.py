@@ -73,6 +73,8 @@ from mkf_ros.core.state import (
     ACC,
     ACC_CLIP_MIN_G,
     ACC_CLIP_SIGMAS,
+    ACC_GATE,
+    ACC_RECOVERY_TIME,
     ALGO_EULER_KF,
     ALGO_MEKF,
     ALGO_MUKF,
@@ -82,6 +84,7 @@ from mkf_ros.core.state import (
     F33,
     FUSION_T,
     GYR,
+    GYRO_GATE,
     GYRO_SCALE_SWING,
     GYRO_SURPRISE_CHI2,
     LP_ACC,
@@ -89,7 +92,9 @@ from mkf_ros.core.state import (
     LP_RATE,
     LP_REST,
     MAG,
+    MAG_GATE,
     MAG_NEW_MIN_RATE,
+    MAG_RECOVERY_TIME,
     MAG_REF_SAMPLES,
     MAG_SLOW_TIME,
     MAG_SLOW_TOLERANCE,
@@ -98,6 +103,7 @@ from mkf_ros.core.state import (
     MAX_MAG,
     MISSING,
     P0_PAPER,
+    REST_BIAS_RANGE,
     REST_CHI2,
     REST_LP_TAU,
     STATE_T,
@@ -449,7 +455,8 @@ def _rate_jump(P: np.ndarray, r: tuple, dt: float) -> None:
 @hot
 def _gyro_gate(c: np.record, s: np.record, k: np.record, g: tuple, dt: float) -> bool:
     """The gyro's innovation gate: the innovation ``g − ω̄ − b̄`` against
-    ``S = H P Hᵀ + R_ω`` (``H = [0, I, I]``), χ² with ``gyro_gate``. One sample alone beyond it
+    ``S = H P Hᵀ + R_ω`` (``H = [0, I, I]``), χ² with :data:`~mkf_ros.core.state.GYRO_GATE`.
+    One sample alone beyond it
     is an outlier (a corrupted message): it is skipped — it reaches neither the filter nor the
     inertial low-passes — and counted. A second one in a row says the rate did change that
     much: the rate's prior was too narrow by the innovation, so its variance grows by it
@@ -465,7 +472,7 @@ def _gyro_gate(c: np.record, s: np.record, k: np.record, g: tuple, dt: float) ->
     r = (g[0] - w[0] - (b[0] if bias else 0.0), g[1] - w[1] - (b[1] if bias else 0.0),
          g[2] - w[2] - (b[2] if bias else 0.0))
     rw = c.gyro_var
-    if r[0] * r[0] + r[1] * r[1] + r[2] * r[2] <= min(c.gyro_gate, GYRO_SURPRISE_CHI2) * rw:
+    if r[0] * r[0] + r[1] * r[1] + r[2] * r[2] <= min(GYRO_GATE, GYRO_SURPRISE_CHI2) * rw:
         s.gyr_rejected = False  # S ⪰ R_ω I, so rᵀ S⁻¹ r ≤ |r|²/R_ω: within, no inverse needed
         return True
     S = [[0.0, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]]
@@ -480,7 +487,7 @@ def _gyro_gate(c: np.record, s: np.record, k: np.record, g: tuple, dt: float) ->
     for i in range(3):
         for j in range(3):
             nis += r[i] * Si[i][j] * r[j]
-    if okinv and not nis > c.gyro_gate:
+    if okinv and not nis > GYRO_GATE:
         s.gyr_rejected = False
         if nis > GYRO_SURPRISE_CHI2:
             _rate_jump(P, r, dt)
@@ -499,10 +506,10 @@ def _gyro_gate(c: np.record, s: np.record, k: np.record, g: tuple, dt: float) ->
 @hot
 def _gyro(c: np.record, s: np.record, k: np.record, g: tuple, has_g: bool,
           dt: float) -> tuple:
-    """The gyro sample after its gate (MEKF and MUKF with ``gyro_gate``), and the rate (bias
+    """The gyro sample after its gate (MEKF and MUKF: :func:`_gyro_gate`), and the rate (bias
     removed) that turns the inertial low-passes over this step: the gyro's, or without one the
     estimate's. Returns ``(g, has_g, ω_l)``."""
-    if has_g and c.algorithm <= ALGO_MUKF and c.gyro_gate > 0 and not c.paper_init:
+    if has_g and c.algorithm <= ALGO_MUKF and not c.paper_init:
         has_g = _gyro_gate(c, s, k, g, dt)
         if not has_g:
             g = ZERO3
@@ -695,7 +702,8 @@ def _acc_bias_coupling(c: np.record, s: np.record, f: float) -> tuple:
 @unit(nt.void(CONFIG_T, STATE_T, CANONICAL_T, F3, F3, F3), cost=1.8)
 def acc_recovery(c: np.record, s: np.record, cn: Canonical, a: tuple, a_body: tuple,
                  wl: tuple) -> None:
-    """Gravity refused for ``acc_recovery_time``: the estimate may be what is wrong. Its tilt
+    """Gravity refused for :data:`~mkf_ros.core.state.ACC_RECOVERY_TIME`: the estimate may be
+    what is wrong. Its tilt
     variance grows by the measured disagreement (no forced update: the gates then judge
     against the wider prior, and a sample still refused grows it again later); the Euler
     baselines re-align instead (:func:`~mkf_ros.core.baseline_glue.baseline_realign`)."""
@@ -720,7 +728,7 @@ def _accelerometer(c: np.record, s: np.record, k: np.record, u: Units, dt: float
     a_body, qa, a_rawu, qa_raw, a_stat, share = _acc_measurement(c, s, dt, wl, Rw, a, has_a)
     a_sens, a_bias_gain = _acc_bias_coupling(c, s, share)
     if has_a:
-        if s.t_acc_refused > c.acc_recovery_time:
+        if s.t_acc_refused > ACC_RECOVERY_TIME:
             u.acc_recovery(c, s, u.canonical, a, a_body, wl)
         if a_stat > 0:
             k.acc_rejected_norm += 1
@@ -737,7 +745,7 @@ def _rest_steady(c: np.record, s: np.record, dtg: float) -> bool:
     bias: χ² (3 degrees of freedom) per axis against the bias's current variance ``P_bb``
     (which grows by ``gyro_bias_noise²`` per second without rest; ``gyro_bias_stddev²`` until
     a bias is learned) plus the low-pass's own noise, ``(gyro_noise² + rest_rate_stddev²)
-    Δt/2τ``, plus ``rest_bias_range²`` until the bias has been fused at rest for
+    Δt/2τ``, plus ``REST_BIAS_RANGE²`` until the bias has been fused at rest for
     ``rest_time`` (the Kalman prior is a calibrated gyro's; a still gyro may show a turn-on
     bias several times larger, and only a rest learns it quickly). A bias does not change
     faster than its random walk; a rate that would need it to is a slow turn, however steady
@@ -751,7 +759,7 @@ def _rest_steady(c: np.record, s: np.record, dtg: float) -> bool:
         lp = s.rest_gyr_lp
         if c.nx == 9:
             P = s.P
-            vb = v + (c.rest_bias_var if s.t_rest_fused < c.rest_time else 0.0)
+            vb = v + (REST_BIAS_RANGE ** 2 if s.t_rest_fused < c.rest_time else 0.0)
             chi2 = 0.0
             for i in range(3):
                 chi2 += (lp[i] - s.b[i]) ** 2 / (vb + P[6 + i, 6 + i])
@@ -938,7 +946,8 @@ def _mag_candidate(c: np.record, s: np.record, dtm: float, R: tuple, m_body: tup
 
 @unit(nt.void(CONFIG_T, STATE_T, CANONICAL_T, F33, F3), cost=0.4)
 def mag_recovery(c: np.record, s: np.record, cn: Canonical, Rq: tuple, m_body: tuple) -> None:
-    """A plausible, consistent field refused by the χ² gate for ``mag_recovery_time``: the
+    """A plausible, consistent field refused by the χ² gate for
+    :data:`~mkf_ros.core.state.MAG_RECOVERY_TIME`: the
     heading is what is wrong. Its variance grows by the disagreement (no snap: the next
     updates pull it in)."""
     ref = s.mag_ref
@@ -960,7 +969,8 @@ def _mag_checks(c: np.record, s: np.record, k: np.record, u: Units, dt: float, d
       changes;
     * steadiness (:func:`_mag_steady`): its direction against its own slow low-pass;
     * plausibility: magnitude against the learned reference (:func:`_mag_plausible`);
-    * recovery (:func:`mag_recovery`) after ``mag_recovery_time`` of χ² refusals.
+    * recovery (:func:`mag_recovery`) after :data:`~mkf_ros.core.state.MAG_RECOVERY_TIME` of
+      χ² refusals.
 
     Counted when refused."""
     _turn(s.mag_lp, Rw)
@@ -981,7 +991,7 @@ def _mag_checks(c: np.record, s: np.record, k: np.record, u: Units, dt: float, d
     if not ok:
         s.t_mag_disagree = 0.0  # disturbance, not evidence of a wrong heading
         return False
-    if s.t_mag_disagree > c.mag_recovery_time:
+    if s.t_mag_disagree > MAG_RECOVERY_TIME:
         u.mag_recovery(c, s, u.canonical, Rq, m_body)
     return True
 
@@ -1079,7 +1089,7 @@ def _rate_updates(c: np.record, s: np.record, k: np.record, w: np.record, dt: fl
     skipped, and not counted in ``rest_updates``; the bias it would have pulled towards the
     turn's rate stays (measured on a PhidgetSpatial turning from rest: the vertical bias went
     from −0.0010 to −0.0073 rad/s in the turn's first 40 ms, the still gyro's mean −0.0014).
-    At the first rest the bias's variance is raised to ``rest_bias_range²`` (on the diagonal:
+    At the first rest the bias's variance is raised to ``REST_BIAS_RANGE²`` (on the diagonal:
     the added matrix is PSD): the prior is a calibrated gyro's, a still gyro may show a turn-on
     bias several times larger, and the gate then takes it; a few zero-rate updates learn it and
     the gate is as tight as before when the turn starts."""
@@ -1094,7 +1104,7 @@ def _rate_updates(c: np.record, s: np.record, k: np.record, w: np.record, dt: fl
     if z.rest:
         if s.t_rest_fused == 0.0 and nx == 9:  # the first rest: a turn-on bias, not the prior
             for i in range(6, 9):
-                P[i, i] = max(P[i, i], c.rest_bias_var)
+                P[i, i] = max(P[i, i], REST_BIAS_RANGE ** 2)
         nis = _mekf_rate(s, w, nx, wt, b, ZERO3, iso33(c.rest_rate_var), False, 3, REST_CHI2)
         ok &= nis >= 0
         if 0 <= nis <= REST_CHI2:
@@ -1320,8 +1330,7 @@ def _fusion(c: np.record, s: np.record, has_m: bool, dtm: float) -> tuple:
     """The field's world reference, horizontal reference and heading variance per sample,
     and the gates (none for the paper's start): the last fields of
     :data:`~mkf_ros.core.state.Fusion`."""
-    acc_gate = c.acc_gate if c.acc_gate > 0 else np.inf
-    mag_gate = c.mag_gate if c.mag_gate > 0 else np.inf
+    acc_gate, mag_gate = ACC_GATE, MAG_GATE
     if c.paper_init:  # the paper's start has no prior to gate against
         acc_gate = mag_gate = np.inf
     mr = s.mag_ref

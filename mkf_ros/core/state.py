@@ -31,7 +31,7 @@ from mkf_ros.core.frames import FROM_ENU
 from mkf_ros.core.linalg import ZERO33, congruence, copy_block, copy_into, mm
 from mkf_ros.core.mekf import MEKF_SCRATCH_ROWS, transport_covariance, transport_covariance_t
 from mkf_ros.core.mukf import MUKF_SCRATCH, NOISE_MODES
-from mkf_ros.core.params import ALGORITHMS, FilterParams, mag_reference_direction
+from mkf_ros.core.params import ALGORITHMS, REMOVED, FilterParams, mag_reference_direction
 from mkf_ros.core.quaternion import qmul, qmul_t, qnormalize, qnormalize_t, rotmat, rotmat_t, t4
 
 NX_MAX = 9  # states: attitude error e, rate ω, gyro bias b
@@ -39,12 +39,12 @@ NX_MAX = 9  # states: attitude error e, rate ω, gyro bias b
 #: Parameters the kernels use as they are: a :data:`CONFIG` field of the same name each.
 COPIED_PARAMS = (
     "mukf_w0", "rate_process_noise", "max_dt", "gravity",
-    "acc_norm_tolerance", "acc_gate", "acc_recovery_time", "acc_time_constant", "acc_bias_excess",
+    "acc_norm_tolerance", "acc_time_constant", "acc_bias_excess",
     "mag_bias_gain", "acc_turn_speed",
-    "acc_disturbance_time", "acc_alignment_error", "gyro_scale_error", "gyro_gate",
+    "acc_disturbance_time", "acc_alignment_error", "gyro_scale_error",
     "mag_time_constant", "mag_consistency_tolerance",
-    "mag_disturbance_time", "mag_norm_tolerance", "mag_gate",
-    "mag_recovery_time", "mag_new_time", "mag_new_first_time", "rest_gyro_threshold",
+    "mag_disturbance_time", "mag_norm_tolerance",
+    "mag_new_time", "mag_new_first_time", "rest_gyro_threshold",
     "rest_acc_threshold", "rest_time",
     "madgwick_beta",
 )
@@ -75,7 +75,6 @@ CONFIG = np.dtype(
         ("bias_process_var", np.float64),  # Q_b = gyro_bias_noise² (rad²/s³)
         ("bias_var0", np.float64),  # gyro_bias_stddev²: the bias prior
         ("rest_rate_var", np.float64),  # rest_rate_stddev²: the zero-rate measurement
-        ("rest_bias_var", np.float64),  # rest_bias_range²: a turn-on bias, until rest fused
         ("madgwick_var", np.float64),  # madgwick_stddev²: Madgwick's published variance
         ("gimbal_cos", np.float64),  # cos(gimbal_lock_pitch)
         ("mag_ref", np.float64, 3),  # given reference: ENU, unit
@@ -142,7 +141,7 @@ STATE = np.dtype(
         ("rest_acc_dev", np.float64),  # ... of the accelerometer
         ("rest_dt_gyr", np.float64),  # split input: s since the gyro entered the test
         ("rest_dt_acc", np.float64),  # ... the accelerometer
-        ("t_rest_fused", np.float64),  # s of zero-rate updates fused (rest_bias_range)
+        ("t_rest_fused", np.float64),  # s of zero-rate updates fused (REST_BIAS_RANGE)
         # --- the gyro gate
         ("gyr_rejected", np.bool_),  # the previous gyro sample was refused by its gate
         # --- low-pass gains 1 − exp(−Δt/τ) kept for the last (Δt, τ) (LP_* rows)
@@ -256,6 +255,26 @@ REST_CHI2 = 16.27  # 3 degrees of freedom, 0.1 %: the low-passed rate agrees wit
 #: by the jump times the step (docs/math.md §9.3). Lower (the 0.1 % level, 16.3) took the jerks
 #: of a phone in a running person's pocket for jumps: tyrex 6D +0.04°.
 GYRO_SURPRISE_CHI2 = 1000.0
+# The gates and recoveries of docs/math.md §9.3 and the rest test's turn-on range (§9.4): fixed
+# levels, defined in mkf_ros.core.params.REMOVED (they were parameters; none of them moves a
+# figure of the real-data benchmark, docs/real_data.md).
+#: χ² gate on the accelerometer's innovation (3 degrees of freedom: 0.1 % false rejection).
+ACC_GATE = REMOVED["acc_gate"][0]
+#: χ² gate on the magnetometer's innovation (vector mode, 3 degrees of freedom: 1.3 % false
+#: rejection; heading mode, 1: 3.3 σ).
+MAG_GATE = REMOVED["mag_gate"][0]
+#: χ² gate on the gyro's innovation against the rate model (3 degrees of freedom): a lone
+#: sample beyond it is a corrupted message and is skipped; a second in a row is taken.
+GYRO_GATE = REMOVED["gyro_gate"][0]
+#: s of refused accelerometer samples after which the tilt variance grows by the disagreement.
+ACC_RECOVERY_TIME = REMOVED["acc_recovery_time"][0]
+#: s of a plausible, consistent field refused by :data:`MAG_GATE` after which the heading
+#: variance grows by the disagreement.
+MAG_RECOVERY_TIME = REMOVED["mag_recovery_time"][0]
+#: rad/s per axis: until the bias has been fused at rest for ``rest_time``, a steady rate this
+#: large is taken for a gyro's turn-on bias (a MEMS gyro's, up to a few °/s), and the first rest
+#: raises the bias variance to its square; afterwards the bias changes by its random walk only.
+REST_BIAS_RANGE = REMOVED["rest_bias_range"][0]
 # Euler baselines' tilt re-alignment (:func:`baseline_realign`): the accelerometer "looks like
 # gravity" when its magnitude is within this fraction of ``gravity`` ...
 REALIGN_ACC_TOL = 0.05
@@ -389,7 +408,6 @@ def build_config(p: FilterParams, split_input: bool = False) -> np.ndarray:
     c.bias_process_var = p.gyro_bias_noise**2
     c.bias_var0 = p.gyro_bias_stddev**2
     c.rest_rate_var = p.rest_rate_stddev**2
-    c.rest_bias_var = p.rest_bias_range**2
     c.madgwick_var = p.madgwick_stddev**2
     c.gimbal_cos = np.cos(p.gimbal_lock_pitch)
     for name in COPIED_PARAMS:

@@ -27,7 +27,7 @@ from rclpy.exceptions import ParameterNotDeclaredException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
-from mkf_ros.core.params import BY_NAME, PARAMS, Param
+from mkf_ros.core.params import BY_NAME, PARAMS, REMOVED, Param, removed_hint
 from mkf_ros.ros import calibration
 
 #: imu_filter_madgwick / imu_complementary_filter parameters without a same-named equivalent.
@@ -50,7 +50,9 @@ def unknown_hint(name: str) -> str:
     """Why ``name`` is not a parameter here: a foreign filter's parameter and what replaces
     it, or a typo and the closest names."""
     hint = FOREIGN_HINTS.get(name)
-    if hint is None:
+    if name in REMOVED:
+        hint = f"removed: {removed_hint(name)}"
+    elif hint is None:
         close = difflib.get_close_matches(name, list(BY_NAME), n=3, cutoff=0.6)
         hint = "not a parameter of this node" + (
             f" (did you mean {' or '.join(map(repr, close))}?)" if close else " (typo?)")

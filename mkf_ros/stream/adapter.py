@@ -122,9 +122,9 @@ _FILTER_SKIP = {"samples", "gyr_missing", "gyr_invalid", "acc_missing", "acc_inv
 FILTER_REPORTED = tuple(n for n in FILTER_COUNTERS if n not in _FILTER_SKIP)
 _FILTER_REASONS = {
     "acc_rejected_norm": "accelerometer samples not fused: magnitude (acc_norm_tolerance)",
-    "acc_rejected_chi2": "accelerometer samples not fused: innovation gate (acc_gate)",
+    "acc_rejected_chi2": "accelerometer samples not fused: innovation gate (chi-square 16.3)",
     "mag_rejected_norm": "magnetometer samples not fused: magnitude (mag_norm_tolerance)",
-    "mag_rejected_chi2": "magnetometer samples not fused: innovation gate (mag_gate)",
+    "mag_rejected_chi2": "magnetometer samples not fused: innovation gate (chi-square 10.8)",
     "rest_updates": "zero-rate updates at rest (rest_detection)",
 }
 COUNTER_REASONS.update({n: _FILTER_REASONS.get(n, f"filter counter {n}")

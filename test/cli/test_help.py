@@ -48,7 +48,7 @@ def test_every_subcommand_help(command: str, opt: str) -> None:
     missing = [n for n in names if _flag(n) not in out]
     assert not missing, f"mkf {command} --help lacks {missing}"
     if command == "process":  # the '%' texts themselves come through
-        assert "16.3 = 0.1% false rejection" in " ".join(out.split())
+        assert "differs by 10-25 % from place to place" in " ".join(out.split())
 
 
 def test_estimator_help_names_every_parameter() -> None:

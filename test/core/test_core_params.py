@@ -120,6 +120,19 @@ def test_unknown_keyword_is_one_short_line_with_a_suggestion() -> None:
     assert len(str(e.value)) <= 200
 
 
+@pytest.mark.parametrize("name, level", [("acc_gate", "16.3"), ("mag_gate", "10.8"),
+                                         ("gyro_gate", "10000"), ("acc_recovery_time", "1 s"),
+                                         ("mag_recovery_time", "10 s"),
+                                         ("rest_bias_range", "0.05 rad/s")])
+def test_a_removed_parameter_is_refused_with_the_level_that_replaced_it(name: str,
+                                                                        level: str) -> None:
+    """A script or parameter file written for the version that had them is told what
+    happened, in one line, not "unknown"; the level is the one docs/math.md §9.3–9.4 states."""
+    with pytest.raises(ValueError, match=f"^filter parameter '{name}' was removed: a fixed") as e:
+        FilterParams(**{name: 1.0})
+    assert level in str(e.value) and "\n" not in str(e.value)
+
+
 def test_rules_between_parameters_are_the_parameters_own() -> None:
     """A combination the filter cannot run is refused where the parameters are made (the node's
     SetParameters, ``mkf`` flags and ``estimate()`` all build FilterParams), not later."""
