@@ -96,6 +96,8 @@ from mkf_ros.core.state import (
     MAG_NEW_MIN_RATE,
     MAG_RECOVERY_TIME,
     MAG_REF_SAMPLES,
+    MAG_SLOW_TIME,
+    MAG_SLOW_TOLERANCE,
     MAX_ACC_G,
     MAX_GYRO_RATE,
     MAX_MAG,
@@ -127,6 +129,7 @@ from mkf_ros.core.state import (
 #: How far (relative) an attitude variance may exceed the cap before it is scaled back to it
 #: (:func:`_cap_attitude_variance`).
 CAP_SLACK = 1e-6
+MAG_SLOW_COS = float(np.cos(MAG_SLOW_TOLERANCE))  # the steadiness test's bound on the cosine
 #: The largest heading variance the MUKF's sigma points are drawn with when nothing observes the
 #: heading ((π/4)², σ 45°; :func:`_heading_spread`).
 MUKF_HEADING_SPREAD_VAR = (np.pi / 4) ** 2
@@ -299,8 +302,10 @@ def _heading_init(c: np.record, s: np.record, m_body: np.ndarray, m_norm: float)
     s.heading_fixed = True
     s.t_mag_disagree = 0.0
     s.t_mag_lp = 0.0
-    for i in range(3):  # the field's low-pass starts at this sample (unit magnitude)
+    for i in range(3):  # the field's low-passes start at this sample (unit magnitude)
         s.mag_lp[i] = m_body[i]
+        s.mag_lp_slow[i] = m_body[i]
+    s.t_mag_lp_slow = 0.0
     _learn_mag_ref(c, s, m_body, m_norm)
 
 
@@ -874,6 +879,30 @@ def _mag_consistent(c: np.record, s: np.record, k: np.record, m_body: tuple, m_n
 
 
 @hot
+def _mag_steady(s: np.record, k: np.record, m_body: tuple, dtm: float) -> bool:
+    """The direction of a field that passed :func:`_mag_consistent` against its slow low-pass
+    in the same almost inertial frame (:data:`~mkf_ros.core.state.MAG_SLOW_TIME`, from every
+    such sample: this one steps it), within :data:`~mkf_ros.core.state.MAG_SLOW_TOLERANCE`
+    (extension, docs/math.md §9.3): a disturbance that builds up over seconds (a phone carried
+    past metal) passes the consistency test, whose memory follows it, and keeps the magnitude
+    of a calibrated field that a phone's system normalises; a field fixed in the world keeps
+    its direction. The low-pass starts as the running mean at the heading's start and is
+    tested against only once it holds ``MAG_SLOW_TIME`` (a recording that starts in a
+    disturbed field); a field that stays catches it up in about that time. Counted as
+    inconsistent if not; such a field is a candidate new reference (:func:`_mag_candidate`)."""
+    v = s.mag_lp_slow
+    n = np.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
+    cos = (v[0] * m_body[0] + v[1] * m_body[1] + v[2] * m_body[2]) / n if n > 0.3 else 1.0
+    t = s.t_mag_lp_slow
+    s.t_mag_lp_slow = t + dtm
+    _lowpass(v, m_body, min(1.0, max(dtm / MAG_SLOW_TIME, dtm / (t + dtm)) if dtm > 0 else 0.0))
+    if t >= MAG_SLOW_TIME and cos < MAG_SLOW_COS:
+        k.mag_rejected_inconsistent += 1
+        return False
+    return True
+
+
+@hot
 def _mag_candidate(c: np.record, s: np.record, dtm: float, R: tuple, m_body: tuple,
                    m_norm: float, wl: tuple) -> bool:
     """A consistent field that fails the magnitude test (:func:`_mag_plausible`) is a
@@ -938,12 +967,14 @@ def _mag_checks(c: np.record, s: np.record, k: np.record, u: Units, dt: float, d
     * consistency (:func:`_mag_consistent`): a field fixed in the world passes however the
       body turns; a magnet on the body turns with it, and a field that changes along the path
       changes;
+    * steadiness (:func:`_mag_steady`): its direction against its own slow low-pass;
     * plausibility: magnitude against the learned reference (:func:`_mag_plausible`);
     * recovery (:func:`mag_recovery`) after :data:`~mkf_ros.core.state.MAG_RECOVERY_TIME` of
       χ² refusals.
 
     Counted when refused."""
     _turn(s.mag_lp, Rw)
+    _turn(s.mag_lp_slow, Rw)
     alm = _alpha(s, LP_RATE, dt, c.mag_time_constant)
     s.mag_rate_lp += alm * (np.sqrt(wl[0] ** 2 + wl[1] ** 2 + wl[2] ** 2) - s.mag_rate_lp)
     if not has_m:
@@ -953,7 +984,7 @@ def _mag_checks(c: np.record, s: np.record, k: np.record, u: Units, dt: float, d
     alm, _ = _lowpass_gain(s, LP_MAG, t, dtm, c.mag_time_constant)
     Rq = rotmat_t(t4(s.q_c))
     ok = _mag_consistent(c, s, k, m_body, m_norm, alm)
-    if ok and not _mag_plausible(c, s, k, m_norm):
+    if ok and not (_mag_steady(s, k, m_body, dtm) and _mag_plausible(c, s, k, m_norm)):
         ok = _mag_candidate(c, s, dtm, Rq, m_body, m_norm, wl)
     elif ok:
         s.t_mag_cand = 0.0  # the reference holds: no candidate

@@ -131,6 +131,8 @@ STATE = np.dtype(
         # --- the field over its learned magnitude, low-passed likewise (body axes)
         ("mag_lp", np.float64, 3),
         ("t_mag_lp", np.float64),  # s since the low-pass started
+        ("mag_lp_slow", np.float64, 3),  # the unit field over MAG_SLOW_TIME (body axes)
+        ("t_mag_lp_slow", np.float64),  # s since that low-pass started
         ("mag_rate_lp", np.float64),  # low-passed |ω|, over mag_time_constant
         # --- rest detection
         ("rest_gyr_lp", np.float64, 3),  # gyro low-pass
@@ -233,6 +235,17 @@ GYRO_SCALE_SWING = 0.3
 #: A candidate magnetic reference's time counts only while the body turns at least this fast
 #: (rad/s, VQF's 20°/s): a still body sees any field, a magnet on it included, as consistent.
 MAG_NEW_MIN_RATE = 0.35
+#: The magnetometer's steadiness test (docs/math.md §9.3): the unit field low-passed over this
+#: long (s) in the same almost inertial frame as ``mag_lp``, from every sample the consistency
+#: test passes (tested against once it holds this long); a sample whose direction differs from
+#: it by more than :data:`MAG_SLOW_TOLERANCE` is refused. A disturbance that builds up over
+#: seconds (a phone carried past metal) passes the consistency test, whose memory follows it; a
+#: field fixed in the world keeps its direction.
+MAG_SLOW_TIME = 30.0
+#: rad (≈34°): above what the gyro's bias error turns that memory (the bias prior
+#: ``gyro_bias_stddev`` 0.01 rad/s lags it by ~0.3 rad) and the consistency tolerance;
+#: measured on tyrex, BROAD and RepoIMU (docs/math.md §9.3).
+MAG_SLOW_TOLERANCE = 0.6
 REST_LP_TAU = 0.5  # s: rest detection compares the gyro and accelerometer with their low-pass
 REST_CHI2 = 16.27  # 3 degrees of freedom, 0.1 %: the low-passed rate agrees with the bias
 #: A gyro sample whose innovation against the rate model is beyond this χ² (3 degrees of

@@ -308,6 +308,28 @@ def test_attached_magnet_does_not_turn_the_heading(algorithm: str) -> None:
 
 
 @pytest.mark.parametrize("algorithm", ALGOS)
+def test_a_disturbance_that_builds_up_over_seconds_is_refused(algorithm: str) -> None:
+    """The Earth's field turned 70° about north over 4 s (faster than the 1 s consistency test
+    sees, its magnitude kept, as a phone's system calibration may), held 15 s and turned back:
+    the field's steadiness against its 30 s low-pass refuses it, so the heading stays within
+    8° RMS of the truth from the disturbance on (measured 4.6°; followed, it is 22° RMS and
+    33° at worst)."""
+    from mkf_ros.core.quaternion import rotmat_np
+    sim = simulate("slow_rotation", duration=80, rate=100, seed=5)
+    ramp = np.clip(np.minimum((sim.t - 40.0) / 4.0, (63.0 - sim.t) / 4.0), 0.0, 1.0)
+    th = np.radians(70.0) * ramp
+    Rs = np.array([rotmat_np(q) for q in sim.quat])
+    w = np.einsum("nij,nj->ni", Rs, sim.mag)  # the field in the world frame (ENU)
+    c, s = np.cos(th), np.sin(th)
+    w = np.stack([c * w[:, 0] + s * w[:, 2], w[:, 1], -s * w[:, 0] + c * w[:, 2]], axis=1)
+    mag = np.einsum("nji,nj->ni", Rs, w)
+    r = mkf_ros.estimate(sim.gyr, sim.acc, mag, timestamps=sim.t, algorithm=algorithm)
+    head = orientation_errors(r.quat, sim.quat)["heading"]
+    assert rmse_deg(head[sim.t >= 40.0]) < 8.0
+    assert r.counters["mag_rejected_inconsistent"] > 1500
+
+
+@pytest.mark.parametrize("algorithm", ALGOS)
 def test_heading_is_unknown_until_the_magnetometer(algorithm: str) -> None:
     """With use_mag the first output comes before any magnetometer sample (ros-bags finding:
     arbitrary yaw published with a variance of 1e-6 rad²): its yaw variance is that of an
