@@ -242,9 +242,8 @@ MAG_NEW_MIN_RATE = 0.35
 #: seconds (a phone carried past metal) passes the consistency test, whose memory follows it; a
 #: field fixed in the world keeps its direction.
 MAG_SLOW_TIME = 30.0
-#: rad (≈34°): above what the gyro's bias error turns that memory (the bias prior
-#: ``gyro_bias_stddev`` 0.01 rad/s lags it by ~0.3 rad) and the consistency tolerance;
-#: measured on tyrex, BROAD and RepoIMU (docs/math.md §9.3).
+#: rad (≈34°): above what a gyro bias error turns that memory (0.01 rad/s over 30 s: 0.3 rad)
+#: and the consistency tolerance; measured on tyrex, BROAD and RepoIMU (docs/math.md §9.3).
 MAG_SLOW_TOLERANCE = 0.6
 REST_LP_TAU = 0.5  # s: rest detection compares the gyro and accelerometer with their low-pass
 REST_CHI2 = 16.27  # 3 degrees of freedom, 0.1 %: the low-passed rate agrees with the bias
