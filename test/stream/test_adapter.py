@@ -678,7 +678,7 @@ def test_split_input_detects_rest_as_the_combined_stream(offset: float) -> None:
                            rc.quat[np.searchsorted(rc.index, common)])
     # the first tilt corrections differ (a quarter of the accelerometer samples), then agree;
     # the unobservable yaw drifts with a bias learned from a first rest that starts a few
-    # samples apart (the first rest raises the bias variance, rest_bias_range): measured
+    # samples apart (the first rest raises the bias variance, state.REST_BIAS_RANGE): measured
     # 0.052° at most over the last 10 s with the accelerometer half a gyro period late
     assert rmse_deg(e["total"]) < 0.05 and np.degrees(e["total"][-2000:]).max() < 0.1
     assert np.degrees(e["inclination"][-2000:]).max() < 0.05
