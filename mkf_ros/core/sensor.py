@@ -89,6 +89,8 @@ from mkf_ros.core.state import (
     GYRO_SURPRISE_CHI2,
     LP_ACC,
     LP_MAG,
+    LP_MAG_SLOW,
+    LP_NET,
     LP_RATE,
     LP_REST,
     MAG,
@@ -895,8 +897,9 @@ def _mag_steady(s: np.record, k: np.record, m_body: tuple, dtm: float) -> bool:
     cos = (v[0] * m_body[0] + v[1] * m_body[1] + v[2] * m_body[2]) / n if n > 0.3 else 1.0
     t = s.t_mag_lp_slow
     s.t_mag_lp_slow = t + dtm
-    _lowpass(v, m_body, min(1.0, max(dtm / MAG_SLOW_TIME, dtm / (t + dtm)) if dtm > 0 else 0.0))
-    if t >= MAG_SLOW_TIME and cos < MAG_SLOW_COS:
+    al, start = _lowpass_gain(s, LP_MAG_SLOW, t, dtm, MAG_SLOW_TIME)
+    _lowpass(v, m_body, al)
+    if not start and cos < MAG_SLOW_COS:
         k.mag_rejected_inconsistent += 1
         return False
     return True
@@ -1022,7 +1025,8 @@ def _gyro_scale_noise(c: np.record, s: np.record, w: np.record, dt: float, wl: t
     w.rec_ws2 = 0.0
     if c.algorithm <= ALGO_MUKF and c.gyro_scale_error > 0:
         v = s.gyro_net
-        _lowpass(v, wl, min(1.0, dt / c.acc_time_constant) if c.acc_time_constant > 0.0 else 1.0)
+        _lowpass(v, wl, _alpha(s, LP_NET, dt, c.acc_time_constant) if c.acc_time_constant > 0.0
+                 else 1.0)
         n2 = v[0] * v[0] + v[1] * v[1] + v[2] * v[2]
         w2 = wl[0] * wl[0] + wl[1] * wl[1] + wl[2] * wl[2]
         qs = c.gyro_scale_error ** 2 * (n2 + GYRO_SCALE_SWING * max(0.0, w2 - n2)) * dt

@@ -145,7 +145,7 @@ STATE = np.dtype(
         # --- the gyro gate
         ("gyr_rejected", np.bool_),  # the previous gyro sample was refused by its gate
         # --- low-pass gains 1 − exp(−Δt/τ) kept for the last (Δt, τ) (LP_* rows)
-        ("lp_gain", np.float64, (4, 3)),
+        ("lp_gain", np.float64, (6, 3)),
         # --- baselines (Euler KF/UKF, Madgwick)
         ("euler", np.float64, 3),  # Euler angles (φ, θ, ψ) of the Euler KF/UKF
         ("madgwick_yaw_var", np.float64),  # Madgwick 6D: heading variance since alignment
@@ -155,8 +155,9 @@ STATE = np.dtype(
     align=True,
 )
 
-#: Rows of :data:`STATE`'s ``lp_gain``: the accelerometer, field, rest and |ω| low-passes.
-LP_ACC, LP_MAG, LP_REST, LP_RATE = 0, 1, 2, 3
+#: Rows of :data:`STATE`'s ``lp_gain``: the accelerometer, field, rest and |ω| low-passes, the
+#: field's slow low-pass (``mag_lp_slow``) and the gyro's net rotation (``gyro_net``).
+LP_ACC, LP_MAG, LP_REST, LP_RATE, LP_MAG_SLOW, LP_NET = 0, 1, 2, 3, 4, 5
 
 COUNTER_NAMES = (
     "samples",
