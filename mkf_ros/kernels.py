@@ -39,6 +39,10 @@ from mkf_ros.core import _jit
 #: reference machine (``./run bench startup --installed --no-precompile``); the messages quote
 #: it.
 FIRST_COMPILE_TIME = "about a minute and a half"
+#: How long the comparison filters' update (:func:`~mkf_ros.core.sensor.baseline_step`) takes
+#: to compile on its first use (it is not compiled at install time: the MKFs never call it);
+#: measured by ``./run bench compile_time --tasks`` (its ``baseline`` row).
+BASELINE_COMPILE_TIME = "about ten seconds"
 
 #: The kernel families :func:`warmup` can prepare: :func:`mkf_ros.estimate`'s batch loop and
 #: smoothers, :class:`~mkf_ros.core.filter.AttitudeFilter`'s step, and the streaming front end of
@@ -46,11 +50,14 @@ FIRST_COMPILE_TIME = "about a minute and a half"
 WARMUP_PARTS = ("estimate", "filter", "stream")
 
 
-def warmup(parts: Sequence[str] = WARMUP_PARTS) -> None:
+def warmup(parts: Sequence[str] = WARMUP_PARTS, baselines: bool = False) -> None:
     """Compile (or load from the kernel cache) the kernels of ``parts`` (default: all, see
     :data:`WARMUP_PARTS`), so that the first real sample is not delayed. Loading takes well
     under a second; compiling (no cache of this version, e.g. an install without the
-    install-time compile) takes :data:`FIRST_COMPILE_TIME` for all parts."""
+    install-time compile) takes :data:`FIRST_COMPILE_TIME` for all parts. ``baselines``: the
+    comparison filters' update too (``euler_kf``, ``euler_ukf``, ``madgwick``: one kernel
+    for all parts, not compiled at install time; :data:`BASELINE_COMPILE_TIME` on its first
+    use, then cached)."""
     from mkf_ros.api import estimate
     from mkf_ros.core.filter import AttitudeFilter
     from mkf_ros.stream.adapter import StreamAdapter
@@ -77,6 +84,8 @@ def warmup(parts: Sequence[str] = WARMUP_PARTS) -> None:
             for k in range(n):
                 s.on_mag(1.0 + 0.01 * k, mag[k])
                 s.on_imu(1.0 + 0.01 * k, gyr[k], acc[k])
+    if baselines:
+        AttitudeFilter(algorithm="madgwick", use_mag=True).step(0.01, gyr[0], acc[0], mag[0])
 
 
 def warm_all() -> str:
@@ -86,7 +95,7 @@ def warm_all() -> str:
     from mkf_ros.sim.motion import integrate
     from mkf_ros.study.runner import warm_up
 
-    warmup()
+    warmup(baselines=True)
     integrate(np.array([1.0, 0.0, 0.0, 0.0]), np.zeros((2, 3)), 0.01)
     warm_up()
     return code_version()
@@ -154,7 +163,7 @@ def compile_tasks() -> list[str]:
     names separated by spaces). Each runs in a fresh process: sharing one across the large
     tasks saves no time (a kernel two tasks call is loaded from the cache by the second) and
     keeps every compiled library in memory."""
-    costs = {f"unit:{name}": u.cost for name, u in _units().items()}
+    costs = {f"unit:{name}": u.cost for name, u in _units().items() if u.install}
     costs.update({f"entries:{part}": c for part, c in _ENTRY_COSTS.items()})
     small = sorted(t for t, c in costs.items() if c < SMALL_TASK)
     if len(small) > 1:

@@ -44,6 +44,7 @@ from mkf_ros.core.sensor import (
     baseline_step,
     mag_recovery,
     mukf_update,
+    no_baseline,
     start,
     step,
 )
@@ -51,6 +52,7 @@ from mkf_ros.core.state import (
     ACC,
     ALGO_EULER_KF,
     ALGO_MADGWICK,
+    ALGO_MUKF,
     ATTITUDE_VAR_UNKNOWN,
     CONFIG,
     CONFIG_T,
@@ -166,19 +168,29 @@ KERNELS_T = tuple_type([step.type, UNITS_T, output.type], Kernels)
 #: Every unit of :data:`Kernels`, in the order of :func:`kernel_table`'s addresses.
 KERNEL_TABLE_ORDER = _TABLE = (step, start, acc_recovery, mag_recovery, mukf_update,
                                baseline_step, export, restore, output)
-_table: list = []
+_BASELINE_SLOT = _TABLE.index(baseline_step)
+_tables: dict[bool, Any] = {}
 
 
-def kernel_table() -> np.ndarray:
+def kernel_table(cfg: np.ndarray | None = None) -> Any:
     """The compiled units of :data:`Kernels` (compiled, or loaded from the kernel cache, once
     per process) as the array of their addresses that the compiled loops take
     (:func:`kernels_at` makes them :data:`Kernels` again); the :data:`Kernels` of Python
-    functions with ``NUMBA_DISABLE_JIT=1``."""
-    if not _table:
-        units: list[Any] = [u.compiled for u in _TABLE]
-        _table.append(Kernels(*_assemble(units)) if JIT_DISABLED
-                      else np.array([u.address for u in units], dtype=np.int64))
-    return _table[0]
+    functions with ``NUMBA_DISABLE_JIT=1``. For the configuration ``cfg`` (a :data:`CONFIG`
+    record array; None: an MKF's): an MKF's table holds :func:`~mkf_ros.core.sensor.no_baseline`
+    where a baseline's holds :func:`~mkf_ros.core.sensor.baseline_step`, which is compiled on
+    the first baseline's first use, not at install time (it is never called for the MKFs)."""
+    baseline = (cfg is not None and not JIT_DISABLED
+                and int(cfg[0]["algorithm"]) > ALGO_MUKF)
+    table = _tables.get(baseline)
+    if table is None:
+        units: list[Any] = [no_baseline if i == _BASELINE_SLOT and not baseline
+                            and not JIT_DISABLED else u for i, u in enumerate(_TABLE)]
+        compiled = [u.compiled for u in units]
+        table = (Kernels(*_assemble(compiled)) if JIT_DISABLED
+                 else np.array([u.address for u in compiled], dtype=np.int64))
+        _tables[baseline] = table
+    return table
 
 
 def _assemble(u: list) -> tuple:
@@ -457,8 +469,8 @@ class AttitudeFilter:
         :meth:`step` calls."""
         n = len(dts)
         out = new_batch_outputs(n)
-        run_batch(kernel_table(), self._cfg, self._st, self._counters, self._work, dts, gyr,
-                  acc, mag, out)
+        run_batch(kernel_table(self._cfg), self._cfg, self._st, self._counters, self._work, dts,
+                  gyr, acc, mag, out)
         return out
 
     def step(self, dt: float, gyr: object = None, acc: object = None, mag: object = None) -> None:
@@ -474,7 +486,8 @@ class AttitudeFilter:
         shape raises ValueError naming the argument and leaves the filter exactly as it was."""
         d = _dt(dt)
         g, a, m = _vec(gyr, "gyr"), _vec(acc, "acc"), _vec(mag, "mag")
-        sensor_step(kernel_table(), self._cfg, self._st, self._counters, self._work, d, g, a, m)
+        sensor_step(kernel_table(self._cfg), self._cfg, self._st, self._counters, self._work, d,
+                    g, a, m)
 
     @property
     def initialized(self) -> bool:
@@ -525,7 +538,7 @@ class AttitudeFilter:
     def _output(self) -> tuple[np.ndarray, np.ndarray]:
         q = np.empty(4)
         c = np.empty((3, 3))
-        world_output(kernel_table(), self._cfg, self._st, q, c)
+        world_output(kernel_table(self._cfg), self._cfg, self._st, q, c)
         if not record(self._st).initialized:
             c = ATTITUDE_VAR_UNKNOWN * np.eye(3)
         return q, c

@@ -1346,11 +1346,22 @@ def _fusion(c: np.record, s: np.record, has_m: bool, dtm: float) -> tuple:
     return m_ref, h_ref, var_h, acc_gate, mag_gate
 
 
-@unit(_UPDATE_SIG(CONFIG_T, STATE_T, COUNTERS_T, nt.float64, FUSION_T), cost=9.0)
+@unit(_UPDATE_SIG(CONFIG_T, STATE_T, COUNTERS_T, nt.float64, FUSION_T), cost=9.0,
+      install=False)
 def baseline_step(c: np.record, s: np.record, k: np.record, dt: float,
                   z: Fusion) -> tuple[bool, float, float]:
-    """The baselines' update (:func:`~mkf_ros.core.baseline_glue.baseline_update`)."""
+    """The baselines' update (:func:`~mkf_ros.core.baseline_glue.baseline_update`). Compiled
+    on first use, not at install time: only the comparison filters (``euler_kf``,
+    ``euler_ukf``, ``madgwick``) call it (:func:`mkf_ros.core.filter.kernel_table`)."""
     return baseline_update(c, s, k, dt, z)
+
+
+@unit(_UPDATE_SIG(CONFIG_T, STATE_T, COUNTERS_T, nt.float64, FUSION_T), cost=0.1)
+def no_baseline(c: np.record, s: np.record, k: np.record, dt: float,
+                z: Fusion) -> tuple[bool, float, float]:
+    """:func:`baseline_step`'s place in the kernel table of the MKFs, which never call it
+    (:func:`step` calls it for the baselines only): nothing fused."""
+    return False, -1.0, -1.0
 
 
 #: The steps of :func:`step` compiled as units of their own (the rare paths and the large

@@ -562,7 +562,7 @@ def smooth_stream(f: AttitudeFilter, n: int, read: Reader, window: int, overlap:
     cap = min(window + overlap, max(n, 1))
     wins = Windows(arrays.cfg, window, overlap, cap)
     held = new_batch_outputs(cap)  # the held slots' filtered rows, as Windows holds the slots
-    table = kernel_table()
+    table = kernel_table(arrays.cfg)
     c.record_posterior = True
     try:
         fwd = 0  # first sample not yet filtered

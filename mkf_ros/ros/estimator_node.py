@@ -66,7 +66,7 @@ from sensor_msgs.msg import Imu, MagneticField
 from std_msgs.msg import Bool, Header
 from std_srvs.srv import Trigger
 
-from mkf_ros.core.params import BY_NAME, PARAMS
+from mkf_ros.core.params import BASELINE_ALGORITHMS, BY_NAME, PARAMS
 from mkf_ros.core.quaternion import qconj_np
 from mkf_ros.core.state import COUNTER_NAMES
 from mkf_ros.ros import calibration, convert, rawmsg
@@ -161,14 +161,23 @@ class EstimatorNode(Node):
             f"use_mag {str(p['use_mag']).lower()}; listening on {self._sub_imu.topic_name} and "
             f"{self._sub_mag.topic_name}, publishing {self._pub.topic_name}")
 
-    def _load_kernels(self) -> None:
-        from mkf_ros.kernels import FIRST_COMPILE_TIME, warmup
+    def _load_kernels(self, algorithm: str | None = None) -> None:
+        """The streaming kernels (the node runs no others), and the baselines' update when
+        ``algorithm`` is one (compiled on its first use, then cached)."""
+        from mkf_ros.kernels import BASELINE_COMPILE_TIME, FIRST_COMPILE_TIME, warmup
 
         log = self.get_logger()
-        log.info("loading the filter kernels (compiled at install time; where that step did "
-                 f"not run, the first start compiles them: {FIRST_COMPILE_TIME})...")
+        baseline = (algorithm or self.stream.params["algorithm"]) in BASELINE_ALGORITHMS
+        if algorithm is None:
+            log.info("loading the filter kernels (compiled at install time; where that step "
+                     f"did not run, the first start compiles them: {FIRST_COMPILE_TIME})...")
+        elif not baseline:
+            return
+        if baseline:
+            log.info("loading the baselines' kernel (compiled on its first use: "
+                     f"{BASELINE_COMPILE_TIME}, then cached)...")
         t0 = time.monotonic()
-        warmup(("stream",))  # the node runs the streaming kernels only
+        warmup(("stream",), baselines=baseline)
         log.info(f"filter kernels ready in {time.monotonic() - t0:.1f} s")
 
     def _reset_node_state(self) -> None:
@@ -301,6 +310,8 @@ class EstimatorNode(Node):
         if not changes:
             return
         try:
+            if "algorithm" in changes:
+                self._load_kernels(changes["algorithm"])
             with self._lock:
                 self.stream.set_params(**changes)
         except Exception as e:  # validated already: would be a bug; never kill the node

@@ -690,7 +690,8 @@ class StreamAdapter:
 
     def _args(self, ev: np.ndarray, out: np.ndarray, k0: int, k1: int) -> tuple:
         """The arguments of :func:`~mkf_ros.stream.kernel.run_events` for these events."""
-        return (kernel_table(), tuple(self.filter.kernel_arrays()), self._npar, self._ts,
+        arrays = self.filter.kernel_arrays()
+        return (kernel_table(arrays.cfg), tuple(arrays), self._npar, self._ts,
                 self._acnt, self._rec, self._rn, ev, out, k0, k1)
 
     def _run(self, ev: np.ndarray, out: np.ndarray, k0: int, k1: int) -> None:

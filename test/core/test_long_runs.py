@@ -57,8 +57,9 @@ def test_long_run_invariants(stream, algorithm: str, chart: str, cu: bool) -> No
     f = AttitudeFilter(algorithm=algorithm, chart=chart, chart_update=cu, use_mag=True,
                        estimate_gyro_bias=True, rate_process_noise=1.0)
     dts = np.r_[0.0, np.diff(stream.t)]
-    bad, worst_norm, worst_asym = _run_checked(kernel_table(), *f.kernel_arrays(), dts, stream.gyr,
-                                               stream.acc, stream.mag)
+    arrays = f.kernel_arrays()
+    bad, worst_norm, worst_asym = _run_checked(kernel_table(arrays.cfg), *arrays, dts,
+                                               stream.gyr, stream.acc, stream.mag)
     assert bad == -1, f"P lost positive definiteness or became non-finite at step {bad}"
     assert worst_norm < 1e-12
     assert worst_asym < 1e-15  # rounding only: P is symmetrised every update
