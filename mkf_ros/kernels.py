@@ -125,8 +125,8 @@ def _entry_calls(part: str) -> list[tuple[Any, tuple]]:
     if part == "filter":
         return [(kf.sensor_step, (table, *arrays, 0.0, v3, v3, v3)),
                 (kf.world_output, (table, arrays.cfg, arrays.st, np.zeros(4), m33)),
-                (kf.to_canonical_entry, (arrays.cfg, arrays.st)),
-                (kf.from_canonical_entry, (arrays.cfg, arrays.st))]
+                (kf.to_canonical_entry, (table, arrays.cfg, arrays.st)),
+                (kf.from_canonical_entry, (table, arrays.cfg, arrays.st))]
     # "stream": the records of a StreamAdapter (mkf_ros.stream.adapter)
     npar, ts, acnt = kf.new_records(sk.NODE), kf.new_records(sk.STREAM), \
         kf.new_records(sk.ADAPTER_COUNTER_RECORD)

@@ -139,16 +139,24 @@ def from_canonical(c: np.record, s: np.record) -> None:
     copy_into(s.q_c, euler_to_quat(phi, theta, psi))
 
 
-@unit(nt.void(CONFIG_T, STATE_T), cost=2.2)
+@unit(nt.void(CONFIG_T, STATE_T), cost=2.2, install=False)
 def export(c: np.record, s: np.record) -> None:
-    """:func:`baseline_export` compiled on its own (the sensor layer's rare paths call it)."""
+    """:func:`baseline_export` compiled on its own (the sensor layer's rare paths call it; a
+    no-op for the MKFs, whose kernel table holds :func:`mkf_canonical` instead: compiled on a
+    baseline's first use, :func:`mkf_ros.core.filter.kernel_table`)."""
     baseline_export(c, s)
 
 
-@unit(nt.void(CONFIG_T, STATE_T), cost=1.2)
+@unit(nt.void(CONFIG_T, STATE_T), cost=1.2, install=False)
 def restore(c: np.record, s: np.record) -> None:
-    """:func:`from_canonical` compiled on its own (the sensor layer's rare paths call it)."""
+    """:func:`from_canonical` compiled on its own (as :func:`export`)."""
     from_canonical(c, s)
+
+
+@unit(nt.void(CONFIG_T, STATE_T), cost=0.1)
+def mkf_canonical(c: np.record, s: np.record) -> None:
+    """:func:`export` and :func:`restore` for the MKFs, whose state is its canonical form:
+    nothing to do."""
 
 
 #: The conversions of a baseline's state to and from the canonical form, compiled once each

@@ -22,9 +22,8 @@ from mkf_ros.core.baseline_glue import (
     Canonical,
     baseline_estimate,
     export,
-    from_canonical,
+    mkf_canonical,
     restore,
-    to_canonical,
 )
 from mkf_ros.core.charts import from_chart_t, t_matrix_t
 from mkf_ros.core.linalg import cap_eigenvalues33_t, congruence33_t
@@ -74,6 +73,7 @@ from mkf_ros.core.state import (
     count_reading,
     heading_fixed,
     new_records,
+    recentre,
     record,
 )
 
@@ -168,7 +168,9 @@ KERNELS_T = tuple_type([step.type, UNITS_T, output.type], Kernels)
 #: Every unit of :data:`Kernels`, in the order of :func:`kernel_table`'s addresses.
 KERNEL_TABLE_ORDER = _TABLE = (step, start, acc_recovery, mag_recovery, mukf_update,
                                baseline_step, export, restore, output)
-_BASELINE_SLOT = _TABLE.index(baseline_step)
+#: What the MKFs' table holds in the slots of the units only the baselines call
+#: (:func:`kernel_table`).
+_MKF_STANDINS = {baseline_step: no_baseline, export: mkf_canonical, restore: mkf_canonical}
 _tables: dict[bool, Any] = {}
 
 
@@ -177,15 +179,15 @@ def kernel_table(cfg: np.ndarray | None = None) -> Any:
     per process) as the array of their addresses that the compiled loops take
     (:func:`kernels_at` makes them :data:`Kernels` again); the :data:`Kernels` of Python
     functions with ``NUMBA_DISABLE_JIT=1``. For the configuration ``cfg`` (a :data:`CONFIG`
-    record array; None: an MKF's): an MKF's table holds :func:`~mkf_ros.core.sensor.no_baseline`
-    where a baseline's holds :func:`~mkf_ros.core.sensor.baseline_step`, which is compiled on
-    the first baseline's first use, not at install time (it is never called for the MKFs)."""
+    record array; None: an MKF's): an MKF's table holds no-ops (:data:`_MKF_STANDINS`) where
+    a baseline's holds the units only the baselines call (their update and the conversions of
+    their state), which are compiled on a baseline's first use, not at install time."""
     baseline = (cfg is not None and not JIT_DISABLED
                 and int(cfg[0]["algorithm"]) > ALGO_MUKF)
     table = _tables.get(baseline)
     if table is None:
-        units: list[Any] = [no_baseline if i == _BASELINE_SLOT and not baseline
-                            and not JIT_DISABLED else u for i, u in enumerate(_TABLE)]
+        units: list[Any] = [u if baseline or JIT_DISABLED else _MKF_STANDINS.get(u, u)
+                            for u in _TABLE]
         compiled = [u.compiled for u in units]
         table = (Kernels(*_assemble(compiled)) if JIT_DISABLED
                  else np.array([u.address for u in compiled], dtype=np.int64))
@@ -361,15 +363,22 @@ def run_batch(table: np.ndarray, cfg: np.ndarray, st: np.ndarray, cnt: np.ndarra
 
 
 @jit
-def to_canonical_entry(cfg: np.ndarray, st: np.ndarray) -> None:
-    """:func:`~mkf_ros.core.baseline_glue.to_canonical` of the filter's record arrays."""
-    to_canonical(cfg[0], st[0])
+def to_canonical_entry(table: Any, cfg: np.ndarray, st: np.ndarray) -> None:
+    """:func:`~mkf_ros.core.baseline_glue.to_canonical` of the filter's record arrays: the
+    MKFs' :func:`~mkf_ros.core.state.recentre`, a baseline's conversion through its table
+    (:func:`kernel_table` of ``cfg``)."""
+    c, s = cfg[0], st[0]
+    if c.algorithm < ALGO_EULER_KF:
+        recentre(c, s)
+    else:
+        kernels_at(table).units.canonical.export(c, s)
 
 
 @jit
-def from_canonical_entry(cfg: np.ndarray, st: np.ndarray) -> None:
-    """:func:`~mkf_ros.core.baseline_glue.from_canonical` of the filter's record arrays."""
-    from_canonical(cfg[0], st[0])
+def from_canonical_entry(table: Any, cfg: np.ndarray, st: np.ndarray) -> None:
+    """:func:`~mkf_ros.core.baseline_glue.from_canonical` of the filter's record arrays, through
+    the table of ``cfg`` (:func:`kernel_table`; a no-op for the MKFs)."""
+    kernels_at(table).units.canonical.restore(cfg[0], st[0])
 
 
 class KernelArrays(NamedTuple):
@@ -432,7 +441,7 @@ class AttitudeFilter:
         old_c, c, s = record(self._cfg), record(cfg), record(self._st)
         switch = new.algorithm != self._params.algorithm
         if switch or old_c.algorithm < ALGO_EULER_KF:
-            to_canonical_entry(self._cfg, self._st)
+            to_canonical_entry(kernel_table(self._cfg), self._cfg, self._st)
         if c.nx > old_c.nx and s.initialized:
             s.P[6:9, :] = 0.0
             s.P[:, 6:9] = 0.0
@@ -442,7 +451,7 @@ class AttitudeFilter:
         ):
             s.heading_fixed = False  # re-establish heading from the next magnetometer sample
         if switch:
-            from_canonical_entry(cfg, self._st)
+            from_canonical_entry(kernel_table(cfg), cfg, self._st)
         self._params, self._cfg = new, cfg
         self._arrays = KernelArrays(self._cfg, self._st, self._counters, self._work)
         return new
