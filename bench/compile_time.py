@@ -8,7 +8,9 @@ directory and runs the install-time compile there as ``pip install`` and ``colco
 time of every compiling process, and the peak resident memory, both of the largest process
 and of all of them together (sampled from /proc every 20 ms). Then, in a fresh process on the
 compiled cache, the time ``mkf_ros.warmup()`` takes and how many numba compiler passes it still
-ran (0: the install-time compile left nothing to compile for the first start). ``--tasks`` adds
+ran (0: the install-time compile left nothing to compile for the first start), and in another
+what the first use of a comparison filter (``euler_kf``, ``euler_ukf``, ``madgwick``) costs:
+their kernels are compiled then, not at install time. ``--tasks`` adds
 each compile task's own wall, CPU and peak memory.
 
 One row per Python environment: this one, each ``--python`` given, and Ubuntu 24.04's set
@@ -57,6 +59,16 @@ mkf_ros.warmup()
 from mkf_ros.core.filter import kernel_table
 kernel_table()
 print(json.dumps({"seconds": time.perf_counter() - t0, "compiled": n[0]}))
+"""
+
+
+_BASELINE = """
+import json, resource, time
+t0, c0 = time.perf_counter(), time.process_time()
+import mkf_ros
+mkf_ros.warmup(("filter",), baselines=True)
+print(json.dumps({"seconds": time.perf_counter() - t0, "cpu": time.process_time() - c0,
+                  "rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}))
 """
 
 
@@ -117,6 +129,8 @@ def compile_copy(jobs: int, python: str = sys.executable) -> dict:
         tasks = [json.loads(line[5:]) for line in out.splitlines() if line.startswith("TASK ")]
         check = subprocess.run([python, "-c", _CHECK], cwd=tmp, env=env,
                                capture_output=True, text=True, check=True)
+        baseline = subprocess.run([python, "-c", _BASELINE], cwd=tmp, env=env,
+                                  capture_output=True, text=True, check=True)
         cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
         version = subprocess.run(
             [python, "-c", "import sys, numba, numpy; print(f'numba {numba.__version__}, "
@@ -124,7 +138,8 @@ def compile_copy(jobs: int, python: str = sys.executable) -> dict:
             capture_output=True, text=True, check=True).stdout.strip()
         return {"env": version, "wall": wall, "cpu": cpu, "peak_sum_mb": peak[0] / 1024,
                 "peak_max_mb": peak[1] / 1024, "tasks": tasks,
-                "check": json.loads(check.stdout.strip().splitlines()[-1])}
+                "check": json.loads(check.stdout.strip().splitlines()[-1]),
+                "baseline": json.loads(baseline.stdout.strip().splitlines()[-1])}
 
 
 def main() -> None:
@@ -147,12 +162,15 @@ def main() -> None:
     print(f"\ninstall-time compile of every kernel, empty cache, {jobs} process(es) at a time, "
           f"{os.cpu_count()} CPUs\n")
     print("| environment | wall | CPU (all processes) | peak RSS, all processes |"
-          " peak RSS, largest process | warmup() after it | compiler passes run by that warmup |")
-    print("|---|---:|---:|---:|---:|---:|---:|")
+          " peak RSS, largest process | warmup() after it | compiler passes run by that warmup |"
+          " a baseline's first use: wall / CPU / peak RSS |")
+    print("|---|---:|---:|---:|---:|---:|---:|---:|")
     for r in results:
+        b = r["baseline"]
         print(f"| {r['env']} | {r['wall']:.1f} s | {r['cpu']:.1f} s | {r['peak_sum_mb']:.0f} MB | "
               f"{r['peak_max_mb']:.0f} MB | {r['check']['seconds']:.2f} s | "
-              f"{r['check']['compiled']} |")
+              f"{r['check']['compiled']} | {b['seconds']:.1f} s / {b['cpu']:.1f} s / "
+              f"{b['rss_mb']:.0f} MB |")
     if args.tasks:
         for r in results:
             print(f"\n{r['env']}\n\n| task | wall | CPU | peak RSS |\n|---|---:|---:|---:|")
