@@ -42,7 +42,7 @@ FIRST_COMPILE_TIME = "about a minute and a half"
 #: How long the comparison filters' update (:func:`~mkf_ros.core.sensor.baseline_step`) takes
 #: to compile on its first use (it is not compiled at install time: the MKFs never call it);
 #: measured by ``./run bench compile_time --tasks`` (its ``baseline`` row).
-BASELINE_COMPILE_TIME = "about ten seconds"
+BASELINE_COMPILE_TIME = "about 15-30 s"
 
 #: The kernel families :func:`warmup` can prepare: :func:`mkf_ros.estimate`'s batch loop and
 #: smoothers, :class:`~mkf_ros.core.filter.AttitudeFilter`'s step, and the streaming front end of
