@@ -8,9 +8,9 @@ directory and runs the install-time compile there as ``pip install`` and ``colco
 time of every compiling process, and the peak resident memory, both of the largest process
 and of all of them together (sampled from /proc every 20 ms). Then, in a fresh process on the
 compiled cache, the time ``mkf_ros.warmup()`` takes and how many numba compiler passes it still
-ran (0: the install-time compile left nothing to compile for the first start), and in another
-what the first use of a comparison filter (``euler_kf``, ``euler_ukf``, ``madgwick``) costs:
-their kernels are compiled then, not at install time. ``--tasks`` adds
+ran (0: the install-time compile left nothing to compile for the first start), and in others
+what the first use of the MUKF and of a comparison filter (``euler_kf``, ``euler_ukf``,
+``madgwick``) costs: their own kernels are compiled then, not at install time. ``--tasks`` adds
 each compile task's own wall, CPU and peak memory.
 
 One row per Python environment: this one, each ``--python`` given, and Ubuntu 24.04's set
@@ -55,21 +55,26 @@ class Count(ev.Listener):  # a compiler pass runs only when something compiles (
 ev.register("numba:run_pass", Count())
 t0 = time.perf_counter()
 import mkf_ros
-mkf_ros.warmup()
+mkf_ros.warmup(algorithms=mkf_ros.kernels.INSTALLED_ALGORITHMS)
 from mkf_ros.core.filter import kernel_table
 kernel_table()
 print(json.dumps({"seconds": time.perf_counter() - t0, "compiled": n[0]}))
 """
 
 
-_BASELINE = """
-import json, resource, time
+_FIRST_USE = """
+import json, resource, sys, time
 t0, c0 = time.perf_counter(), time.process_time()
 import mkf_ros
-mkf_ros.warmup(("filter",), baselines=True)
+mkf_ros.warmup(("filter",), algorithms=(sys.argv[1],))
 print(json.dumps({"seconds": time.perf_counter() - t0, "cpu": time.process_time() - c0,
                   "rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}))
 """
+
+
+#: Algorithms whose own kernels are compiled on their first use, not at install time
+#: (``mkf_ros.kernels.INSTALLED_ALGORITHMS``): the MUKF, and one baseline for all three.
+_FIRST_USE_OF = ("mukf", "madgwick")
 
 
 def _tree_rss_kib(pid: int) -> tuple[int, int]:
@@ -129,8 +134,9 @@ def compile_copy(jobs: int, python: str = sys.executable) -> dict:
         tasks = [json.loads(line[5:]) for line in out.splitlines() if line.startswith("TASK ")]
         check = subprocess.run([python, "-c", _CHECK], cwd=tmp, env=env,
                                capture_output=True, text=True, check=True)
-        baseline = subprocess.run([python, "-c", _BASELINE], cwd=tmp, env=env,
-                                  capture_output=True, text=True, check=True)
+        first = {algo: subprocess.run([python, "-c", _FIRST_USE, algo], cwd=tmp, env=env,
+                                      capture_output=True, text=True, check=True).stdout
+                 for algo in _FIRST_USE_OF}
         cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
         version = subprocess.run(
             [python, "-c", "import sys, numba, numpy; print(f'numba {numba.__version__}, "
@@ -139,7 +145,7 @@ def compile_copy(jobs: int, python: str = sys.executable) -> dict:
         return {"env": version, "wall": wall, "cpu": cpu, "peak_sum_mb": peak[0] / 1024,
                 "peak_max_mb": peak[1] / 1024, "tasks": tasks,
                 "check": json.loads(check.stdout.strip().splitlines()[-1]),
-                "baseline": json.loads(baseline.stdout.strip().splitlines()[-1])}
+                "first": {a: json.loads(o.strip().splitlines()[-1]) for a, o in first.items()}}
 
 
 def main() -> None:
@@ -163,14 +169,14 @@ def main() -> None:
           f"{os.cpu_count()} CPUs\n")
     print("| environment | wall | CPU (all processes) | peak RSS, all processes |"
           " peak RSS, largest process | warmup() after it | compiler passes run by that warmup |"
-          " a baseline's first use: wall / CPU / peak RSS |")
-    print("|---|---:|---:|---:|---:|---:|---:|---:|")
+          + "".join(f" first use of {a}: wall / CPU / peak RSS |" for a in _FIRST_USE_OF))
+    print("|---|---:|---:|---:|---:|---:|---:|" + "---:|" * len(_FIRST_USE_OF))
     for r in results:
-        b = r["baseline"]
         print(f"| {r['env']} | {r['wall']:.1f} s | {r['cpu']:.1f} s | {r['peak_sum_mb']:.0f} MB | "
               f"{r['peak_max_mb']:.0f} MB | {r['check']['seconds']:.2f} s | "
-              f"{r['check']['compiled']} | {b['seconds']:.1f} s / {b['cpu']:.1f} s / "
-              f"{b['rss_mb']:.0f} MB |")
+              f"{r['check']['compiled']} |" + "".join(
+                  f" {b['seconds']:.1f} s / {b['cpu']:.1f} s / {b['rss_mb']:.0f} MB |"
+                  for b in r["first"].values()))
     if args.tasks:
         for r in results:
             print(f"\n{r['env']}\n\n| task | wall | CPU | peak RSS |\n|---|---:|---:|---:|")

@@ -39,10 +39,12 @@ from mkf_ros.core import _jit
 #: reference machine (``./run bench startup --installed --no-precompile``); the messages quote
 #: it.
 FIRST_COMPILE_TIME = "about a minute and a half"
-#: How long the comparison filters' update (:func:`~mkf_ros.core.sensor.baseline_step`) takes
-#: to compile on its first use (it is not compiled at install time: the MKFs never call it);
-#: measured by ``./run bench compile_time --tasks`` (its ``baseline`` row).
-BASELINE_COMPILE_TIME = "about 15-30 s"
+#: The algorithms whose kernels the install-time compile makes; the others' own kernels (the
+#: MUKF's update, the baselines' update and conversions) are compiled on their first use
+#: (:data:`FIRST_USE_COMPILE_TIME`), then loaded from the user cache like the rest.
+INSTALLED_ALGORITHMS = ("mekf",)
+#: What that first use costs (``./run bench compile_time``, its last columns).
+FIRST_USE_COMPILE_TIME = "15-30 s"
 
 #: The kernel families :func:`warmup` can prepare: :func:`mkf_ros.estimate`'s batch loop and
 #: smoothers, :class:`~mkf_ros.core.filter.AttitudeFilter`'s step, and the streaming front end of
@@ -50,30 +52,36 @@ BASELINE_COMPILE_TIME = "about 15-30 s"
 WARMUP_PARTS = ("estimate", "filter", "stream")
 
 
-def warmup(parts: Sequence[str] = WARMUP_PARTS, baselines: bool = False) -> None:
+def warmup(parts: Sequence[str] = WARMUP_PARTS,
+           algorithms: Sequence[str] = ("mekf", "mukf")) -> None:
     """Compile (or load from the kernel cache) the kernels of ``parts`` (default: all, see
-    :data:`WARMUP_PARTS`), so that the first real sample is not delayed. Loading takes well
-    under a second; compiling (no cache of this version, e.g. an install without the
-    install-time compile) takes :data:`FIRST_COMPILE_TIME` for all parts. ``baselines``: the
-    comparison filters' update too (``euler_kf``, ``euler_ukf``, ``madgwick``: one kernel
-    for all parts, not compiled at install time; :data:`BASELINE_COMPILE_TIME` on its first
-    use, then cached)."""
+    :data:`WARMUP_PARTS`) for ``algorithms`` (default: the MEKF and the MUKF), so that the
+    first real sample is not delayed. Loading takes well under a second; compiling (no cache
+    of this version, e.g. an install without the install-time compile) takes
+    :data:`FIRST_COMPILE_TIME` for all parts, and an algorithm not in
+    :data:`INSTALLED_ALGORITHMS` :data:`FIRST_USE_COMPILE_TIME` on its first use."""
     from mkf_ros.api import estimate
     from mkf_ros.core.filter import AttitudeFilter
+    from mkf_ros.core.params import ALGORITHMS, BASELINE_ALGORITHMS
     from mkf_ros.stream.adapter import StreamAdapter
 
     unknown = [p for p in parts if p not in WARMUP_PARTS]
     if unknown:
         raise ValueError(f"warmup: unknown part(s) {unknown}; expected some of {WARMUP_PARTS}")
+    unknown = [a for a in algorithms if a not in ALGORITHMS]
+    if unknown:
+        raise ValueError(f"warmup: unknown algorithm(s) {unknown}; expected some of "
+                         f"{ALGORITHMS}")
     _jit.share_inliner_memo()  # in case anything is compiled here
     n = 4
     gyr = np.zeros((n, 3))
     acc = np.tile([0.0, 0.0, 9.81], (n, 1))
     mag = np.tile([0.0, 20.0, -40.0], (n, 1))
-    for algo in ("mekf", "mukf"):
+    for algo in algorithms:
         if "estimate" in parts:
             estimate(gyr, acc, mag, dt=0.01, algorithm=algo, estimate_gyro_bias=True)
-            estimate(gyr, acc, mag, dt=0.01, algorithm=algo, smooth="two-way")  # RTS too
+            if algo not in BASELINE_ALGORITHMS:  # the smoothers: the MKFs'
+                estimate(gyr, acc, mag, dt=0.01, algorithm=algo, smooth="two-way")
         if "filter" in parts:
             f = AttitudeFilter(algorithm=algo, use_mag=True)
             for k in range(n):
@@ -84,18 +92,17 @@ def warmup(parts: Sequence[str] = WARMUP_PARTS, baselines: bool = False) -> None
             for k in range(n):
                 s.on_mag(1.0 + 0.01 * k, mag[k])
                 s.on_imu(1.0 + 0.01 * k, gyr[k], acc[k])
-    if baselines:
-        AttitudeFilter(algorithm="madgwick", use_mag=True).step(0.01, gyr[0], acc[0], mag[0])
 
 
 def warm_all() -> str:
     """Compile (or load) every kernel: the filters' (:func:`warmup`), the simulator's and the
     study's; returns the code version (:func:`mkf_ros.parallel.code_version`)."""
+    from mkf_ros.core.params import ALGORITHMS
     from mkf_ros.parallel import code_version
     from mkf_ros.sim.motion import integrate
     from mkf_ros.study.runner import warm_up
 
-    warmup(baselines=True)
+    warmup(algorithms=ALGORITHMS)
     integrate(np.array([1.0, 0.0, 0.0, 0.0]), np.zeros((2, 3)), 0.01)
     warm_up()
     return code_version()
@@ -227,7 +234,7 @@ def run_compile_task(task: str) -> tuple[str, float, float, int]:
         elif part == CHECK:
             from mkf_ros.sim.motion import integrate
 
-            warmup()
+            warmup(algorithms=INSTALLED_ALGORITHMS)
             integrate(np.array([1.0, 0.0, 0.0, 0.0]), np.zeros((2, 3)), 0.01)  # the simulator's
         else:
             raise ValueError(f"unknown compile task {part!r}")

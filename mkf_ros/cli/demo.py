@@ -183,7 +183,7 @@ class _Demo:
         t0 = time.monotonic()
         self.say("  loading the filter kernels (compiled at install time; where that step did "
                  f"not run, the first run compiles them, {FIRST_COMPILE_TIME})...")
-        warmup()
+        warmup(algorithms=(self.params.get("algorithm", "mekf"),))
         dt = time.monotonic() - t0
         self.say(f"  kernels ready in {dt:.1f} s{' (compiled and cached)' if dt > 5 else ''}\n")
 

@@ -44,6 +44,7 @@ from mkf_ros.core.sensor import (
     mag_recovery,
     mukf_update,
     no_baseline,
+    no_mukf,
     start,
     step,
 )
@@ -51,6 +52,7 @@ from mkf_ros.core.state import (
     ACC,
     ALGO_EULER_KF,
     ALGO_MADGWICK,
+    ALGO_MEKF,
     ALGO_MUKF,
     ATTITUDE_VAR_UNKNOWN,
     CONFIG,
@@ -168,10 +170,14 @@ KERNELS_T = tuple_type([step.type, UNITS_T, output.type], Kernels)
 #: Every unit of :data:`Kernels`, in the order of :func:`kernel_table`'s addresses.
 KERNEL_TABLE_ORDER = _TABLE = (step, start, acc_recovery, mag_recovery, mukf_update,
                                baseline_step, export, restore, output)
-#: What the MKFs' table holds in the slots of the units only the baselines call
-#: (:func:`kernel_table`).
-_MKF_STANDINS = {baseline_step: no_baseline, export: mkf_canonical, restore: mkf_canonical}
-_tables: dict[bool, Any] = {}
+#: What the kernel table holds in the slots of the units an algorithm never calls
+#: (:func:`kernel_table`): the MUKF's update (only the MUKF calls it), the baselines' update
+#: and conversions (only the baselines call them).
+_STANDINS = {mukf_update: no_mukf, baseline_step: no_baseline, export: mkf_canonical,
+             restore: mkf_canonical}
+#: The units each kind of algorithm calls among those (0: MEKF, 1: MUKF, 2: a baseline).
+_OWN_UNITS: tuple[tuple, ...] = ((), (mukf_update,), (baseline_step, export, restore))
+_tables: dict[int, Any] = {}
 
 
 def kernel_table(cfg: np.ndarray | None = None) -> Any:
@@ -179,19 +185,19 @@ def kernel_table(cfg: np.ndarray | None = None) -> Any:
     per process) as the array of their addresses that the compiled loops take
     (:func:`kernels_at` makes them :data:`Kernels` again); the :data:`Kernels` of Python
     functions with ``NUMBA_DISABLE_JIT=1``. For the configuration ``cfg`` (a :data:`CONFIG`
-    record array; None: an MKF's): an MKF's table holds no-ops (:data:`_MKF_STANDINS`) where
-    a baseline's holds the units only the baselines call (their update and the conversions of
-    their state), which are compiled on a baseline's first use, not at install time."""
-    baseline = (cfg is not None and not JIT_DISABLED
-                and int(cfg[0]["algorithm"]) > ALGO_MUKF)
-    table = _tables.get(baseline)
+    record array; None: the MEKF's): the units its algorithm never calls are no-ops
+    (:data:`_STANDINS`), so that only the MEKF's are compiled at install time and the MUKF's
+    update and the baselines' units on their first use."""
+    algo = ALGO_MEKF if cfg is None else int(cfg[0]["algorithm"])
+    kind = 0 if JIT_DISABLED or algo == ALGO_MEKF else 1 if algo == ALGO_MUKF else 2
+    table = _tables.get(kind)
     if table is None:
-        units: list[Any] = [u if baseline or JIT_DISABLED else _MKF_STANDINS.get(u, u)
-                            for u in _TABLE]
+        units: list[Any] = list(_TABLE) if JIT_DISABLED else [
+            _STANDINS[u] if u in _STANDINS and u not in _OWN_UNITS[kind] else u for u in _TABLE]
         compiled = [u.compiled for u in units]
         table = (Kernels(*_assemble(compiled)) if JIT_DISABLED
                  else np.array([u.address for u in compiled], dtype=np.int64))
-        _tables[baseline] = table
+        _tables[kind] = table
     return table
 
 

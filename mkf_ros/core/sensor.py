@@ -1164,7 +1164,7 @@ def _mekf_update(c: np.record, s: np.record, w: np.record, dt: float,
     return acc_nis, mag_nis
 
 
-@unit(_UPDATE_SIG(CONFIG_T, STATE_T, WORK_T, nt.float64, FUSION_T), cost=15)
+@unit(_UPDATE_SIG(CONFIG_T, STATE_T, WORK_T, nt.float64, FUSION_T), cost=15, install=False)
 def mukf_update(c: np.record, s: np.record, w: np.record, dt: float,
                 z: Fusion) -> tuple[bool, float, float]:
     """The MUKF (docs/math.md §6): the stacked measurement through the sigma points
@@ -1354,6 +1354,15 @@ def baseline_step(c: np.record, s: np.record, k: np.record, dt: float,
     on first use, not at install time: only the comparison filters (``euler_kf``,
     ``euler_ukf``, ``madgwick``) call it (:func:`mkf_ros.core.filter.kernel_table`)."""
     return baseline_update(c, s, k, dt, z)
+
+
+@unit(_UPDATE_SIG(CONFIG_T, STATE_T, WORK_T, nt.float64, FUSION_T), cost=0.1)
+def no_mukf(c: np.record, s: np.record, w: np.record, dt: float,
+            z: Fusion) -> tuple[bool, float, float]:
+    """:func:`mukf_update`'s place in the kernel table of every algorithm but the MUKF, which
+    alone calls it (:func:`_update`): nothing fused. :func:`mukf_update` is compiled on the
+    MUKF's first use, not at install time (:func:`mkf_ros.core.filter.kernel_table`)."""
+    return False, -1.0, -1.0
 
 
 @unit(_UPDATE_SIG(CONFIG_T, STATE_T, COUNTERS_T, nt.float64, FUSION_T), cost=0.1)

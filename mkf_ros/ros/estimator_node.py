@@ -66,7 +66,7 @@ from sensor_msgs.msg import Imu, MagneticField
 from std_msgs.msg import Bool, Header
 from std_srvs.srv import Trigger
 
-from mkf_ros.core.params import BASELINE_ALGORITHMS, BY_NAME, PARAMS
+from mkf_ros.core.params import BY_NAME, PARAMS
 from mkf_ros.core.quaternion import qconj_np
 from mkf_ros.core.state import COUNTER_NAMES
 from mkf_ros.ros import calibration, convert, rawmsg
@@ -162,22 +162,28 @@ class EstimatorNode(Node):
             f"{self._sub_mag.topic_name}, publishing {self._pub.topic_name}")
 
     def _load_kernels(self, algorithm: str | None = None) -> None:
-        """The streaming kernels (the node runs no others), and the baselines' update when
-        ``algorithm`` is one (compiled on its first use, then cached)."""
-        from mkf_ros.kernels import BASELINE_COMPILE_TIME, FIRST_COMPILE_TIME, warmup
+        """The streaming kernels (the node runs no others) of the configured ``algorithm`` (at
+        start), or of the one it is being switched to (its own kernels are compiled on its
+        first use when the install did not compile them)."""
+        from mkf_ros.kernels import (
+            FIRST_COMPILE_TIME,
+            FIRST_USE_COMPILE_TIME,
+            INSTALLED_ALGORITHMS,
+            warmup,
+        )
 
         log = self.get_logger()
-        baseline = (algorithm or self.stream.params["algorithm"]) in BASELINE_ALGORITHMS
+        algo = algorithm or self.stream.params["algorithm"]
         if algorithm is None:
             log.info("loading the filter kernels (compiled at install time; where that step "
                      f"did not run, the first start compiles them: {FIRST_COMPILE_TIME})...")
-        elif not baseline:
+        if algo not in INSTALLED_ALGORITHMS:
+            log.info(f"loading the kernels of algorithm {algo} (compiled on its first use: "
+                     f"{FIRST_USE_COMPILE_TIME}, then cached)...")
+        elif algorithm is not None:
             return
-        if baseline:
-            log.info("loading the baselines' kernel (compiled on its first use: "
-                     f"{BASELINE_COMPILE_TIME}, then cached)...")
         t0 = time.monotonic()
-        warmup(("stream",), baselines=baseline)
+        warmup(("stream",), algorithms=(algo,))
         log.info(f"filter kernels ready in {time.monotonic() - t0:.1f} s")
 
     def _reset_node_state(self) -> None:

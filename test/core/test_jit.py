@@ -226,41 +226,52 @@ def test_warmup_leaves_nothing_to_compile_for_the_filters() -> None:
     assert _child(_WARMUP) == {}
 
 
-_BASELINES = """
+_FIRST_USE = """
 import json
 import numpy as np
 import mkf_ros
 from mkf_ros.core import baseline_glue as glue, sensor
 from mkf_ros.core.filter import AttitudeFilter
-from mkf_ros.kernels import compile_tasks, warmup
+from mkf_ros.kernels import INSTALLED_ALGORITHMS, compile_tasks, warmup
 from mkf_ros.sim import simulate
 from mkf_ros.stream.adapter import StreamAdapter
+
+def compiled():
+    units = {"mukf": (sensor.mukf_update,),
+             "baselines": (sensor.baseline_step, glue.export, glue.restore)}
+    return {k: [u._compiled is not None for u in v] for k, v in units.items()}
+
 r = simulate("slow_rotation", duration=1.0, rate=100.0, seed=2, mag_rate=100.0)
-warmup()
-for algo in ("mekf", "mukf"):  # every front end of the MKFs, the smoother too
-    mkf_ros.estimate(r.gyr, r.acc, r.mag, dt=0.01, algorithm=algo, smooth="two-way")
-    f = AttitudeFilter(algorithm=algo, use_mag=True)
-    f.step(0.01, r.gyr[0], r.acc[0], r.mag[0])
-    StreamAdapter(algorithm=algo).process(r.t, r.gyr, r.acc)
-baseline_units = (sensor.baseline_step, glue.export, glue.restore)
-mkf_only = all(u._compiled is None for u in baseline_units)
-q = {algo: mkf_ros.estimate(r.gyr, r.acc, r.mag, dt=0.01, algorithm=algo).quat[-1].tolist()
-     for algo in ("euler_kf", "euler_ukf", "madgwick")}
-print(json.dumps({"mkf_only": mkf_only,
-                  "after": all(u._compiled is not None for u in baseline_units),
+warmup(algorithms=INSTALLED_ALGORITHMS)
+# every front end of the MEKF, the smoother too
+mkf_ros.estimate(r.gyr, r.acc, r.mag, dt=0.01, smooth="two-way")
+AttitudeFilter(use_mag=True).step(0.01, r.gyr[0], r.acc[0], r.mag[0])
+StreamAdapter().process(r.t, r.gyr, r.acc)
+steps = {"mekf": compiled()}
+q = {}
+for algo in ("mukf", "euler_kf", "euler_ukf", "madgwick"):
+    q[algo] = mkf_ros.estimate(r.gyr, r.acc, r.mag, dt=0.01, algorithm=algo).quat[-1].tolist()
+    steps[algo] = compiled()
+print(json.dumps({"installed": INSTALLED_ALGORITHMS, "steps": steps,
                   "tasks": " ".join(compile_tasks()), "q": q, "truth": r.quat[-1].tolist()}))
 """
 
 
-def test_the_baselines_update_is_compiled_on_their_first_use_only() -> None:
-    """The install-time compile leaves out the comparison filters' update (the MKFs never call
-    it): the MKFs' front ends run without compiling or loading it, and the baselines compile
-    it on their first use and then track the truth."""
-    out = _child(_BASELINES)
-    assert out["mkf_only"] and out["after"]
-    for name in ("baseline_step", "baseline_glue.export", "baseline_glue.restore"):
+def test_only_the_mekf_is_compiled_at_install_the_others_on_their_first_use() -> None:
+    """The install-time compile makes the MEKF's kernels (the default); the MUKF's update and
+    the comparison filters' kernels are compiled on their first use: the MEKF's front ends run
+    without compiling or loading them, the MUKF's first use compiles its update alone, a
+    baseline's the baselines' units, and each then tracks the truth."""
+    out = _child(_FIRST_USE)
+    assert out["installed"] == ["mekf"]
+    steps = out["steps"]
+    assert steps["mekf"] == {"mukf": [False], "baselines": [False, False, False]}
+    assert steps["mukf"] == {"mukf": [True], "baselines": [False, False, False]}
+    assert steps["euler_kf"] == {"mukf": [True], "baselines": [True, True, True]}
+    for name in ("mukf_update", "baseline_step", "baseline_glue.export",
+                 "baseline_glue.restore"):
         assert name not in out["tasks"]
-    assert "sensor.step" in out["tasks"] and "sensor.mukf_update" in out["tasks"]
+    assert "sensor.step" in out["tasks"]
     truth = np.array(out["truth"])
     for algo, q in out["q"].items():
         err = 2 * np.degrees(np.arccos(min(1.0, abs(float(np.dot(q, truth))))))
