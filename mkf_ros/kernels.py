@@ -4,10 +4,13 @@ How one kernel is compiled and where it is cached is :mod:`mkf_ros.core._jit`; t
 what is compiled and when:
 
 * at install time, :func:`precompile` (``setup.py``'s ``build_py``, which ``pip install``,
-  ``pip wheel`` and ``colcon build`` run; ``./run setup`` for an editable checkout) compiles every
-  kernel into the package (``mkf_ros/_kernels/``), from which each user's cache is seeded;
+  ``pip wheel`` and ``colcon build`` run; ``./run setup`` for an editable checkout) compiles the
+  kernels of :data:`INSTALLED_ALGORITHMS` (the MEKF, the default) into the package
+  (``mkf_ros/_kernels/``), from which each user's cache is seeded;
 * at start-up, :func:`warmup` loads them (well under a second), or compiles them where the
-  install-time compile did not run (:data:`FIRST_COMPILE_TIME`).
+  install-time compile did not run (:data:`FIRST_COMPILE_TIME`); the other algorithms' own
+  kernels (the MUKF's update, the baselines') are compiled on their first use
+  (:data:`FIRST_USE_COMPILE_TIME`), then cached like the rest.
 
 The install-time compile runs :func:`compile_tasks` in processes of their own, side by side
 (:func:`compile_jobs` at a time), then a check in a fresh process: :func:`warmup` on the
@@ -258,8 +261,8 @@ def compile_jobs() -> int:
 
 def precompile(root: Path, jobs: int | None = None,
                report: Callable[[tuple[str, float, float, int]], object] | None = None) -> None:
-    """Compile every kernel into ``root/numba-<hash>/`` (the install-time step; see the module
-    docstring), dropping other kernel versions there: :func:`compile_tasks`, each in a fresh
+    """Compile the install's kernels into ``root/numba-<hash>/`` (the install-time step; see the
+    module docstring), dropping other kernel versions there: :func:`compile_tasks`, each in a fresh
     process whose cache is ``root``, ``jobs`` at a time (:func:`compile_jobs`), then
     :data:`CHECK` in another. ``report`` receives each task's result (:func:`run_compile_task`)."""
     import concurrent.futures
