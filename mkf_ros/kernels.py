@@ -38,10 +38,10 @@ from mkf_ros.core import _jit
 
 #: How long compiling the kernels takes where the install-time compile did not run
 #: (``colcon build --symlink-install``, ``MKF_ROS_NO_PRECOMPILE=1``, a build environment whose
-#: numba differs from the one at run time): the node's first start took 80 s on the 2-core
+#: numba differs from the one at run time): the node's first start took 60 s on the 2-core
 #: reference machine (``./run bench startup --installed --no-precompile``); the messages quote
 #: it.
-FIRST_COMPILE_TIME = "about a minute and a half"
+FIRST_COMPILE_TIME = "about a minute"
 #: The algorithms whose kernels the install-time compile makes; the others' own kernels (the
 #: MUKF's update, the baselines' update and conversions) are compiled on their first use
 #: (:data:`FIRST_USE_COMPILE_TIME`), then loaded from the user cache like the rest.
