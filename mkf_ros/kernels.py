@@ -165,6 +165,17 @@ CHECK = "check"
 SMALL_TASK = 4.0
 
 
+def _first_use_units() -> set:
+    """The units in no kernel table of :data:`INSTALLED_ALGORITHMS`
+    (:func:`~mkf_ros.core.filter.table_units`): the other algorithms' own (the MUKF's update,
+    the baselines'), compiled on their first use."""
+    from mkf_ros.core.filter import KERNEL_TABLE_ORDER, table_units
+    from mkf_ros.core.params import ALGORITHMS
+
+    installed = {u for a in INSTALLED_ALGORITHMS for u in table_units(ALGORITHMS.index(a))}
+    return set(KERNEL_TABLE_ORDER) - installed
+
+
 def compile_tasks() -> list[str]:
     """The install-time compile's tasks, independent of each other, the largest first (so that
     the processes end together): every :class:`~mkf_ros.core._jit.Unit`
@@ -173,7 +184,8 @@ def compile_tasks() -> list[str]:
     names separated by spaces). Each runs in a fresh process: sharing one across the large
     tasks saves no time (a kernel two tasks call is loaded from the cache by the second) and
     keeps every compiled library in memory."""
-    costs = {f"unit:{name}": u.cost for name, u in _units().items() if u.install}
+    first_use = _first_use_units()
+    costs = {f"unit:{name}": u.cost for name, u in _units().items() if u not in first_use}
     costs.update({f"entries:{part}": c for part, c in _ENTRY_COSTS.items()})
     small = sorted(t for t, c in costs.items() if c < SMALL_TASK)
     if len(small) > 1:

@@ -178,12 +178,13 @@ class _Demo:
         return self._run_nodes(est_cmd, ply_cmd, env)
 
     def _warm(self) -> None:
+        from mkf_ros.core.params import BY_NAME
         from mkf_ros.kernels import FIRST_COMPILE_TIME, warmup
 
         t0 = time.monotonic()
         self.say("  loading the filter kernels (compiled at install time; where that step did "
                  f"not run, the first run compiles them, {FIRST_COMPILE_TIME})...")
-        warmup(algorithms=(self.params.get("algorithm", "mekf"),))
+        warmup(algorithms=(self.params.get("algorithm", BY_NAME["algorithm"].default),))
         dt = time.monotonic() - t0
         self.say(f"  kernels ready in {dt:.1f} s{' (compiled and cached)' if dt > 5 else ''}\n")
 

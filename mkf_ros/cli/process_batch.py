@@ -95,10 +95,11 @@ def run(args: argparse.Namespace, params: dict[str, Any]) -> int:
             where = f"Dask cluster {args.scheduler} ({slots} worker threads)"
         else:
             slots = min(args.jobs if args.jobs is not None else parallel.cores(), len(jobs))
+            from mkf_ros.core.params import BY_NAME
             from mkf_ros.kernels import warmup
 
             # before forking: the workers inherit the kernels
-            warmup(algorithms=(params.get("algorithm", "mekf"),))
+            warmup(algorithms=(params.get("algorithm", BY_NAME["algorithm"].default),))
             # one forked process per bag: a bag that crashes its process fails alone
             executor = parallel.ForkPerUnit(slots)
             where = f"{slots} process(es)"

@@ -267,10 +267,9 @@ class Unit:
     function itself."""
 
     def __init__(self, py_func: Callable, signature: numba.core.typing.templates.Signature,
-                 cost: float, install: bool = True) -> None:
+                 cost: float) -> None:
         self.py_func = py_func
         self.cost = cost
-        self.install = install
         self.signature = signature
         self.type = numba.types.FunctionType(signature)
         self._compiled: object = None
@@ -323,14 +322,12 @@ def tuple_type(members: list, cls: type) -> types.Type:
     return types.NamedTuple(members, cls)
 
 
-def unit(signature: numba.core.typing.templates.Signature, cost: float = 1.0,
-         install: bool = True) -> Callable[[Callable], Unit]:
+def unit(signature: numba.core.typing.templates.Signature,
+         cost: float = 1.0) -> Callable[[Callable], Unit]:
     """Decorator: the function as a :class:`Unit` of the given numba signature; ``cost``, its
     compile time in seconds on the reference machine (``./run bench compile_time --tasks``),
-    orders the install-time compile (the largest first, so that the processes end together);
-    ``install=False``: not compiled at install time, but on first use (a kernel that only a
-    non-default choice calls)."""
-    return lambda fn: Unit(fn, signature, cost, install)
+    orders the install-time compile (the largest first, so that the processes end together)."""
+    return lambda fn: Unit(fn, signature, cost)
 #: The same, inlined into every compiled caller at numba IR level (a Python call still gets a
 #: normal compiled function): for kernels and helpers on the per-sample hot paths. A call between
 #: compiled functions increfs and decrefs every array argument (atomic operations, together

@@ -39,7 +39,6 @@ from mkf_ros.core.state import (
     STATE_T,
     Fusion,
     mag_yaw_var,
-    recentre,
     set_world_attitude_cov,
 )
 
@@ -107,15 +106,6 @@ def baseline_export(c: np.record, s: np.record) -> None:
 
 
 @jit
-def to_canonical(c: np.record, s: np.record) -> None:
-    """Any algorithm's state in the canonical form: :func:`recentre` for the MKFs."""
-    if c.algorithm < ALGO_EULER_KF:
-        recentre(c, s)
-    else:
-        baseline_export(c, s)
-
-
-@jit
 def from_canonical(c: np.record, s: np.record) -> None:
     """Canonical form → the algorithm's own state (no-op for the MKFs): Euler angles of
     ``q̄`` and ``Σ = W P_ee Wᵀ`` (W of eq. (7), |cos θ| floored), rates block kept for the UKF."""
@@ -139,7 +129,7 @@ def from_canonical(c: np.record, s: np.record) -> None:
     copy_into(s.q_c, euler_to_quat(phi, theta, psi))
 
 
-@unit(nt.void(CONFIG_T, STATE_T), cost=2.2, install=False)
+@unit(nt.void(CONFIG_T, STATE_T), cost=2.2)
 def export(c: np.record, s: np.record) -> None:
     """:func:`baseline_export` compiled on its own (the sensor layer's rare paths call it; a
     no-op for the MKFs, whose kernel table holds :func:`mkf_canonical` instead: compiled on a
@@ -147,7 +137,7 @@ def export(c: np.record, s: np.record) -> None:
     baseline_export(c, s)
 
 
-@unit(nt.void(CONFIG_T, STATE_T), cost=1.2, install=False)
+@unit(nt.void(CONFIG_T, STATE_T), cost=1.2)
 def restore(c: np.record, s: np.record) -> None:
     """:func:`from_canonical` compiled on its own (as :func:`export`)."""
     from_canonical(c, s)

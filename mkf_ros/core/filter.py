@@ -175,9 +175,23 @@ KERNEL_TABLE_ORDER = _TABLE = (step, start, acc_recovery, mag_recovery, mukf_upd
 #: and conversions (only the baselines call them).
 _STANDINS = {mukf_update: no_mukf, baseline_step: no_baseline, export: mkf_canonical,
              restore: mkf_canonical}
-#: The units each kind of algorithm calls among those (0: MEKF, 1: MUKF, 2: a baseline).
+#: Among those, the units each kind of algorithm calls (:func:`_kind`: MEKF, MUKF, baseline).
 _OWN_UNITS: tuple[tuple, ...] = ((), (mukf_update,), (baseline_step, export, restore))
 _tables: dict[int, Any] = {}
+
+
+def _kind(algorithm: int) -> int:
+    """0 for the MEKF, 1 for the MUKF, 2 for a baseline (an index of :data:`_OWN_UNITS`)."""
+    return 0 if algorithm == ALGO_MEKF else 1 if algorithm == ALGO_MUKF else 2
+
+
+def table_units(algorithm: int) -> list[Any]:
+    """The units of :data:`Kernels` in :func:`kernel_table` order for ``algorithm`` (an
+    ``ALGO_*`` index): a stand-in (:data:`_STANDINS`) in the place of each unit it never
+    calls. The install-time compile makes the units of the installed algorithms' tables
+    (:func:`mkf_ros.kernels.compile_tasks`); the others are compiled on first use."""
+    own = _OWN_UNITS[_kind(algorithm)]
+    return [_STANDINS[u] if u in _STANDINS and u not in own else u for u in _TABLE]
 
 
 def kernel_table(cfg: np.ndarray | None = None) -> Any:
@@ -185,18 +199,16 @@ def kernel_table(cfg: np.ndarray | None = None) -> Any:
     per process) as the array of their addresses that the compiled loops take
     (:func:`kernels_at` makes them :data:`Kernels` again); the :data:`Kernels` of Python
     functions with ``NUMBA_DISABLE_JIT=1``. For the configuration ``cfg`` (a :data:`CONFIG`
-    record array; None: the MEKF's): the units its algorithm never calls are no-ops
-    (:data:`_STANDINS`), so that only the MEKF's are compiled at install time and the MUKF's
-    update and the baselines' units on their first use."""
+    record array; None: the MEKF's): :func:`table_units` of its algorithm, so that a unit is
+    compiled only when an algorithm that calls it runs."""
     algo = ALGO_MEKF if cfg is None else int(cfg[0]["algorithm"])
-    kind = 0 if JIT_DISABLED or algo == ALGO_MEKF else 1 if algo == ALGO_MUKF else 2
+    kind = 0 if JIT_DISABLED else _kind(algo)
     table = _tables.get(kind)
     if table is None:
-        units: list[Any] = list(_TABLE) if JIT_DISABLED else [
-            _STANDINS[u] if u in _STANDINS and u not in _OWN_UNITS[kind] else u for u in _TABLE]
-        compiled = [u.compiled for u in units]
-        table = (Kernels(*_assemble(compiled)) if JIT_DISABLED
-                 else np.array([u.address for u in compiled], dtype=np.int64))
+        if JIT_DISABLED:
+            table = Kernels(*_assemble([u.compiled for u in _TABLE]))
+        else:
+            table = np.array([u.compiled.address for u in table_units(algo)], dtype=np.int64)
         _tables[kind] = table
     return table
 
@@ -370,9 +382,10 @@ def run_batch(table: np.ndarray, cfg: np.ndarray, st: np.ndarray, cnt: np.ndarra
 
 @jit
 def to_canonical_entry(table: Any, cfg: np.ndarray, st: np.ndarray) -> None:
-    """:func:`~mkf_ros.core.baseline_glue.to_canonical` of the filter's record arrays: the
-    MKFs' :func:`~mkf_ros.core.state.recentre`, a baseline's conversion through its table
-    (:func:`kernel_table` of ``cfg``)."""
+    """Any algorithm's state in the canonical form, in the filter's record arrays: the MKFs'
+    :func:`~mkf_ros.core.state.recentre`, a baseline's
+    :func:`~mkf_ros.core.baseline_glue.baseline_export` through its table (:func:`kernel_table`
+    of ``cfg``)."""
     c, s = cfg[0], st[0]
     if c.algorithm < ALGO_EULER_KF:
         recentre(c, s)
@@ -438,9 +451,9 @@ class AttitudeFilter:
         ``ē ≠ 0`` is first moved onto the chart origin with the T-matrix (§3.2); at the origin
         every chart agrees with the rotation vector to first order (eq. 10), so ``P`` carries
         over unchanged. A switch to or from a baseline converts the state through that form:
-        quaternion ↔ Euler angles, ``P_ee = E Σ Eᵀ`` ↔ ``Σ = W P_ee Wᵀ`` (:func:`to_canonical`,
-        :func:`from_canonical`). Enabling bias estimation starts the bias at 0 with
-        ``gyro_bias_stddev``; disabling it freezes the current bias.
+        quaternion ↔ Euler angles, ``P_ee = E Σ Eᵀ`` ↔ ``Σ = W P_ee Wᵀ``
+        (:func:`to_canonical_entry`, :func:`from_canonical_entry`). Enabling bias estimation
+        starts the bias at 0 with ``gyro_bias_stddev``; disabling it freezes the current bias.
         """
         new = self._params.replace(**changes)
         cfg = build_config(new, self._split)

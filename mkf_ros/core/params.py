@@ -116,8 +116,8 @@ def _fmt(x: float) -> str:
 #: The paper's filters, then the seed report's baselines (mkf_ros.core.baselines,
 #: docs/baselines.md).
 ALGORITHMS = ("mekf", "mukf", "euler_kf", "euler_ukf", "madgwick")
-#: The baselines among them: their update is compiled on first use, not at install time
-#: (:func:`mkf_ros.kernels.warmup`).
+#: The baselines among them (no smoother; their kernels compiled on first use,
+#: :mod:`mkf_ros.kernels`).
 BASELINE_ALGORITHMS = ALGORITHMS[2:]
 WORLD_FRAMES = ("enu", "ned", "nwu")
 #: The smoother's forms (``estimate(smooth=...)``, ``mkf process --smooth``, docs/math.md §11):

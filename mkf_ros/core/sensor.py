@@ -1164,7 +1164,7 @@ def _mekf_update(c: np.record, s: np.record, w: np.record, dt: float,
     return acc_nis, mag_nis
 
 
-@unit(_UPDATE_SIG(CONFIG_T, STATE_T, WORK_T, nt.float64, FUSION_T), cost=15, install=False)
+@unit(_UPDATE_SIG(CONFIG_T, STATE_T, WORK_T, nt.float64, FUSION_T), cost=15)
 def mukf_update(c: np.record, s: np.record, w: np.record, dt: float,
                 z: Fusion) -> tuple[bool, float, float]:
     """The MUKF (docs/math.md §6): the stacked measurement through the sigma points
@@ -1346,8 +1346,7 @@ def _fusion(c: np.record, s: np.record, has_m: bool, dtm: float) -> tuple:
     return m_ref, h_ref, var_h, acc_gate, mag_gate
 
 
-@unit(_UPDATE_SIG(CONFIG_T, STATE_T, COUNTERS_T, nt.float64, FUSION_T), cost=9.0,
-      install=False)
+@unit(_UPDATE_SIG(CONFIG_T, STATE_T, COUNTERS_T, nt.float64, FUSION_T), cost=9.0)
 def baseline_step(c: np.record, s: np.record, k: np.record, dt: float,
                   z: Fusion) -> tuple[bool, float, float]:
     """The baselines' update (:func:`~mkf_ros.core.baseline_glue.baseline_update`). Compiled

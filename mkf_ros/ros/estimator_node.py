@@ -161,10 +161,10 @@ class EstimatorNode(Node):
             f"use_mag {str(p['use_mag']).lower()}; listening on {self._sub_imu.topic_name} and "
             f"{self._sub_mag.topic_name}, publishing {self._pub.topic_name}")
 
-    def _load_kernels(self, algorithm: str | None = None) -> None:
-        """The streaming kernels (the node runs no others) of the configured ``algorithm`` (at
-        start), or of the one it is being switched to (its own kernels are compiled on its
-        first use when the install did not compile them)."""
+    def _load_kernels(self, switch_to: str | None = None) -> None:
+        """The streaming kernels (the node runs no others) of the configured algorithm at
+        start, or of ``switch_to`` when the parameter changes to an algorithm the install did
+        not compile (its own kernels are compiled on its first use, then cached)."""
         from mkf_ros.kernels import (
             FIRST_COMPILE_TIME,
             FIRST_USE_COMPILE_TIME,
@@ -173,15 +173,16 @@ class EstimatorNode(Node):
         )
 
         log = self.get_logger()
-        algo = algorithm or self.stream.params["algorithm"]
-        if algorithm is None:
+        algo = switch_to or self.stream.params["algorithm"]
+        installed = algo in INSTALLED_ALGORITHMS
+        if switch_to is not None and installed:
+            return  # loaded at start
+        if switch_to is None:
             log.info("loading the filter kernels (compiled at install time; where that step "
                      f"did not run, the first start compiles them: {FIRST_COMPILE_TIME})...")
-        if algo not in INSTALLED_ALGORITHMS:
+        if not installed:
             log.info(f"loading the kernels of algorithm {algo} (compiled on its first use: "
                      f"{FIRST_USE_COMPILE_TIME}, then cached)...")
-        elif algorithm is not None:
-            return
         t0 = time.monotonic()
         warmup(("stream",), algorithms=(algo,))
         log.info(f"filter kernels ready in {time.monotonic() - t0:.1f} s")
