@@ -19,6 +19,7 @@ from rclpy.utilities import remove_ros_args
 from mkf_ros.core.params import PARAMS
 from mkf_ros.ros import calibration
 from mkf_ros.ros.estimator_node import EstimatorNode, ParameterError
+from mkf_ros.ros.signals import await_signal_shutdown
 
 #: ``single``: rclpy's SingleThreadedExecutor (rebuilds its wait set in Python for every
 #: message: ~0.3 ms of CPU per message here); ``events``: the C++ EventsExecutor of rclpy
@@ -126,7 +127,8 @@ def main(argv: Sequence[str] | None = None, *, node_class: type[EstimatorNode] |
         print(f"{prog}: {e}", file=sys.stderr)
         code = 2
     except (KeyboardInterrupt, ExternalShutdownException):
-        pass
+        # rclpy's signal thread may still be at work: let it finish before the teardown
+        await_signal_shutdown(rclpy.get_default_context())
     except Exception:
         if rclpy.ok():
             raise

@@ -45,6 +45,7 @@ from rclpy.utilities import remove_ros_args
 
 from mkf_ros.bags import cdr
 from mkf_ros.bags.reader import BagError, BagReader, normalize_topic
+from mkf_ros.ros.signals import await_signal_shutdown
 
 QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
                  reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
@@ -409,7 +410,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             executor.spin_once(timeout_sec=0.1)
         code = 1 if node.failed else 0
     except (KeyboardInterrupt, ExternalShutdownException):
-        pass
+        await_signal_shutdown(executor.context)
     finally:
         executor.shutdown()
         node.destroy_node()
