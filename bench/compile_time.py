@@ -9,8 +9,9 @@ time of every compiling process, and the peak resident memory, both of the large
 and of all of them together (sampled from /proc every 20 ms). Then, in a fresh process on the
 compiled cache, the time ``mkf_ros.warmup()`` takes and how many numba compiler passes it still
 ran (0: the install-time compile left nothing to compile for the first start), and in others
-what the first use of the MUKF and of a comparison filter (``euler_kf``, ``euler_ukf``,
-``madgwick``) costs: their own kernels are compiled then, not at install time. ``--tasks`` adds
+what the first use of the MUKF, of a comparison filter (``euler_kf``, ``euler_ukf``,
+``madgwick``) and of the smoothers (``estimate(..., smooth=...)``) costs: their own kernels
+are compiled then, not at install time. ``--tasks`` adds
 each compile task's own wall, CPU and peak memory.
 
 One row per Python environment: this one, each ``--python`` given, and Ubuntu 24.04's set
@@ -55,7 +56,7 @@ class Count(ev.Listener):  # a compiler pass runs only when something compiles (
 ev.register("numba:run_pass", Count())
 t0 = time.perf_counter()
 import mkf_ros
-mkf_ros.warmup(algorithms=mkf_ros.kernels.INSTALLED_ALGORITHMS)
+mkf_ros.warmup(mkf_ros.kernels.INSTALLED_PARTS, algorithms=mkf_ros.kernels.INSTALLED_ALGORITHMS)
 from mkf_ros.core.filter import kernel_table
 kernel_table()
 print(json.dumps({"seconds": time.perf_counter() - t0, "compiled": n[0]}))
@@ -66,15 +67,17 @@ _FIRST_USE = """
 import json, resource, sys, time
 t0, c0 = time.perf_counter(), time.process_time()
 import mkf_ros
-mkf_ros.warmup(("filter",), algorithms=(sys.argv[1],))
+mkf_ros.warmup((sys.argv[1],), algorithms=(sys.argv[2],))
 print(json.dumps({"seconds": time.perf_counter() - t0, "cpu": time.process_time() - c0,
                   "rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}))
 """
 
 
-#: Algorithms whose own kernels are compiled on their first use, not at install time
-#: (``mkf_ros.kernels.INSTALLED_ALGORITHMS``): the MUKF, and one baseline for all three.
-_FIRST_USE_OF = ("mukf", "madgwick")
+#: What is compiled on its first use, not at install time (``mkf_ros.kernels``'
+#: ``INSTALLED_ALGORITHMS`` and ``INSTALLED_PARTS``), as (label, warmup part, algorithm): the
+#: MUKF's own kernels, one baseline's (for all three), and the MEKF's smoothers.
+_FIRST_USE_OF = (("mukf", "filter", "mukf"), ("madgwick", "filter", "madgwick"),
+                 ("the smoother", "smoother", "mekf"))
 
 
 def _tree_rss_kib(pid: int) -> tuple[int, int]:
@@ -134,9 +137,10 @@ def compile_copy(jobs: int, python: str = sys.executable) -> dict:
         tasks = [json.loads(line[5:]) for line in out.splitlines() if line.startswith("TASK ")]
         check = subprocess.run([python, "-c", _CHECK], cwd=tmp, env=env,
                                capture_output=True, text=True, check=True)
-        first = {algo: subprocess.run([python, "-c", _FIRST_USE, algo], cwd=tmp, env=env,
-                                      capture_output=True, text=True, check=True).stdout
-                 for algo in _FIRST_USE_OF}
+        first = {label: subprocess.run([python, "-c", _FIRST_USE, part, algo], cwd=tmp,
+                                       env=env, capture_output=True, text=True,
+                                       check=True).stdout
+                 for label, part, algo in _FIRST_USE_OF}
         cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
         version = subprocess.run(
             [python, "-c", "import sys, numba, numpy; print(f'numba {numba.__version__}, "
@@ -169,7 +173,7 @@ def main() -> None:
           f"{os.cpu_count()} CPUs\n")
     print("| environment | wall | CPU (all processes) | peak RSS, all processes |"
           " peak RSS, largest process | warmup() after it | compiler passes run by that warmup |"
-          + "".join(f" first use of {a}: wall / CPU / peak RSS |" for a in _FIRST_USE_OF))
+          + "".join(f" first use of {a}: wall / CPU / peak RSS |" for a, _, _ in _FIRST_USE_OF))
     print("|---|---:|---:|---:|---:|---:|---:|" + "---:|" * len(_FIRST_USE_OF))
     for r in results:
         print(f"| {r['env']} | {r['wall']:.1f} s | {r['cpu']:.1f} s | {r['peak_sum_mb']:.0f} MB | "

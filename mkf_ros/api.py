@@ -105,7 +105,8 @@ def estimate(
             fused with that of the same smoother run over the reversed recording
             (docs/math.md §11.5: the causal low-pass's lag has the opposite sign there; about
             twice the time; ``quat`` and ``cov`` fused, ``omega`` and ``bias`` the forward
-            smoother's).
+            smoother's). The smoothers' loops are compiled on their first use on a machine
+            (about 10 s, once; not at install time), then cached.
         smooth_window, smooth_overlap: the smoother's window and overlap in samples (memory
             ~0.53 kB per sample of their sum; default
             :data:`~mkf_ros.core.smoother.DEFAULT_WINDOW` samples and

@@ -9,7 +9,8 @@ what is compiled and when:
   (``mkf_ros/_kernels/``), from which each user's cache is seeded;
 * at start-up, :func:`warmup` loads them (well under a second), or compiles them where the
   install-time compile did not run (:data:`FIRST_COMPILE_TIME`); the other algorithms' own
-  kernels (the MUKF's update, the baselines') are compiled on their first use
+  kernels (the MUKF's update, the baselines') and the smoothers' loops (``estimate(...,
+  smooth=...)``, :data:`INSTALLED_PARTS`) are compiled on their first use
   (:data:`FIRST_USE_COMPILE_TIME`), then cached like the rest.
 
 The install-time compile runs :func:`compile_tasks` in processes of their own, side by side
@@ -49,10 +50,15 @@ INSTALLED_ALGORITHMS = ("mekf",)
 #: What that first use costs (``./run bench compile_time``, its last columns).
 FIRST_USE_COMPILE_TIME = "15-30 s"
 
-#: The kernel families :func:`warmup` can prepare: :func:`mkf_ros.estimate`'s batch loop and
-#: smoothers, :class:`~mkf_ros.core.filter.AttitudeFilter`'s step, and the streaming front end of
-#: the node and of ``mkf process``. They share the filter's compile units (:mod:`.core._jit`).
-WARMUP_PARTS = ("estimate", "filter", "stream")
+#: The kernel families :func:`warmup` can prepare: :func:`mkf_ros.estimate`'s batch loop, its
+#: smoothers (``smooth="rts"`` or ``"two-way"``), :class:`~mkf_ros.core.filter.AttitudeFilter`'s
+#: step, and the streaming front end of the node and of ``mkf process``. They share the
+#: filter's compile units (:mod:`.core._jit`).
+WARMUP_PARTS = ("estimate", "smoother", "filter", "stream")
+#: The parts the install-time compile makes: all but the smoothers, an option of the offline
+#: front ends that the node never runs (their loops, the largest after the sensor step, are
+#: compiled on their first use, as the other algorithms' kernels are).
+INSTALLED_PARTS = ("estimate", "filter", "stream")
 
 
 def warmup(parts: Sequence[str] = WARMUP_PARTS,
@@ -83,8 +89,8 @@ def warmup(parts: Sequence[str] = WARMUP_PARTS,
     for algo in algorithms:
         if "estimate" in parts:
             estimate(gyr, acc, mag, dt=0.01, algorithm=algo, estimate_gyro_bias=True)
-            if algo not in BASELINE_ALGORITHMS:  # the smoothers: the MKFs'
-                estimate(gyr, acc, mag, dt=0.01, algorithm=algo, smooth="two-way")
+        if "smoother" in parts and algo not in BASELINE_ALGORITHMS:  # the MKFs' smoothers
+            estimate(gyr, acc, mag, dt=0.01, algorithm=algo, smooth="two-way")
         if "filter" in parts:
             f = AttitudeFilter(algorithm=algo, use_mag=True)
             for k in range(n):
@@ -124,11 +130,13 @@ def _entry_calls(part: str) -> list[tuple[Any, tuple]]:
     arrays = kf.AttitudeFilter().kernel_arrays()
     v3, m33, rows = np.zeros(3), np.zeros((3, 3)), np.zeros((1, 3))
     if part == "estimate":
+        return [(kf.run_batch, (table, *arrays, np.zeros(1), rows, rows, rows,
+                                kf.new_batch_outputs(1)))]
+    if part == "smoother":
         out = kf.new_batch_outputs(1)
         rec = kf.new_records(sm.RECORD, 1)
         q4, m133 = np.zeros((1, 4)), np.zeros((1, 3, 3))
-        return [(kf.run_batch, (table, *arrays, np.zeros(1), rows, rows, rows, out)),
-                (sm.forward_recorded, (table, *arrays, np.zeros(1), rows, rows, rows, out, rec,
+        return [(sm.forward_recorded, (table, *arrays, np.zeros(1), rows, rows, rows, out, rec,
                                        0)),
                 (sm.backward, (arrays.cfg, rec, 0, sm.new_smooth_outputs(1))),
                 (sm.fuse_tilt_rows, (q4, np.zeros((1, 2)), q4, m133, m133, q4, m133))]
@@ -156,7 +164,7 @@ def _units() -> dict[str, _jit.Unit]:
 
 #: The compiled loops of each :data:`WARMUP_PARTS` part and their compile CPU time on the
 #: reference machine (``./run bench compile_time --tasks``; orders the tasks, the largest first).
-_ENTRY_COSTS = {"estimate": 9.0, "filter": 1.4, "stream": 9.0}
+_ENTRY_COSTS = {"estimate": 2.0, "smoother": 9.0, "filter": 1.4, "stream": 9.0}
 #: The last step of the install-time compile, in a fresh process on the compiled cache.
 CHECK = "check"
 #: Tasks that compile in less CPU time than this (s, their costs) share one process: a process
@@ -180,13 +188,14 @@ def compile_tasks() -> list[str]:
     """The install-time compile's tasks, independent of each other, the largest first (so that
     the processes end together): every :class:`~mkf_ros.core._jit.Unit`
     (``"unit:MODULE.NAME"``) and the compiled loops that take them (``"entries:PART"``,
-    :func:`_entry_calls`); the small ones (:data:`SMALL_TASK`) together, as one task (their
-    names separated by spaces). Each runs in a fresh process: sharing one across the large
-    tasks saves no time (a kernel two tasks call is loaded from the cache by the second) and
-    keeps every compiled library in memory."""
+    :func:`_entry_calls`, of :data:`INSTALLED_PARTS`); the small ones (:data:`SMALL_TASK`)
+    together, as one task (their names separated by spaces). Each runs in a fresh process:
+    sharing one across the large tasks saves no time (a kernel two tasks call is loaded from
+    the cache by the second) and keeps every compiled library in memory."""
     first_use = _first_use_units()
     costs = {f"unit:{name}": u.cost for name, u in _units().items() if u not in first_use}
-    costs.update({f"entries:{part}": c for part, c in _ENTRY_COSTS.items()})
+    costs.update({f"entries:{part}": c for part, c in _ENTRY_COSTS.items()
+                  if part in INSTALLED_PARTS})
     small = sorted(t for t, c in costs.items() if c < SMALL_TASK)
     if len(small) > 1:
         costs[" ".join(small)] = sum(costs.pop(t) for t in small)
@@ -249,7 +258,7 @@ def run_compile_task(task: str) -> tuple[str, float, float, int]:
         elif part == CHECK:
             from mkf_ros.sim.motion import integrate
 
-            warmup(algorithms=INSTALLED_ALGORITHMS)
+            warmup(INSTALLED_PARTS, algorithms=INSTALLED_ALGORITHMS)
             integrate(np.array([1.0, 0.0, 0.0, 0.0]), np.zeros((2, 3)), 0.01)  # the simulator's
         else:
             raise ValueError(f"unknown compile task {part!r}")

@@ -179,12 +179,13 @@ class _Demo:
 
     def _warm(self) -> None:
         from mkf_ros.core.params import BY_NAME
-        from mkf_ros.kernels import FIRST_COMPILE_TIME, warmup
+        from mkf_ros.kernels import FIRST_COMPILE_TIME, INSTALLED_PARTS, warmup
 
         t0 = time.monotonic()
         self.say("  loading the filter kernels (compiled at install time; where that step did "
                  f"not run, the first run compiles them, {FIRST_COMPILE_TIME})...")
-        warmup(algorithms=(self.params.get("algorithm", BY_NAME["algorithm"].default),))
+        warmup(INSTALLED_PARTS,
+               algorithms=(self.params.get("algorithm", BY_NAME["algorithm"].default),))
         dt = time.monotonic() - t0
         self.say(f"  kernels ready in {dt:.1f} s{' (compiled and cached)' if dt > 5 else ''}\n")
 

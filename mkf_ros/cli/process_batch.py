@@ -96,10 +96,12 @@ def run(args: argparse.Namespace, params: dict[str, Any]) -> int:
         else:
             slots = min(args.jobs if args.jobs is not None else parallel.cores(), len(jobs))
             from mkf_ros.core.params import BY_NAME
-            from mkf_ros.kernels import warmup
+            from mkf_ros.kernels import INSTALLED_PARTS, warmup
 
-            # before forking: the workers inherit the kernels
-            warmup(algorithms=(params.get("algorithm", BY_NAME["algorithm"].default),))
+            # before forking: the workers inherit the kernels (the smoothers' compiled on
+            # their first use)
+            warmup((*INSTALLED_PARTS, "smoother") if args.smooth else INSTALLED_PARTS,
+                   algorithms=(params.get("algorithm", BY_NAME["algorithm"].default),))
             # one forked process per bag: a bag that crashes its process fails alone
             executor = parallel.ForkPerUnit(slots)
             where = f"{slots} process(es)"

@@ -230,25 +230,30 @@ _FIRST_USE = """
 import json
 import numpy as np
 import mkf_ros
-from mkf_ros.core import baseline_glue as glue, sensor
+from mkf_ros.core import baseline_glue as glue, sensor, smoother
 from mkf_ros.core.filter import AttitudeFilter
-from mkf_ros.kernels import INSTALLED_ALGORITHMS, compile_tasks, warmup
+from mkf_ros.kernels import INSTALLED_ALGORITHMS, INSTALLED_PARTS, compile_tasks, warmup
 from mkf_ros.sim import simulate
 from mkf_ros.stream.adapter import StreamAdapter
 
 def compiled():
     units = {"mukf": (sensor.mukf_update,),
              "baselines": (sensor.baseline_step, glue.export, glue.restore)}
-    return {k: [u._compiled is not None for u in v] for k, v in units.items()}
+    out = {k: [u._compiled is not None for u in v] for k, v in units.items()}
+    loops = (smoother.forward_recorded, smoother.backward, smoother.fuse_tilt_rows)
+    out["smoother"] = [bool(d.signatures) for d in loops]  # compiled or loaded
+    return out
 
 r = simulate("slow_rotation", duration=1.0, rate=100.0, seed=2, mag_rate=100.0)
-warmup(algorithms=INSTALLED_ALGORITHMS)
-# every front end of the MEKF, the smoother too
-mkf_ros.estimate(r.gyr, r.acc, r.mag, dt=0.01, smooth="two-way")
+warmup(INSTALLED_PARTS, algorithms=INSTALLED_ALGORITHMS)
+# every front end of the MEKF but the smoothers
+mkf_ros.estimate(r.gyr, r.acc, r.mag, dt=0.01)
 AttitudeFilter(use_mag=True).step(0.01, r.gyr[0], r.acc[0], r.mag[0])
 StreamAdapter().process(r.t, r.gyr, r.acc)
 steps = {"mekf": compiled()}
-q = {}
+q = {"smoother": mkf_ros.estimate(r.gyr, r.acc, r.mag, dt=0.01,
+                                  smooth="two-way").quat[-1].tolist()}
+steps["smoother"] = compiled()
 for algo in ("mukf", "euler_kf", "euler_ukf", "madgwick"):
     q[algo] = mkf_ros.estimate(r.gyr, r.acc, r.mag, dt=0.01, algorithm=algo).quat[-1].tolist()
     steps[algo] = compiled()
@@ -258,18 +263,21 @@ print(json.dumps({"installed": INSTALLED_ALGORITHMS, "steps": steps,
 
 
 def test_only_the_mekf_is_compiled_at_install_the_others_on_their_first_use() -> None:
-    """The install-time compile makes the MEKF's kernels (the default); the MUKF's update and
-    the comparison filters' kernels are compiled on their first use: the MEKF's front ends run
-    without compiling or loading them, the MUKF's first use compiles its update alone, a
-    baseline's the baselines' units, and each then tracks the truth."""
+    """The install-time compile makes the MEKF's kernels (the default) but its smoothers; the
+    smoothers' loops, the MUKF's update and the comparison filters' kernels are compiled on
+    their first use: the MEKF's other front ends run without compiling or loading them, a
+    first smoothing compiles the smoothers' loops alone, the MUKF's first use its update
+    alone, a baseline's the baselines' units, and each then tracks the truth."""
     out = _child(_FIRST_USE)
     assert out["installed"] == ["mekf"]
     steps = out["steps"]
-    assert steps["mekf"] == {"mukf": [False], "baselines": [False, False, False]}
-    assert steps["mukf"] == {"mukf": [True], "baselines": [False, False, False]}
-    assert steps["euler_kf"] == {"mukf": [True], "baselines": [True, True, True]}
+    none, three = [False, False, False], [True, True, True]
+    assert steps["mekf"] == {"mukf": [False], "baselines": none, "smoother": none}
+    assert steps["smoother"] == {"mukf": [False], "baselines": none, "smoother": three}
+    assert steps["mukf"] == {"mukf": [True], "baselines": none, "smoother": three}
+    assert steps["euler_kf"] == {"mukf": [True], "baselines": three, "smoother": three}
     for name in ("mukf_update", "baseline_step", "baseline_glue.export",
-                 "baseline_glue.restore"):
+                 "baseline_glue.restore", "entries:smoother"):
         assert name not in out["tasks"]
     assert "sensor.step" in out["tasks"]
     truth = np.array(out["truth"])
