@@ -7,8 +7,9 @@ directory and runs the install-time compile there as ``pip install`` and ``colco
 (``mkf_ros.kernels.precompile`` into the copy's ``_kernels``). Prints the wall time, the CPU
 time of every compiling process, and the peak resident memory, both of the largest process
 and of all of them together (sampled from /proc every 20 ms). Then, in a fresh process on the
-compiled cache, the time ``mkf_ros.warmup()`` takes and how many numba compiler passes it still
-ran (0: the install-time compile left nothing to compile for the first start), and in others
+compiled cache, the time ``mkf_ros.kernels.warmup_installed()`` takes and how many numba
+compiler passes it still ran (0: the install-time compile left nothing to compile for the
+first start), and in others
 what the first use of the MUKF, of a comparison filter (``euler_kf``, ``euler_ukf``,
 ``madgwick``) and of the smoothers (``estimate(..., smooth=...)``) costs: their own kernels
 are compiled then, not at install time. ``--tasks`` adds
@@ -56,9 +57,7 @@ class Count(ev.Listener):  # a compiler pass runs only when something compiles (
 ev.register("numba:run_pass", Count())
 t0 = time.perf_counter()
 import mkf_ros
-mkf_ros.warmup(mkf_ros.kernels.INSTALLED_PARTS, algorithms=mkf_ros.kernels.INSTALLED_ALGORITHMS)
-from mkf_ros.core.filter import kernel_table
-kernel_table()
+mkf_ros.kernels.warmup_installed()
 print(json.dumps({"seconds": time.perf_counter() - t0, "compiled": n[0]}))
 """
 
@@ -172,7 +171,8 @@ def main() -> None:
     print(f"\ninstall-time compile of every kernel, empty cache, {jobs} process(es) at a time, "
           f"{os.cpu_count()} CPUs\n")
     print("| environment | wall | CPU (all processes) | peak RSS, all processes |"
-          " peak RSS, largest process | warmup() after it | compiler passes run by that warmup |"
+          " peak RSS, largest process | warmup_installed() after it |"
+          " compiler passes run by it |"
           + "".join(f" first use of {a}: wall / CPU / peak RSS |" for a, _, _ in _FIRST_USE_OF))
     print("|---|---:|---:|---:|---:|---:|---:|" + "---:|" * len(_FIRST_USE_OF))
     for r in results:

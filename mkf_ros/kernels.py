@@ -103,6 +103,17 @@ def warmup(parts: Sequence[str] = WARMUP_PARTS,
                 s.on_imu(1.0 + 0.01 * k, gyr[k], acc[k])
 
 
+def warmup_installed() -> None:
+    """Load (or compile) what the install-time compile makes: the kernels of
+    :data:`INSTALLED_PARTS` for :data:`INSTALLED_ALGORITHMS`, and the simulator's (``mkf
+    synth``). The install's last step (:data:`CHECK`) runs it on the compiled cache; after
+    it, this compiles nothing."""
+    from mkf_ros.sim.motion import integrate
+
+    warmup(INSTALLED_PARTS, algorithms=INSTALLED_ALGORITHMS)
+    integrate(np.array([1.0, 0.0, 0.0, 0.0]), np.zeros((2, 3)), 0.01)
+
+
 def warm_all() -> str:
     """Compile (or load) every kernel: the filters' (:func:`warmup`), the simulator's and the
     study's; returns the code version (:func:`mkf_ros.parallel.code_version`)."""
@@ -241,9 +252,9 @@ def _compiler_process() -> None:
 
 
 def run_compile_task(task: str) -> tuple[str, float, float, int]:
-    """One task of :func:`compile_tasks` (or :data:`CHECK`: :func:`warmup` and the simulator's
-    kernel; several, separated by spaces, one after the other) in this process:
-    ``(task, wall s, CPU s, peak RSS of this process in KiB)``."""
+    """One task of :func:`compile_tasks` (or :data:`CHECK`: :func:`warmup_installed`; several,
+    separated by spaces, one after the other) in this process: ``(task, wall s, CPU s, peak RSS
+    of this process in KiB)``."""
     t0, c0 = time.perf_counter(), time.process_time()
     for part in task.split():
         kind, _, name = part.partition(":")
@@ -256,10 +267,7 @@ def run_compile_task(task: str) -> tuple[str, float, float, int]:
                 for dispatcher, args in _entry_calls(name):
                     dispatcher.compile(tuple(numba.typeof(a) for a in args))
         elif part == CHECK:
-            from mkf_ros.sim.motion import integrate
-
-            warmup(INSTALLED_PARTS, algorithms=INSTALLED_ALGORITHMS)
-            integrate(np.array([1.0, 0.0, 0.0, 0.0]), np.zeros((2, 3)), 0.01)  # the simulator's
+            warmup_installed()
         else:
             raise ValueError(f"unknown compile task {part!r}")
     _TASK_DONE.append(True)

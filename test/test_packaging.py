@@ -491,10 +491,7 @@ class Count(ev.Listener):  # a compiler pass runs only when something compiles, 
 ev.register("numba:run_pass", Count())
 import mkf_ros
 from mkf_ros.core import _jit
-mkf_ros.warmup(mkf_ros.kernels.INSTALLED_PARTS, algorithms=mkf_ros.kernels.INSTALLED_ALGORITHMS)
-import numpy as np
-from mkf_ros.sim.motion import integrate  # the simulator's kernel (mkf synth) is shipped too
-integrate(np.array([1.0, 0.0, 0.0, 0.0]), np.zeros((2, 3)), 0.01)
+mkf_ros.kernels.warmup_installed()  # the simulator's kernel (mkf synth) is shipped too
 print(json.dumps({"file": mkf_ros.__file__, "passes": passes[0],
                   "packaged": (_jit.PACKAGED_CACHE_ROOT / f"numba-{_jit.KERNEL_HASH}").is_dir()}))
 """

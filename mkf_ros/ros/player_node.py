@@ -410,7 +410,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             executor.spin_once(timeout_sec=0.1)
         code = 1 if node.failed else 0
     except (KeyboardInterrupt, ExternalShutdownException):
-        await_signal_shutdown(executor.context)
+        # rclpy's signal thread may still be at work: let it finish before the teardown
+        await_signal_shutdown(rclpy.get_default_context())
     finally:
         executor.shutdown()
         node.destroy_node()

@@ -232,7 +232,7 @@ import numpy as np
 import mkf_ros
 from mkf_ros.core import baseline_glue as glue, sensor, smoother
 from mkf_ros.core.filter import AttitudeFilter
-from mkf_ros.kernels import INSTALLED_ALGORITHMS, INSTALLED_PARTS, compile_tasks, warmup
+from mkf_ros.kernels import INSTALLED_ALGORITHMS, compile_tasks, warmup_installed
 from mkf_ros.sim import simulate
 from mkf_ros.stream.adapter import StreamAdapter
 
@@ -245,7 +245,7 @@ def compiled():
     return out
 
 r = simulate("slow_rotation", duration=1.0, rate=100.0, seed=2, mag_rate=100.0)
-warmup(INSTALLED_PARTS, algorithms=INSTALLED_ALGORITHMS)
+warmup_installed()
 # every front end of the MEKF but the smoothers
 mkf_ros.estimate(r.gyr, r.acc, r.mag, dt=0.01)
 AttitudeFilter(use_mag=True).step(0.01, r.gyr[0], r.acc[0], r.mag[0])
