@@ -195,7 +195,7 @@ def _madgwick_update(c: np.record, s: np.record, dt: float, z: Fusion) -> None:
     without an accelerometer one is held for the next IMU sample)."""
     m = np.array(z.m)
     use_m = z.has_m
-    has_a = z.has_a and z.a_ok
+    has_a = z.has_a_raw
     if z.has_m and not has_a:  # hold it for the next IMU sample
         copy_into(s.held_mag, m)
         s.mag_held = True
@@ -225,7 +225,7 @@ def _euler_kf_update(c: np.record, s: np.record, dt: float, z: Fusion) -> tuple:
     euler_kf_predict(x, s.P, s.w, dt, c.gyro_var)
     acc_nis = 0.0
     mag_nis = 0.0
-    if z.has_a and z.a_ok:
+    if z.has_a_raw:
         acc_nis = euler_kf_acc_update(x, s.P, np.array(z.a_raw), var_a, z.acc_gate)
     if z.has_m:
         resid, _ = heading_residual(rotmat(euler_to_quat(x[0], x[1], x[2])), np.array(z.m),
@@ -259,7 +259,7 @@ def _euler_ukf_update(c: np.record, s: np.record, dt: float, z: Fusion) -> tuple
             resid, _ = heading_residual(rotmat(euler_to_quat(xx[0], xx[1], xx[2])),
                                         np.array(z.m), _h_ref(s))
             zz[6] = resid
-        use = np.array((z.has_a and z.a_ok, z.has_g, z.has_m))
+        use = np.array((z.has_a_raw, z.has_g, z.has_m))
         Rd = np.array((var_a, var_a, var_a, var_w, var_w, var_w, mag_yaw_var(c, s.mag_ref)))
         gates = np.array((z.acc_gate, np.inf, z.mag_gate))
         nis = np.zeros(3)

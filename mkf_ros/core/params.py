@@ -175,10 +175,6 @@ PARAMS: tuple[Param, ...] = (
        "against it, a rest learns a turn-on bias up to 0.05 rad/s in seconds)",
        unit="rad/s", range=(1e-9, 1.0), group="noise"),
     # --- disturbances and calibration (extensions for real sensors) --------------------------
-    _P("acc_norm_tolerance", float, 0.5, "Accelerometer samples (after the low-pass) whose "
-       "magnitude differs from gravity by more than this fraction are not fused (the excess "
-       "also widens the disturbance of every sample)", unit="1", range=(0.0, 1000.0),
-       group="robustness"),
     _P("acc_time_constant", float, 0.8, "The accelerometer is low-passed in an almost "
        "inertial frame before it corrects the tilt (extension): two first-order stages with "
        "this time constant whose memory turns with the body by the gyro. Gravity passes "
@@ -325,8 +321,8 @@ PARAMS: tuple[Param, ...] = (
     _P("acc_magnitude_tolerance", float, 0.5, "Plausibility check before the filter: "
        "accelerometer samples whose magnitude differs from gravity by more than this fraction "
        "(gravity removed? units of g?) never reach the filter, not even to initialise; the "
-       "filter's acc_norm_tolerance gates the rest", unit="1", range=(0.01, 1000.0),
-       scope="node", group="node: input and time"),
+       "filter weighs the rest by their magnitude's distance from gravity", unit="1",
+       range=(0.01, 1000.0), scope="node", group="node: input and time"),
     # --- node: output -----------------------------------------------------------------------------
     _P("angular_velocity_source", str, "input", "angular_velocity published in imu/data: the "
        "input gyro as received, the input minus the estimated gyro bias, or the filter's "
@@ -397,6 +393,8 @@ REMOVED: dict[str, tuple[float, str]] = {
     "acc_recovery_time": (1.0, "s"),
     "mag_recovery_time": (10.0, "s"),
     "rest_bias_range": (0.05, "rad/s"),
+    "acc_norm_tolerance": (0.5, "g off gravity: a raw accelerometer sample beyond it is left "
+                                "out of the blend"),
 }
 
 

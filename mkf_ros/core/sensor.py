@@ -74,6 +74,7 @@ from mkf_ros.core.state import (
     ACC_CLIP_MIN_G,
     ACC_CLIP_SIGMAS,
     ACC_GATE,
+    ACC_NORM_TOLERANCE,
     ACC_RECOVERY_TIME,
     ALGO_EULER_KF,
     ALGO_MEKF,
@@ -522,13 +523,16 @@ def _gyro(c: np.record, s: np.record, k: np.record, g: tuple, has_g: bool,
 
 # --- 4. the accelerometer --------------------------------------------------------------------
 @hot
-def _acc_blend(c: np.record, s: np.record, kq: float, u_raw: tuple, q_raw: float, ex: float,
-               ex2: float, qc: float) -> tuple:
+def _acc_blend(c: np.record, s: np.record, kq: float, u_raw: tuple, ex: float, ex2: float,
+               qc: float) -> tuple:
     """The low-pass view of gravity and its blend with the raw one (:func:`_acc_measurement`);
     returns ``(u, q, status, share)``, ``share`` the low-pass's weight in ``u``; ``qc`` the
-    variance of an error common to both views, which the blend does not reduce."""
+    variance of an error common to both views, which the blend does not reduce. Status 0:
+    blended; 1: the raw sample, :data:`~mkf_ros.core.state.ACC_NORM_TOLERANCE` or more off
+    gravity (a shock, a running person's footfall), has no say; 2: the low-pass itself is that
+    far off (a sustained acceleration, or a memory the gyro turned wrong, which its variance
+    does not describe) and nothing is fused."""
     g0 = c.gravity
-    tol = c.acc_norm_tolerance
     lp = (s.acc_lp2[0], s.acc_lp2[1], s.acc_lp2[2])
     n_lp = np.sqrt(lp[0] * lp[0] + lp[1] * lp[1] + lp[2] * lp[2])
     ex_lp = n_lp / g0 - 1.0
@@ -538,10 +542,10 @@ def _acc_blend(c: np.record, s: np.record, kq: float, u_raw: tuple, q_raw: float
     a1 = s.acc_lp
     d2 = ((a1[0] - lp[0]) ** 2 + (a1[1] - lp[1]) ** 2 + (a1[2] - lp[2]) ** 2) / (g0 * g0)
     q_lp = c.acc_disturbance_var + ex_lp * ex_lp + d2 + rot * rot
-    if abs(ex_lp) > tol:  # refused (the low-pass holds a sustained acceleration)
+    if abs(ex_lp) > ACC_NORM_TOLERANCE:  # refused (the low-pass holds a sustained acceleration)
         return u_lp, kq * q_lp + qc, 2, 1.0
-    if abs(ex) > tol:  # an implausible raw sample has no say (the low-pass still takes it:
-        return u_lp, kq * q_lp + qc, 1, 1.0  # shaking is symmetric about gravity)
+    if abs(ex) > ACC_NORM_TOLERANCE:  # an implausible raw sample has no say (the low-pass
+        return u_lp, kq * q_lp + qc, 1, 1.0  # still takes it: shaking is symmetric about gravity)
     q_rw = _raw_var(c, ex2, s.acc_excess)
     w = q_rw / (q_rw + q_lp)
     u = (w * u_lp[0] + (1.0 - w) * u_raw[0], w * u_lp[1] + (1.0 - w) * u_raw[1],
@@ -579,10 +583,12 @@ def _acc_measurement(c: np.record, s: np.record, dt: float, wl: tuple, Rw: tuple
                      has_a: bool) -> tuple:
     """The accelerometer as the filters fuse it (extension): the unit direction and the
     disturbance variance per sample ``Q_a`` (normalised units), the raw sample's direction and
-    variance (the baselines fuse those, as in the report), a status: 0 fused, 1 the raw
-    sample failed the magnitude test (``acc_norm_tolerance``) and only the low-pass is fused,
-    2 nothing is fused (no sample, or the low-pass itself fails the test), and the low-pass's
-    weight in the fused direction.
+    variance (the baselines fuse those, as in the report, whatever their magnitude), a status
+    (:func:`_acc_blend`'s; 2 also without a sample) and the low-pass's weight in the fused
+    direction. With the low-pass, a raw sample :data:`~mkf_ros.core.state.ACC_NORM_TOLERANCE`
+    or more off gravity has no say, in the blend or alone while the low-pass forms its first
+    average (refused then); without it (``acc_time_constant = 0``) the raw sample is all there
+    is and is fused with the variance its distance from gravity gives it.
 
     Two views of gravity, each with its own error model, blended by inverse variance:
 
@@ -626,11 +632,10 @@ def _acc_measurement(c: np.record, s: np.record, dt: float, wl: tuple, Rw: tuple
     q_raw = c.acc_disturbance_var + ex * ex
     u_raw = (a[0] / n_raw, a[1] / n_raw, a[2] / n_raw)
     kq = _correlated(c.acc_disturbance_time, dta)
-    raw_status = 0 if abs(ex) <= c.acc_norm_tolerance else 2
     if tau <= 0.0:  # the raw view alone: its excess power over the disturbance's time
         al = _acc_memory_gain(s, dta, c.acc_disturbance_time)[0]
         q = _raw_var(c, ex2, _learn_excess(s, al, ex2))
-        return u_raw, kq * q, u_raw, q_raw, raw_status, 0.0
+        return u_raw, kq * q, u_raw, q_raw, 0, 0.0
     al, start = _acc_memory_gain(s, dta, tau)  # start: still the first average
     a_lp, ex2_lp = _acc_robust(c, s, a, al, ex2)
     _lowpass(s.acc_lp, a_lp, al)
@@ -645,12 +650,13 @@ def _acc_measurement(c: np.record, s: np.record, dt: float, wl: tuple, Rw: tuple
     if n_up > 0.0:
         s.acc_yaw_lp += al * ((wl[0] * up[0] + wl[1] * up[1] + wl[2] * up[2]) / n_up
                               - s.acc_yaw_lp)
-    if start:  # the low-pass is still forming its first average: the raw sample alone
-        return u_raw, kq * q_raw, u_raw, q_raw, raw_status, 0.0
+    if start:  # the low-pass is still forming its first average: the raw sample alone, unless
+        # it has no say (as in the blend)
+        return u_raw, kq * q_raw, u_raw, q_raw, 2 if abs(ex) > ACC_NORM_TOLERANCE else 0, 0.0
     # a turn at speed: the centripetal acceleration v Ω̄ across gravity, in both views alike and
     # correlated over the low-pass's memory (docs/math.md §9.3)
     cen = c.acc_turn_speed * s.acc_yaw_lp / c.gravity
-    u, q, status, share = _acc_blend(c, s, kq, u_raw, q_raw, ex, ex2,
+    u, q, status, share = _acc_blend(c, s, kq, u_raw, ex, ex2,
                                      _correlated(tau, dta) * cen * cen)
     return u, q, u_raw, q_raw, status, share
 
@@ -723,9 +729,9 @@ def acc_recovery(c: np.record, s: np.record, cn: Canonical, a: tuple, a_body: tu
 def _accelerometer(c: np.record, s: np.record, k: np.record, u: Units, dt: float, wl: tuple,
                    Rw: tuple, a: tuple, has_a: bool) -> tuple:
     """The accelerometer's view of gravity (:func:`_acc_measurement`), the recovery of a
-    long-refused tilt (:func:`acc_recovery`) and the magnitude test's count. Returns
-    ``(a_body, var_a, a_raw, var_a_raw, a_ok, has_a, a_sens, a_bias_gain)``: ``a_ok`` the raw
-    sample passed the magnitude test, ``has_a`` something is fused, the last two as
+    long-refused tilt (:func:`acc_recovery`) and the magnitude's count. Returns
+    ``(a_body, var_a, a_raw, var_a_raw, has_a, a_sens, a_bias_gain)``: ``has_a`` something is
+    fused (the baselines fuse the raw sample whenever there is one), the last two as
     :func:`_acc_bias_coupling`'s."""
     a_body, qa, a_rawu, qa_raw, a_stat, share = _acc_measurement(c, s, dt, wl, Rw, a, has_a)
     a_sens, a_bias_gain = _acc_bias_coupling(c, s, share)
@@ -736,7 +742,7 @@ def _accelerometer(c: np.record, s: np.record, k: np.record, u: Units, dt: float
             k.acc_rejected_norm += 1
         if a_stat == 2:
             has_a = False
-    return a_body, qa, a_rawu, qa_raw, a_stat == 0, has_a, a_sens, a_bias_gain
+    return a_body, qa, a_rawu, qa_raw, has_a, a_sens, a_bias_gain
 
 
 # --- 5. rest ---------------------------------------------------------------------------------
@@ -1405,14 +1411,14 @@ def step(c: np.record, s: np.record, k: np.record, w: np.record, u: Units, dt: f
         s.t_mag_disagree += dt
     g, has_g, wl = _gyro(c, s, k, gyr if has_g else ZERO3, has_g, dt)
     Rw = rotmat_t(q_omega_t(wl, dt))  # R(Δq): body axes of the previous sample → this one
-    a_body, var_a, a_raw, var_a_raw, a_ok, has_a, a_sens, a_bias_gain = _accelerometer(
+    a_body, var_a, a_raw, var_a_raw, has_a_fused, a_sens, a_bias_gain = _accelerometer(
         c, s, k, u, dt, wl, Rw, acc, has_a)
-    rest = _rest_test(c, s, dt, g, has_g, acc, has_a, gs == MISSING, as_ == MISSING)
+    rest = _rest_test(c, s, dt, g, has_g, acc, has_a_fused, gs == MISSING, as_ == MISSING)
     has_m, dtm = _magnetometer(c, s, k, u, dt, wl, Rw, m, m_norm, has_m)
     _gyro_scale_noise(c, s, w, dt, wl)
     m_ref, h_ref, var_h, acc_gate, mag_gate = _fusion(c, s, has_m, dtm)
-    z = Fusion(g, has_g, rest and c.algorithm < ALGO_EULER_KF, a_body, var_a, has_a, a_raw,
-               var_a_raw, a_ok, m, has_m, m_ref, h_ref, var_h, acc_gate, mag_gate, a_sens,
+    z = Fusion(g, has_g, rest and c.algorithm < ALGO_EULER_KF, a_body, var_a, has_a_fused,
+               a_raw, var_a_raw, has_a, m, has_m, m_ref, h_ref, var_h, acc_gate, mag_gate, a_sens,
                a_bias_gain)
     ok, acc_nis, mag_nis = _update(c, s, k, w, u, dt, z)
     _bookkeeping(c, s, k, z, ok, acc_nis, mag_nis, m_norm)

@@ -39,7 +39,7 @@ NX_MAX = 9  # states: attitude error e, rate ω, gyro bias b
 #: Parameters the kernels use as they are: a :data:`CONFIG` field of the same name each.
 COPIED_PARAMS = (
     "mukf_w0", "rate_process_noise", "max_dt", "gravity",
-    "acc_norm_tolerance", "acc_time_constant", "acc_bias_excess",
+    "acc_time_constant", "acc_bias_excess",
     "mag_bias_gain", "acc_turn_speed",
     "acc_disturbance_time", "acc_alignment_error", "gyro_scale_error",
     "mag_time_constant", "mag_consistency_tolerance",
@@ -191,13 +191,13 @@ WORK = np.dtype(
 #: (:func:`mkf_ros.core.sensor.step`): the gyro reading (bias included) and whether to fuse it;
 #: rest (the zero-rate pseudo-measurement); gravity as the MKFs fuse it (unit direction ``a``,
 #: disturbance variance ``var_a`` per sample, ``has_a``) and the raw sample the baselines fuse
-#: (``a_raw``, ``var_a_raw``, ``a_ok``: it passed the magnitude test); the field's unit
+#: (``a_raw``, ``var_a_raw``, ``has_a_raw``: whenever there is a sample); the field's unit
 #: direction ``m`` and ``has_m``, its world reference ``m_ref``, horizontal reference ``h_ref``
 #: and heading variance ``var_h`` per sample; the χ² gates; ``a_sens`` (3×3, rows): how the fused
 #: gravity direction turns with the gyro bias error (``a ≈ v + [v]× a_sens δb``, docs/math.md
 #: §9.1) and ``a_bias_gain``, the share of the Kalman gain the bias takes from it.
 Fusion = namedtuple("Fusion", ("g", "has_g", "rest", "a", "var_a", "has_a", "a_raw", "var_a_raw",
-                               "a_ok", "m", "has_m", "m_ref", "h_ref", "var_h", "acc_gate",
+                               "has_a_raw", "m", "has_m", "m_ref", "h_ref", "var_h", "acc_gate",
                                "mag_gate", "a_sens", "a_bias_gain"))
 
 # --- the numba types of the records and tuples above (the signatures of compile units) ------
@@ -275,6 +275,11 @@ MAG_RECOVERY_TIME = REMOVED["mag_recovery_time"][0]
 #: large is taken for a gyro's turn-on bias (a MEMS gyro's, up to a few °/s), and the first rest
 #: raises the bias variance to its square; afterwards the bias changes by its random walk only.
 REST_BIAS_RANGE = REMOVED["rest_bias_range"][0]
+#: A raw accelerometer sample whose magnitude is this far from gravity (a fraction of g) has no
+#: say in the fused direction while the low-pass holds (:func:`mkf_ros.core.sensor._acc_blend`;
+#: the low-pass still takes it, clipped). Nothing is refused for its magnitude: without the
+#: low-pass such a sample is fused with the variance its excess gives it.
+ACC_NORM_TOLERANCE = REMOVED["acc_norm_tolerance"][0]
 # Euler baselines' tilt re-alignment (:func:`baseline_realign`): the accelerometer "looks like
 # gravity" when its magnitude is within this fraction of ``gravity`` ...
 REALIGN_ACC_TOL = 0.05
@@ -286,8 +291,8 @@ REALIGN_MAX_RATE = 0.5
 #: A gyro reading faster than this (rad/s, ~9500 rpm) is beyond any MEMS gyro's range: invalid.
 MAX_GYRO_RATE = 1000.0
 #: An accelerometer reading larger than this many times ``gravity`` is invalid (no IMU's
-#: accelerometer reads 10,000 g; the filter's own magnitude test, ``acc_norm_tolerance``, judges
-#: the plausible ones).
+#: accelerometer reads 10,000 g; the filter weighs the plausible ones by their magnitude's
+#: distance from gravity).
 MAX_ACC_G = 1e4
 #: A (calibrated) magnetometer reading larger than this, in any unit, is invalid: no field in
 #: tesla, gauss, µT or raw counts comes near it, and the square of a larger one can overflow.

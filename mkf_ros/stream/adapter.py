@@ -75,6 +75,7 @@ from mkf_ros.core.filter import (
 from mkf_ros.core.frames import FROM_ENU
 from mkf_ros.core.params import BY_NAME, PARAMS, FilterParams, Param
 from mkf_ros.core.quaternion import qconj_np, qmul_np, rotmat_np
+from mkf_ros.core.state import ACC_NORM_TOLERANCE
 from mkf_ros.stream import kernel as sk
 from mkf_ros.stream import rep145
 
@@ -121,7 +122,8 @@ _FILTER_SKIP = {"samples", "gyr_missing", "gyr_invalid", "acc_missing", "acc_inv
                 "mag_missing", "mag_invalid", "before_init", "gaps", "update_failed"}
 FILTER_REPORTED = tuple(n for n in FILTER_COUNTERS if n not in _FILTER_SKIP)
 _FILTER_REASONS = {
-    "acc_rejected_norm": "accelerometer samples not fused: magnitude (acc_norm_tolerance)",
+    "acc_rejected_norm": "raw accelerometer samples left out of the blend: magnitude over "
+                         f"{ACC_NORM_TOLERANCE:g} g off gravity (the low-pass still takes them)",
     "acc_rejected_chi2": "accelerometer samples not fused: innovation gate (chi-square 16.3)",
     "mag_rejected_norm": "magnetometer samples not fused: magnitude (mag_norm_tolerance)",
     "mag_rejected_chi2": "magnetometer samples not fused: innovation gate (chi-square 10.8)",

@@ -123,7 +123,8 @@ def test_unknown_keyword_is_one_short_line_with_a_suggestion() -> None:
 @pytest.mark.parametrize("name, level", [("acc_gate", "16.3"), ("mag_gate", "10.8"),
                                          ("gyro_gate", "10000"), ("acc_recovery_time", "1 s"),
                                          ("mag_recovery_time", "10 s"),
-                                         ("rest_bias_range", "0.05 rad/s")])
+                                         ("rest_bias_range", "0.05 rad/s"),
+                                         ("acc_norm_tolerance", "0.5 g off gravity")])
 def test_a_removed_parameter_is_refused_with_the_level_that_replaced_it(name: str,
                                                                         level: str) -> None:
     """A script or parameter file written for the version that had them is told what

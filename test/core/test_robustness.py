@@ -13,8 +13,7 @@ from mkf_ros.evaluation.metrics import orientation_errors, rmse_deg, roll_pitch_
 from mkf_ros.sim import simulate
 
 ALGOS = ["mekf", "mukf"]
-NO_ROBUSTNESS = dict(acc_norm_tolerance=1000.0,
-                     mag_norm_tolerance=1000.0, mag_mode="vector",
+NO_ROBUSTNESS = dict(mag_norm_tolerance=1000.0, mag_mode="vector",
                      rest_detection=False, acc_time_constant=0.0, acc_disturbance_time=0.0,
                      mag_disturbance_time=0.0, mag_consistency_tolerance=1000.0,
                      gyro_scale_error=0.0)
@@ -55,13 +54,13 @@ def test_bias_tracks_while_moving(algorithm: str) -> None:
 @pytest.mark.parametrize("algorithm", ALGOS)
 def test_translational_acceleration_does_not_tilt(algorithm: str) -> None:
     """3 g pushes in random directions, 0.3–1 s each (one period of a sine: the body moves and
-    stops): inclination RMSE ≤ 1.5°, never above 5°, the raw samples beyond the magnitude
-    test counted. (0.5° was the first target; since the accelerometer is low-passed in an
-    almost inertial frame, which averages out shaking but carries a push for its memory:
-    measured 1.2° here, where the paper's raw accelerometer without any of the robustness
-    gets 1.0°; on sustained shaking it is 0.6° against more than 4× that,
-    :func:`test_sustained_shaking_does_not_tilt`, and on BROAD's real shaking 0.5° against
-    26–60°.)"""
+    stops): inclination RMSE ≤ 1.5°, never above 5°, the raw samples more than half a g off
+    gravity counted as left out of the blend. (0.5° was the first target; since the
+    accelerometer is low-passed in an almost inertial frame, which averages out shaking but
+    carries a push for its memory: measured 1.2° here, where the paper's raw accelerometer
+    without any of the robustness gets 1.0°; on sustained shaking it is 0.6° against more
+    than 4× that, :func:`test_sustained_shaking_does_not_tilt`, and on BROAD's real shaking
+    0.5° against 26–60°.)"""
     sim = simulate("accel_bursts", duration=60, rate=100, seed=3)
     r = mkf_ros.estimate(sim.gyr, sim.acc, sim.mag, timestamps=sim.t, algorithm=algorithm)
     incl = orientation_errors(r.quat, sim.quat)["inclination"][100:]
