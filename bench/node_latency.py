@@ -26,6 +26,7 @@ estimator / stand-in (the mean of the per-repetition ratios, and their range).
     ./run bench node_latency --subjects estimator --rates 200 1000 2000 3000 4000
     ./run bench node_latency --estimator-cmd "OTHER/.venv/bin/estimator"   # another build
     ./run bench node_latency --callback             # the callback's parts, one process
+    ./run bench node_latency --estimator-part parse # the node with its callback cut after a step
 """
 
 from __future__ import annotations
@@ -239,6 +240,42 @@ def role_callback(seconds: float) -> None:
     rclpy.try_shutdown()
 
 
+#: ``--estimator-part``: the estimator with its IMU callback cut after this step (each part
+#: includes the ones before it; the last publishes what the node publishes)
+PARTS = ("republish", "parse", "filter", "encode")
+
+
+def role_estimator_part(part: str) -> int:
+    """The installed estimator node, but its IMU callback replaced by the first steps of its
+    own (lock, counters and checks left out), up to ``part``: ``republish`` publishes the
+    input bytes (the node's structure with the stand-in's callback), ``parse`` reads the
+    message first (``rawmsg.unpack_imu``), ``filter`` also runs the filter step, ``encode``
+    also builds and publishes ``imu/data``. The ratio to the stand-in then says what each step
+    costs in a running node (caches shared with DDS's threads), not in a warm loop."""
+    from mkf_ros.ros import estimator_main, rawmsg
+    from mkf_ros.ros.estimator_node import EstimatorNode
+
+    def on_imu(self: Any, data: bytes) -> None:
+        if part == "republish":
+            self._pub.publish(data)
+            return
+        sec, nsec, off, gyr, acc = rawmsg.unpack_imu(data)
+        if part == "parse":
+            self._pub.publish(data)
+            return
+        stream = self.stream
+        rawmsg.pack_imu_event(stream.imu_event_bytes, sec + nsec * 1e-9, gyr, acc)
+        flags = stream.run_imu_event()
+        if part == "filter":
+            self._pub.publish(data)
+        elif flags:
+            self._pub.publish(self._encode(data, off, flags, sec, nsec, None))
+
+    EstimatorNode._on_imu = on_imu  # type: ignore[method-assign]
+    argv = [a for a in sys.argv if a != "_estimator_part" and not a.startswith("--part=")]
+    return estimator_main.main(argv)
+
+
 def role_record(out: str) -> None:
     """Record (stamp, receive time) of every imu/data message until SIGINT; save .npy."""
     import numpy as np
@@ -294,7 +331,11 @@ def subject_cmd(subject: str, args: argparse.Namespace) -> list[str]:
         "qos_overrides./imu/data_raw.subscription.depth": str(args.depth),
         "qos_overrides./imu/mag.subscription.depth": str(args.depth),
     }
-    if subject == "estimator" and args.estimator_cmd:
+    if subject == "estimator" and args.estimator_part:
+        base = [sys.executable, str(HERE), "_estimator_part", f"--part={args.estimator_part}",
+                f"--executor={args.executor}"]
+        params.update({"use_mag": "true", "algorithm": args.algorithm})
+    elif subject == "estimator" and args.estimator_cmd:
         base = shlex.split(args.estimator_cmd)
         params.update({"use_mag": "true", "algorithm": args.algorithm})
     elif subject == "estimator":
@@ -502,8 +543,9 @@ def run(args: argparse.Namespace) -> int:
     print(f"ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST, domains {domains}; {os.cpu_count()} "
           f"cores, load average {os.getloadavg()[0]:.1f}, nice {args.nice}; estimator: "
           f"{args.algorithm}, use_mag, {args.executor} executor; input QoS {args.qos} depth "
-          f"{args.depth}; {args.reps} x {args.seconds:g} s per rate and subject, interleaved",
-          flush=True)
+          f"{args.depth}; {args.reps} x {args.seconds:g} s per rate and subject, interleaved"
+          + (f"; the estimator's callback cut after '{args.estimator_part}'"
+             if args.estimator_part else ""), flush=True)
     rigs = {s: Rig(s, d, args, tmp) for s, d in zip(args.subjects, domains, strict=True)}
     rows = {}
     try:
@@ -568,6 +610,10 @@ def main() -> int:
     ap.add_argument("--estimator-cmd", help="run this command as the estimator instead of the "
                     "installed one (e.g. another checkout's .venv/bin/estimator); the ROS "
                     "arguments are appended")
+    ap.add_argument("--estimator-part", choices=PARTS, help="run the estimator with its IMU "
+                    "callback cut after this step (republish: the input bytes; parse, filter, "
+                    "encode: each step of its own added): what each step costs in a running node")
+    ap.add_argument("--part", choices=PARTS, help=argparse.SUPPRESS)
     ap.add_argument("--standin-cmd", help="run this command as the stand-in (an A/B comparison "
                     "of two estimators: the ratio is estimator / this); ROS arguments appended")
     ap.add_argument("_role", nargs="?", help=argparse.SUPPRESS)
@@ -582,6 +628,8 @@ def main() -> int:
     if args._role == "_standin":
         role_standin()
         return 0
+    if args._role == "_estimator_part":
+        return role_estimator_part(args.part)
     if args.callback:
         os.environ.setdefault("ROS_DOMAIN_ID", str(quiet_domains(1)[0]))
         role_callback(args.seconds)
