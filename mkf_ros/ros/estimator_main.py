@@ -132,7 +132,9 @@ def main(argv: Sequence[str] | None = None, *, node_class: type[EstimatorNode] |
     except Exception:
         if rclpy.ok():
             raise
-        # SIGTERM during start-up: the context is already shut down; nothing to report
+        # a signal shut the context down under us (during start-up, or between the executor's
+        # check of the context and its wait: an RCLError "context is not valid")
+        await_signal_shutdown(rclpy.get_default_context())
     finally:
         if executor is not None:
             executor.shutdown()

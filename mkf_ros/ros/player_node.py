@@ -412,6 +412,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     except (KeyboardInterrupt, ExternalShutdownException):
         # rclpy's signal thread may still be at work: let it finish before the teardown
         await_signal_shutdown(rclpy.get_default_context())
+    except Exception:
+        if rclpy.ok():
+            raise
+        # the signal thread shut the context down between rclpy.ok() and the executor's wait
+        # (an RCLError "context is not valid"): a SIGINT like the above
+        await_signal_shutdown(rclpy.get_default_context())
     finally:
         executor.shutdown()
         node.destroy_node()
