@@ -275,10 +275,11 @@ MAG_RECOVERY_TIME = REMOVED["mag_recovery_time"][0]
 #: large is taken for a gyro's turn-on bias (a MEMS gyro's, up to a few °/s), and the first rest
 #: raises the bias variance to its square; afterwards the bias changes by its random walk only.
 REST_BIAS_RANGE = REMOVED["rest_bias_range"][0]
-#: A raw accelerometer sample whose magnitude is this far from gravity (a fraction of g) has no
-#: say in the fused direction while the low-pass holds (:func:`mkf_ros.core.sensor._acc_blend`;
-#: the low-pass still takes it, clipped). Nothing is refused for its magnitude: without the
-#: low-pass such a sample is fused with the variance its excess gives it.
+#: With the accelerometer's low-pass (:func:`mkf_ros.core.sensor._acc_measurement`), a raw sample
+#: whose magnitude is this far from gravity (a fraction of g) has no say: left out of the blend
+#: (the low-pass still takes it, clipped), refused while the low-pass forms its first average;
+#: a low-pass that far off is refused. Without the low-pass (``acc_time_constant = 0``) nothing
+#: is refused for its magnitude: the sample is fused with the variance its excess gives it.
 ACC_NORM_TOLERANCE = REMOVED["acc_norm_tolerance"][0]
 # Euler baselines' tilt re-alignment (:func:`baseline_realign`): the accelerometer "looks like
 # gravity" when its magnitude is within this fraction of ``gravity`` ...

@@ -13,13 +13,13 @@ from collections.abc import Sequence
 from typing import Any
 
 import rclpy
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.executors import SingleThreadedExecutor
 from rclpy.utilities import remove_ros_args
 
 from mkf_ros.core.params import PARAMS
 from mkf_ros.ros import calibration
 from mkf_ros.ros.estimator_node import EstimatorNode, ParameterError
-from mkf_ros.ros.signals import await_signal_shutdown
+from mkf_ros.ros.signals import ends_on_signal
 
 #: ``single``: rclpy's SingleThreadedExecutor (rebuilds its wait set in Python for every
 #: message: ~0.3 ms of CPU per message here); ``events``: the C++ EventsExecutor of rclpy
@@ -118,23 +118,15 @@ def main(argv: Sequence[str] | None = None, *, node_class: type[EstimatorNode] |
     executor = node = None
     code = 0
     try:
-        executor = make_executor(kind)
-        node = (node_class or EstimatorNode)(argv=args)
-        executor.add_node(node)
-        node.get_logger().info(f"spinning with the {kind} executor")
-        spin(executor)
+        with ends_on_signal(rclpy.get_default_context()):
+            executor = make_executor(kind)
+            node = (node_class or EstimatorNode)(argv=args)
+            executor.add_node(node)
+            node.get_logger().info(f"spinning with the {kind} executor")
+            spin(executor)
     except ParameterError as e:
         print(f"{prog}: {e}", file=sys.stderr)
         code = 2
-    except (KeyboardInterrupt, ExternalShutdownException):
-        # rclpy's signal thread may still be at work: let it finish before the teardown
-        await_signal_shutdown(rclpy.get_default_context())
-    except Exception:
-        if rclpy.ok():
-            raise
-        # a signal shut the context down under us (during start-up, or between the executor's
-        # check of the context and its wait: an RCLError "context is not valid")
-        await_signal_shutdown(rclpy.get_default_context())
     finally:
         if executor is not None:
             executor.shutdown()

@@ -37,7 +37,7 @@ import rclpy
 from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.clock import Clock, ClockType
 from rclpy.exceptions import ParameterUninitializedException
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
@@ -45,7 +45,7 @@ from rclpy.utilities import remove_ros_args
 
 from mkf_ros.bags import cdr
 from mkf_ros.bags.reader import BagError, BagReader, normalize_topic
-from mkf_ros.ros.signals import await_signal_shutdown
+from mkf_ros.ros.signals import ends_on_signal
 
 QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
                  reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
@@ -406,18 +406,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     executor.add_node(node)
     code = 0
     try:
-        while rclpy.ok() and not (node.done and node.p["exit_when_done"]):
-            executor.spin_once(timeout_sec=0.1)
-        code = 1 if node.failed else 0
-    except (KeyboardInterrupt, ExternalShutdownException):
-        # rclpy's signal thread may still be at work: let it finish before the teardown
-        await_signal_shutdown(rclpy.get_default_context())
-    except Exception:
-        if rclpy.ok():
-            raise
-        # the signal thread shut the context down between rclpy.ok() and the executor's wait
-        # (an RCLError "context is not valid"): a SIGINT like the above
-        await_signal_shutdown(rclpy.get_default_context())
+        with ends_on_signal(rclpy.get_default_context()):
+            while rclpy.ok() and not (node.done and node.p["exit_when_done"]):
+                executor.spin_once(timeout_sec=0.1)
+            code = 1 if node.failed else 0
     finally:
         executor.shutdown()
         node.destroy_node()

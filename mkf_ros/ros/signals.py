@@ -8,13 +8,18 @@ it is about to trigger and frees the list it is reading: the process ends in a s
 (exit -11) instead of exiting 0. Measured with ``test_console_script_with_client_process``
 under two busy cores: 4 segfaults in 40 runs, none in 40 with this wait.
 :func:`await_signal_shutdown` waits until the context is shut down, which rclpy's thread does
-after its last trigger.
+after its last trigger. :func:`ends_on_signal` is the one place the console scripts say what
+a signal looks like from the main thread.
 """
 
 from __future__ import annotations
 
+import contextlib
 import time
+from collections.abc import Iterator
 from typing import Any
+
+from rclpy.executors import ExternalShutdownException
 
 #: s, the longest wait for rclpy's signal thread (it takes well under a millisecond when the
 #: machine is not saturated; the bound only keeps a context nobody shuts down from hanging
@@ -31,3 +36,23 @@ def await_signal_shutdown(context: Any, timeout: float = SIGNAL_SHUTDOWN_TIMEOUT
             return False
         time.sleep(0.002)
     return True
+
+
+@contextlib.contextmanager
+def ends_on_signal(context: Any) -> Iterator[None]:
+    """Around a console script's start-up and spin loop: a signal ends the block quietly, after
+    :func:`await_signal_shutdown`; any other exception propagates. A signal reaches the main
+    thread as ``KeyboardInterrupt`` (SIGINT), ``ExternalShutdownException``, or any exception
+    raised because the context was shut down under it (an ``RCLError`` "context is not valid"
+    when rclpy's thread shut it down between the executor's check of the context and its wait,
+    or an error during start-up): with ``context`` no longer ok, that too is the signal."""
+    try:
+        yield
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except Exception:
+        if context.ok():
+            raise
+    else:
+        return
+    await_signal_shutdown(context)

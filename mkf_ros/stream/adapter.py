@@ -122,8 +122,9 @@ _FILTER_SKIP = {"samples", "gyr_missing", "gyr_invalid", "acc_missing", "acc_inv
                 "mag_missing", "mag_invalid", "before_init", "gaps", "update_failed"}
 FILTER_REPORTED = tuple(n for n in FILTER_COUNTERS if n not in _FILTER_SKIP)
 _FILTER_REASONS = {
-    "acc_rejected_norm": "raw accelerometer samples left out of the blend: magnitude over "
-                         f"{ACC_NORM_TOLERANCE:g} g off gravity (the low-pass still takes them)",
+    "acc_rejected_norm": "accelerometer samples not fused raw: magnitude over "
+                         f"{ACC_NORM_TOLERANCE:g} g off gravity (the low-pass carries gravity; "
+                         "refused while it forms its first average or is itself that far off)",
     "acc_rejected_chi2": "accelerometer samples not fused: innovation gate (chi-square 16.3)",
     "mag_rejected_norm": "magnetometer samples not fused: magnitude (mag_norm_tolerance)",
     "mag_rejected_chi2": "magnetometer samples not fused: innovation gate (chi-square 10.8)",

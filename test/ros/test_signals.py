@@ -14,7 +14,7 @@ import pytest
 import rclpy
 from rclpy.context import Context
 
-from mkf_ros.ros.signals import await_signal_shutdown
+from mkf_ros.ros.signals import await_signal_shutdown, ends_on_signal
 
 pytestmark = pytest.mark.ros
 
@@ -51,6 +51,25 @@ def test_gives_up_on_a_context_nobody_shuts_down() -> None:
     assert await_signal_shutdown(ctx, timeout=0.0)  # shut down: no wait
 
 
+def test_a_signal_ends_the_block_quietly_and_anything_else_propagates() -> None:
+    """What the console scripts take for a signal: KeyboardInterrupt, or any exception once
+    the context is shut down (rclpy's RCLError "context is not valid" from an executor whose
+    wait started after the shutdown); an error while the context is fine is not one."""
+    ctx = Context()
+    rclpy.init(context=ctx, signal_handler_options=rclpy.SignalHandlerOptions.NO)
+    try:
+        with pytest.raises(ValueError, match="a real error"), ends_on_signal(ctx):
+            raise ValueError("a real error")
+        threading.Timer(0.05, ctx.shutdown).start()  # rclpy's signal thread, a little later
+        with ends_on_signal(ctx):
+            raise KeyboardInterrupt
+        assert not ctx.ok()  # it waited for the shutdown before ending the block
+        with ends_on_signal(ctx):
+            raise RuntimeError("failed to initialize wait set: the given context is not valid")
+    finally:
+        ctx.try_shutdown()
+
+
 def test_sigint_with_a_second_executor_thread_exits_cleanly_every_time(tmp_path) -> None:
     """The estimator's shape (a main executor and a service thread with its own executor),
     SIGINT while both wait: the process exits 0, never by a signal, in 20 starts. Fifty more
@@ -60,8 +79,8 @@ def test_sigint_with_a_second_executor_thread_exits_cleanly_every_time(tmp_path)
     script.write_text(textwrap.dedent("""
         import sys, threading
         import rclpy
-        from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
-        from mkf_ros.ros.signals import await_signal_shutdown
+        from rclpy.executors import SingleThreadedExecutor
+        from mkf_ros.ros.signals import ends_on_signal
         rclpy.init()
         node, helper = rclpy.create_node("a"), rclpy.create_node("b")
         main_ex, helper_ex = SingleThreadedExecutor(), SingleThreadedExecutor()
@@ -79,14 +98,8 @@ def test_sigint_with_a_second_executor_thread_exits_cleanly_every_time(tmp_path)
         t.start()
         node.create_timer(0.001, lambda: None)  # the main thread wakes often, as under load
         print("ready", flush=True)
-        try:
+        with ends_on_signal(rclpy.get_default_context()):
             main_ex.spin()
-        except (KeyboardInterrupt, ExternalShutdownException):
-            await_signal_shutdown(rclpy.get_default_context())
-        except Exception:  # the context shut down between spin's check and its wait
-            if rclpy.ok():
-                raise
-            await_signal_shutdown(rclpy.get_default_context())
         main_ex.shutdown()
         for ex in others:
             ex.shutdown()
